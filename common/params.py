@@ -1,0 +1,179 @@
+"""Tracker parameters: the paper's five factors plus the knobs the paper leaves implicit.
+
+The five factors of the factorial design (Table 2 of the paper) keep their paper names in the
+docs and snake_case names in code:
+
+=============  ================  ===========================================  =======
+paper          field             meaning                                      default
+=============  ================  ===========================================  =======
+MAX_FEAT_NUM   max_features      maximum number of feature points             100
+THRES_PERCENT  thres_percent     % of pixels (strongest gradient) kept        2.0
+SEARCH_SIZE    search_size       search window width, px                      15
+CORR_SIZE      corr_size         correlation window width, px                 9
+UNGROUP_SIZE   ungroup_size      minimum distance between feature points, px  5
+=============  ================  ===========================================  =======
+
+Defaults are Table 4's fixed values (100, 2, 5) with the optimum the paper picked (15, 9).
+
+Window geometry: the correlation window is ``2 * (corr_size // 2) + 1`` pixels wide and the
+search covers every displacement within ``search_size // 2`` of the predicted position, so an
+even width behaves like the next odd one, as in the paper's C implementation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+WEIGHT_KINDS = ("uniform", "gaussian")
+
+
+class ParamError(ValueError):
+    """A parameter value is out of range or of the wrong type. The message names the field,
+    the value and what is allowed."""
+
+
+# field -> (low, high) inclusive bounds for numeric fields
+BOUNDS: dict[str, tuple[float, float]] = {
+    "max_features": (1, 2000),
+    "thres_percent": (0.1, 5.0),
+    "search_size": (2, 128),
+    "corr_size": (2, 64),
+    "ungroup_size": (0, 100),
+    "blur_sigma": (0.0, 10.0),
+    "grid_rows": (1, 32),
+    "grid_cols": (1, 32),
+    "cell_cap": (0, 2000),
+    "max_residual": (1.0, 255.0),
+    "redetect_fraction": (0.0, 1.0),
+}
+
+#: The paper's five factors, in Table 2's order (A..E of the 2^(5-1) design).
+FACTORS = ("max_features", "thres_percent", "search_size", "corr_size", "ungroup_size")
+
+_INT_FIELDS = {"max_features", "search_size", "corr_size", "ungroup_size", "grid_rows",
+               "grid_cols", "cell_cap"}
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    """Validated, immutable tracker configuration.
+
+    Parameters
+    ----------
+    max_features : MAX_FEAT_NUM, 1..2000.
+    thres_percent : THRES_PERCENT, 0.1..5.0 (% of the image's pixels kept as candidates).
+    search_size : SEARCH_SIZE, 2..128 px.
+    corr_size : CORR_SIZE, 2..64 px.
+    ungroup_size : UNGROUP_SIZE, 0..100 px.
+    blur_sigma : Gaussian pre-filter sigma in px, 0 disables the filter.
+    grid_rows, grid_cols : feature-bucketing grid.
+    cell_cap : most features chosen per grid cell; 0 picks ``ceil(2 * max_features / cells)``
+        so that buckets spread the features and the overall cap then trims the weakest.
+    weights : ``"uniform"`` or ``"gaussian"`` correlation-window weights W(i, j) of Eq. (1).
+    subpixel : refine each SSD minimum with a parabola through its neighbours.
+    max_residual : loss bound: a feature is lost when the RMS grey-level difference over its
+        correlation window at the best match exceeds this.
+    redetect_fraction : re-detect features when fewer than this fraction of ``max_features``
+        survive.
+    """
+
+    max_features: int = 100
+    thres_percent: float = 2.0
+    search_size: int = 15
+    corr_size: int = 9
+    ungroup_size: int = 5
+    blur_sigma: float = 1.0
+    grid_rows: int = 4
+    grid_cols: int = 4
+    cell_cap: int = 0
+    weights: str = "uniform"
+    subpixel: bool = False
+    max_residual: float = 40.0
+    redetect_fraction: float = 0.5
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            name = f.name
+            value = getattr(self, name)
+            if name == "weights":
+                if value not in WEIGHT_KINDS:
+                    raise ParamError(f"weights={value!r} is not allowed: use one of "
+                                     f"{', '.join(WEIGHT_KINDS)}")
+                continue
+            if name == "subpixel":
+                if not isinstance(value, bool):
+                    raise ParamError(f"subpixel={value!r} must be true or false")
+                continue
+            lo, hi = BOUNDS[name]
+            if name in _INT_FIELDS:
+                # bool is an int subclass; reject it (True would silently mean 1)
+                if isinstance(value, bool) or not isinstance(value, int):
+                    if isinstance(value, float) and value.is_integer():
+                        object.__setattr__(self, name, int(value))
+                        value = int(value)
+                    else:
+                        raise ParamError(f"{name}={value!r} must be an integer in {lo}..{hi}")
+                range_text = f"{int(lo)}..{int(hi)}"
+            else:
+                if isinstance(value, bool) or not isinstance(value, (int, float)):
+                    raise ParamError(f"{name}={value!r} must be a number in {lo}..{hi}")
+                value = float(value)
+                object.__setattr__(self, name, value)
+                range_text = f"{lo}..{hi}"
+            if not lo <= value <= hi:  # also rejects NaN
+                raise ParamError(f"{name}={value!r} is out of range: allowed {range_text}")
+
+    # -- derived geometry -------------------------------------------------------------------
+    @property
+    def corr_half(self) -> int:
+        """n of Eq. (1): the correlation window is (2n+1) x (2n+1)."""
+        return self.corr_size // 2
+
+    @property
+    def search_half(self) -> int:
+        """Half-width of the search window around the predicted position."""
+        return self.search_size // 2
+
+    @property
+    def effective_cell_cap(self) -> int:
+        if self.cell_cap:
+            return self.cell_cap
+        cells = self.grid_rows * self.grid_cols
+        return max(1, -(-2 * self.max_features // cells))
+
+    # -- construction helpers ---------------------------------------------------------------
+    def replace(self, **changes: Any) -> TrackerParams:
+        """A copy with ``changes`` applied and validated (unknown names raise ParamError)."""
+        return TrackerParams.from_mapping(changes, base=self)
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], *,
+                     base: TrackerParams | None = None) -> TrackerParams:
+        """Build from a mapping such as a decoded message or a launch file section.
+
+        Unknown names raise :class:`ParamError` listing the known ones, so a typo in a launch
+        file or a ``params set`` is reported instead of silently ignored.
+        """
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ParamError(f"unknown parameter {', '.join(unknown)}: known are "
+                             f"{', '.join(sorted(known))}")
+        merged = dataclasses.asdict(base if base is not None else cls())
+        merged.update(values)
+        return cls(**merged)
+
+    def factors(self) -> dict[str, float]:
+        """The five design factors as a dict (the fields of ``tuner/params``)."""
+        return {name: getattr(self, name) for name in FACTORS}
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def describe_bounds() -> str:
+    """One line per numeric field with its allowed range, for help texts."""
+    return "\n".join(f"  {k}: {lo}..{hi}" for k, (lo, hi) in BOUNDS.items())

@@ -85,7 +85,7 @@ class TrackerParams:
     search_size: int = 15
     corr_size: int = 9
     ungroup_size: int = 5
-    blur_sigma: float = 1.0
+    blur_sigma: float = 0.5
     grid_rows: int = 4
     grid_cols: int = 4
     cell_cap: int = 0

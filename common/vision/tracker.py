@@ -1,0 +1,212 @@
+"""The feature tracker: selection, SSD tracking with velocity prediction, loss and re-detection.
+
+State is explicit (``Tracker.update(pre) -> Estimate``) so a recorded run replays to the same
+numbers in one process or across the services.
+
+Per frame t -> t+1:
+
+1. prediction (Section 4): constant velocity from finite differences,
+   ``x_pred = x_t + (x_t - x_{t-1})`` (zero velocity for a feature's first step);
+2. SSD search of Eq. (1) around the prediction (:mod:`.ssd`);
+3. a feature is lost when its window leaves the image or its RMS residual exceeds
+   ``max_residual`` grey levels;
+4. when fewer than ``redetect_fraction * max_features`` survive, new features are chosen among
+   the frame's candidates (:mod:`.features`) away from the survivors; ids are never reused, and a
+   feature keeps its id while it is tracked;
+5. the estimate: Eq. (2) over the current features and the incremental motion of the matched
+   ones (:mod:`.motion`), accumulated over the run.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..params import TrackerParams
+from .features import select_features
+from .motion import centroid_scatter, incremental_motion
+from .preprocess import Preprocessed, preprocess
+from .ssd import track_ssd, window_weights
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The motion estimate of one frame (the fields of ``motion/estimate``).
+
+    Attributes
+    ----------
+    seq : frame number (0 for the first frame of the run unless given).
+    npi : number of feature points in the image (the paper's NPI).
+    xc, yc, xe, ye : Eq. (2) centroid and scatter, px.
+    dx, dy : robust image motion accumulated since the first frame, px.
+    scale : robust apparent scale accumulated since the first frame (> 1: closer).
+    t_ms : wall time to process this frame, ms.
+    first : True for the first frame of a run (its t_ms is the paper's t1).
+    ids : (npi,) int64 feature ids; points : (npi, 2) float64 x, y in px.
+    """
+
+    seq: int
+    npi: int
+    xc: float
+    yc: float
+    xe: float
+    ye: float
+    dx: float
+    dy: float
+    scale: float
+    t_ms: float
+    first: bool
+    ids: np.ndarray = field(repr=False)
+    points: np.ndarray = field(repr=False)
+
+    def features(self) -> list[list[float]]:
+        """The contract's ``features``: a list of [id, x, y]."""
+        return [[int(i), float(x), float(y)]
+                for i, (x, y) in zip(self.ids, self.points, strict=True)]
+
+    def as_dict(self) -> dict:
+        """The contract's ``motion/estimate`` / ``track --format jsonl`` fields."""
+        return {"seq": self.seq, "npi": self.npi, "xc": self.xc, "yc": self.yc, "xe": self.xe,
+                "ye": self.ye, "dx": self.dx, "dy": self.dy, "scale": self.scale,
+                "t_ms": self.t_ms, "first": self.first, "features": self.features()}
+
+
+class Tracker:
+    """SSD feature tracker over a sequence of pre-processed frames.
+
+    Parameters
+    ----------
+    params : TrackerParams; may be replaced between frames with :meth:`set_params`.
+    """
+
+    def __init__(self, params: TrackerParams | None = None) -> None:
+        self._params = params if params is not None else TrackerParams()
+        self._weights = window_weights(self._params.weights, self._params.corr_half)
+        self.reset()
+
+    # -- state ---------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget every feature; the next frame is a first frame."""
+        self._prev: np.ndarray | None = None
+        self._pos = np.empty((0, 2), np.float64)
+        self._vel = np.empty((0, 2), np.float64)
+        self._ids = np.empty(0, np.int64)
+        self._next_id = 0
+        self._acc_dx = 0.0
+        self._acc_dy = 0.0
+        self._acc_scale = 1.0
+        self._frame = 0
+        self.lost_total = 0
+        self.redetections = 0
+
+    @property
+    def params(self) -> TrackerParams:
+        return self._params
+
+    def set_params(self, params: TrackerParams) -> None:
+        """Apply new parameters from the next frame on; features already tracked are kept."""
+        self._params = params
+        self._weights = window_weights(params.weights, params.corr_half)
+
+    @property
+    def points(self) -> np.ndarray:
+        return self._pos.copy()
+
+    # -- processing ----------------------------------------------------------------------
+    def process(self, gray: np.ndarray, seq: int | None = None) -> Estimate:
+        """Pre-process and track one (H, W) uint8 frame; t_ms covers both."""
+        t0 = time.perf_counter()
+        pre = preprocess(gray, self._params)
+        return self.update(pre, seq=seq, t_start=t0)
+
+    def update(self, pre: Preprocessed, seq: int | None = None,
+               t_start: float | None = None) -> Estimate:
+        """Track one pre-processed frame and return its estimate.
+
+        ``t_start`` (a ``time.perf_counter()`` value) lets the caller include its own earlier
+        work, such as pre-processing, in ``t_ms``.
+        """
+        t0 = time.perf_counter() if t_start is None else t_start
+        p = self._params
+        frame = pre.filtered
+        first = self._prev is None
+        if not first and self._prev is not None and self._prev.shape != frame.shape:
+            raise ValueError(f"frame size {frame.shape[::-1]} differs from the previous "
+                             f"{self._prev.shape[::-1]} (width, height)")
+        if first:
+            self._add_features(pre, frame.shape)
+        else:
+            self._track(frame)
+            if len(self._pos) < p.redetect_fraction * p.max_features:
+                self._add_features(pre, frame.shape)
+        self._prev = frame
+        xc, yc, xe, ye = centroid_scatter(self._pos)
+        est = Estimate(
+            seq=self._frame if seq is None else int(seq), npi=len(self._pos),
+            xc=xc, yc=yc, xe=xe, ye=ye, dx=self._acc_dx, dy=self._acc_dy,
+            scale=self._acc_scale, t_ms=(time.perf_counter() - t0) * 1e3, first=first,
+            ids=self._ids.copy(), points=self._pos.copy())
+        self._frame += 1
+        return est
+
+    def _track(self, frame: np.ndarray) -> None:
+        p = self._params
+        assert self._prev is not None
+        if len(self._pos) == 0:
+            return
+        anchors = np.rint(self._pos).astype(np.int64)
+        centers = np.rint(self._pos + self._vel).astype(np.int64)
+        match, ssd, ok = track_ssd(self._prev, frame, anchors, centers, corr_half=p.corr_half,
+                                   search_half=p.search_half, weights=self._weights,
+                                   subpixel=p.subpixel)
+        # the template sits at the rounded position: carry the sub-pixel part along
+        new_pos = self._pos + (match - anchors)
+        wsum = float(self._weights.sum())
+        with np.errstate(invalid="ignore"):
+            rms = np.sqrt(ssd / wsum)
+        ok &= rms <= p.max_residual
+        if ok.any():
+            dx, dy, scale = incremental_motion(self._pos[ok], new_pos[ok])
+            self._acc_dx += dx
+            self._acc_dy += dy
+            self._acc_scale *= scale
+        self.lost_total += int((~ok).sum())
+        self._vel = (new_pos - self._pos)[ok]
+        self._pos = new_pos[ok]
+        self._ids = self._ids[ok]
+
+    def _add_features(self, pre: Preprocessed, shape: tuple[int, int]) -> None:
+        p = self._params
+        room = p.max_features - len(self._pos)
+        if room <= 0:
+            return
+        chosen = select_features(pre.candidates, shape, p, existing=self._pos, max_count=room)
+        if len(chosen) == 0:
+            return
+        new = pre.candidates[chosen].astype(np.float64)
+        self._pos = np.concatenate([self._pos, new])
+        self._vel = np.concatenate([self._vel, np.zeros_like(new)])
+        self._ids = np.concatenate([self._ids, np.arange(self._next_id,
+                                                         self._next_id + len(new))])
+        self._next_id += len(new)
+        if self._frame > 0:
+            self.redetections += 1
+
+
+def track_frames(frames: Iterable[np.ndarray], params: TrackerParams | None = None) -> list[
+        Estimate]:
+    """Run a fresh tracker over (H, W) uint8 frames; one Estimate per frame."""
+    tracker = Tracker(params)
+    return [tracker.process(f) for f in frames]
+
+
+def timing(estimates: list[Estimate]) -> tuple[float, float]:
+    """The paper's t1 (first frame) and tf (mean of the following frames), in ms."""
+    if not estimates:
+        return float("nan"), float("nan")
+    t1 = estimates[0].t_ms
+    rest = [e.t_ms for e in estimates[1:]]
+    return t1, float(np.mean(rest)) if rest else float("nan")

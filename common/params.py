@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from typing import Any
 
 WEIGHT_KINDS = ("uniform", "gaussian")
+STRENGTH_KINDS = ("min_eigen", "gradient")
 
 
 class ParamError(ValueError):
@@ -73,6 +74,9 @@ class TrackerParams:
     cell_cap : most features chosen per grid cell; 0 picks ``ceil(2 * max_features / cells)``
         so that buckets spread the features and the overall cap then trims the weakest.
     weights : ``"uniform"`` or ``"gaussian"`` correlation-window weights W(i, j) of Eq. (1).
+    strength : how candidates are ranked: ``"min_eigen"`` (smaller eigenvalue of the gradient
+        structure tensor, default) or ``"gradient"`` (Sobel magnitude, the paper's literal
+        measure); see :mod:`vistrack.common.vision.preprocess`.
     subpixel : refine each SSD minimum with a parabola through its neighbours.
     max_residual : loss bound: a feature is lost when the RMS grey-level difference over its
         correlation window at the best match exceeds this.
@@ -90,6 +94,7 @@ class TrackerParams:
     grid_cols: int = 4
     cell_cap: int = 0
     weights: str = "uniform"
+    strength: str = "min_eigen"
     subpixel: bool = False
     max_residual: float = 40.0
     redetect_fraction: float = 0.5
@@ -102,6 +107,11 @@ class TrackerParams:
                 if value not in WEIGHT_KINDS:
                     raise ParamError(f"weights={value!r} is not allowed: use one of "
                                      f"{', '.join(WEIGHT_KINDS)}")
+                continue
+            if name == "strength":
+                if value not in STRENGTH_KINDS:
+                    raise ParamError(f"strength={value!r} is not allowed: use one of "
+                                     f"{', '.join(STRENGTH_KINDS)}")
                 continue
             if name == "subpixel":
                 if not isinstance(value, bool):

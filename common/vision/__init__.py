@@ -4,8 +4,8 @@ selection, the SSD search of Eq. (1), the tracker and the position estimate of E
 from .features import select_features
 from .motion import centroid_scatter, incremental_motion
 from .preprocess import Preprocessed, preprocess, to_gray
-from .ssd import track_ssd, warm_up, window_weights
-from .tracker import Estimate, Tracker, timing, track_frames
+from .ssd import track_ssd, window_weights
+from .tracker import Estimate, Tracker, timing, track_frames, warm_up
 
 __all__ = ["Estimate", "Preprocessed", "Tracker", "centroid_scatter", "incremental_motion",
            "preprocess", "select_features", "timing", "to_gray", "track_frames", "track_ssd",

@@ -35,12 +35,28 @@ def centroid_scatter(points: np.ndarray) -> tuple[float, float, float, float]:
     return float(xc), float(yc), xe, ye
 
 
-def _inliers(disp: np.ndarray) -> np.ndarray:
-    """Mask of displacements within 3 robust sigmas (MAD) of the median, >= 0.5 px slack."""
-    med = np.median(disp, axis=0)
-    r = np.hypot(*(disp - med).T)
-    mad = 1.4826 * np.median(r)
-    return r <= max(3.0 * mad, 0.5)
+def _similarity_inliers(a: np.ndarray, b: np.ndarray, rounds: int = 3) -> np.ndarray:
+    """Mask of point pairs that agree with one translation + isotropic scale.
+
+    Least-squares fit of ``b - mean(b) = s (a - mean(a))``, then pairs whose residual exceeds
+    3 robust sigmas (MAD, at least 0.5 px) are left out and the fit repeated. A plain median
+    of the displacements would reject the genuine outer points of a scale change.
+    """
+    keep = np.ones(len(a), bool)
+    for _ in range(rounds):
+        if keep.sum() < 3:
+            break
+        ca, cb = a[keep].mean(axis=0), b[keep].mean(axis=0)
+        da = a - ca
+        denom = float((da[keep] ** 2).sum())
+        s = float((da[keep] * (b[keep] - cb)).sum()) / denom if denom > 1e-12 else 1.0
+        r = np.hypot(*(b - cb - s * da).T)
+        mad = 1.4826 * float(np.median(r[keep]))
+        new = r <= max(3.0 * mad, 0.5)
+        if (new == keep).all():
+            break
+        keep = new
+    return keep
 
 
 def incremental_motion(before: np.ndarray, after: np.ndarray) -> tuple[float, float, float]:
@@ -52,8 +68,8 @@ def incremental_motion(before: np.ndarray, after: np.ndarray) -> tuple[float, fl
 
     Returns
     -------
-    dx, dy : mean displacement of the inliers, px (outliers beyond 3 MAD of the median
-        displacement are left out, so a few mismatches cannot drag it).
+    dx, dy : mean displacement of the inliers, px. Inliers are the pairs consistent with one
+        translation and scale (:func:`_similarity_inliers`), so mismatches cannot drag it.
     scale : ratio of the inliers' mean distance to their centroid, after / before (> 1 when the
         target grows: the camera approaches it); 1 when fewer than 3 inliers.
     """
@@ -63,9 +79,8 @@ def incremental_motion(before: np.ndarray, after: np.ndarray) -> tuple[float, fl
         raise ValueError(f"before {a.shape} and after {b.shape} must have one shape")
     if len(a) == 0:
         return 0.0, 0.0, 1.0
-    disp = b - a
-    keep = _inliers(disp)
-    dx, dy = disp[keep].mean(axis=0)
+    keep = _similarity_inliers(a, b) if len(a) >= 3 else np.ones(len(a), bool)
+    dx, dy = (b[keep] - a[keep]).mean(axis=0)
     scale = 1.0
     if keep.sum() >= 3:
         a_in, b_in = a[keep], b[keep]

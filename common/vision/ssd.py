@@ -382,13 +382,3 @@ def ssd_surface(prev: np.ndarray, curr: np.ndarray, anchor: tuple[int, int],
              int(anchor[0]), int(anchor[1]), int(center[0]), int(center[1]), int(corr_half), s,
              np.ascontiguousarray(weights, np.int64), out)
     return out
-
-
-def warm_up() -> None:
-    """Compile (or load from cache) the numba kernels so the first frame is not slow."""
-    img = np.zeros((32, 32), np.uint8)
-    pts = np.array([[16, 16]], np.int64)
-    for wts in (window_weights("uniform", 2), window_weights("gaussian", 2)):
-        track_ssd(img, img, pts, pts, corr_half=2, search_half=2, weights=wts, subpixel=True)
-    ssd_surface(img, img, (16, 16), (16, 16), corr_half=2, search_half=2,
-                weights=window_weights("uniform", 2))

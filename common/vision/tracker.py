@@ -210,3 +210,13 @@ def timing(estimates: list[Estimate]) -> tuple[float, float]:
     t1 = estimates[0].t_ms
     rest = [e.t_ms for e in estimates[1:]]
     return t1, float(np.mean(rest)) if rest else float("nan")
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) every kernel the tracker uses, so that the first
+    real frame, the paper's t1, measures the tracker and not the JIT."""
+    from ..synthetic import sequence
+
+    frames = sequence(3, size=(64, 64), seed=1)
+    for p in (TrackerParams(subpixel=True), TrackerParams(weights="gaussian")):
+        track_frames(frames, p.replace(max_features=20, search_size=5, corr_size=5))

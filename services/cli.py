@@ -1,0 +1,50 @@
+"""``vistrack``: the one entry point (CONTRACT: see README "Command line").
+
+Each subcommand's arguments and code live in its own module (``add_arguments(parser)`` and
+``main(args) -> exit code``); this file only wires them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+# name -> (module under vistrack.services, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "track": ("track", "track features over recorded frames, offline (no Zenoh)"),
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line (``vistrack X: error: ...``) and exit code 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="vistrack", description="Fast, self-tuning visual tracking for "
+                     "mobile robots: the services, the launcher and the tools.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    for name, (module, text) in COMMANDS.items():
+        mod = importlib.import_module(f"vistrack.services.{module}")
+        p = sub.add_parser(name, help=text, description=(mod.__doc__ or text).strip())
+        p.formatter_class = argparse.RawDescriptionHelpFormatter
+        mod.add_arguments(p)
+        p.set_defaults(_module=mod)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args._module.main(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,27 @@
+"""Fixtures for the pure-algorithm tests: real frames from the shared Middlebury data."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from vistrack.common import groundtruth
+from vistrack.common.vision import to_gray
+
+
+def load_pair(sequence: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """frame10, frame11 (grey) and the ground-truth flow of a Middlebury sequence, or skip."""
+    folder = groundtruth.middlebury(sequence)
+    if folder is None:
+        pytest.skip(f"Middlebury {sequence} not found: set VISTRACK_DATA or put the shared "
+                    "data at ../shared/data")
+    a = to_gray(cv2.imread(str(folder / "frame10.png")))
+    b = to_gray(cv2.imread(str(folder / "frame11.png")))
+    return a, b, groundtruth.read_flo(folder / "flow10.flo")
+
+
+@pytest.fixture(scope="session")
+def real_image() -> np.ndarray:
+    """A real 256x256 grey image (RubberWhale frame10, cropped), or skip."""
+    a, _, _ = load_pair("RubberWhale")
+    return np.ascontiguousarray(a[60:316, 160:416])

@@ -1,0 +1,50 @@
+"""TrackerParams: Table 4 defaults and validation that names field, value and range."""
+
+from __future__ import annotations
+
+import pytest
+from vistrack.common.params import BOUNDS, FACTORS, ParamError, TrackerParams
+
+
+def test_defaults_are_table4_with_the_papers_optimum():
+    p = TrackerParams()
+    assert (p.max_features, p.thres_percent, p.ungroup_size) == (100, 2.0, 5)
+    assert (p.search_size, p.corr_size) == (15, 9)
+    assert FACTORS == ("max_features", "thres_percent", "search_size", "corr_size",
+                       "ungroup_size")
+
+
+@pytest.mark.parametrize("field", sorted(BOUNDS))
+def test_out_of_range_names_field_value_and_range(field):
+    lo, hi = BOUNDS[field]
+    for bad in (lo - 1, hi + 1):
+        with pytest.raises(ParamError) as err:
+            TrackerParams(**{field: bad})
+        text = str(err.value)
+        assert text.startswith(f"{field}=") and "allowed" in text
+        assert f"{lo:g}" in text and f"{hi:g}" in text
+
+
+@pytest.mark.parametrize("field,value", [("search_size", "15"), ("max_features", 2.5),
+                                         ("corr_size", True), ("thres_percent", "x"),
+                                         ("thres_percent", float("nan")),
+                                         ("weights", "box"), ("subpixel", 1),
+                                         ("strength", "harris")])
+def test_wrong_types_are_rejected(field, value):
+    with pytest.raises(ParamError, match=field):
+        TrackerParams(**{field: value})
+
+
+def test_replace_and_from_mapping():
+    p = TrackerParams().replace(search_size=21, corr_size=11.0)
+    assert p.search_size == 21 and p.corr_size == 11 and isinstance(p.corr_size, int)
+    with pytest.raises(ParamError, match="unknown parameter serch_size"):
+        TrackerParams.from_mapping({"serch_size": 3})
+    with pytest.raises(AttributeError):
+        p.search_size = 3  # type: ignore[misc]
+
+
+def test_geometry():
+    p = TrackerParams(search_size=15, corr_size=8)
+    assert p.corr_half == 4 and p.search_half == 7
+    assert TrackerParams(max_features=100).effective_cell_cap == 13

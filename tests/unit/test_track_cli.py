@@ -1,0 +1,115 @@
+"""``vistrack track``: the CLI contract, outputs equal to the library, bad input -> exit 2."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import shutil
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+from vistrack.common import groundtruth
+from vistrack.common.params import TrackerParams
+from vistrack.common.vision import Tracker, to_gray
+
+
+def vistrack(*args, check=False):
+    return subprocess.run([sys.executable, "-m", "vistrack.services.cli", *args],
+                          capture_output=True, text=True, timeout=120, check=check)
+
+
+@pytest.fixture(scope="module")
+def rubberwhale():
+    folder = groundtruth.middlebury("RubberWhale")
+    if folder is None:
+        pytest.skip("Middlebury RubberWhale not found: set VISTRACK_DATA or put the shared "
+                    "data at ../shared/data")
+    return folder
+
+
+def test_jsonl_equals_the_library(rubberwhale):
+    out = vistrack("track", str(rubberwhale), "--format", "jsonl", "--search-size", "21",
+                   "--corr-size", "11", "--subpixel", check=True).stdout
+    rows = [json.loads(line) for line in out.splitlines()]
+    assert len(rows) == 8
+    tracker = Tracker(TrackerParams(search_size=21, corr_size=11, subpixel=True))
+    for i, row in enumerate(rows):
+        frame = to_gray(cv2.imread(str(rubberwhale / f"frame{7 + i:02d}.png")))
+        e = tracker.process(frame).as_dict()
+        assert set(row) >= {"seq", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale", "t_ms",
+                            "features"}
+        for k in ("seq", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale", "features"):
+            assert row[k] == e[k], k
+        assert row["npi"] == len(row["features"])
+        assert row["t_ms"] > 0
+
+
+def test_table_and_csv_formats(rubberwhale, tmp_path):
+    files = [str(rubberwhale / f"frame{i:02d}.png") for i in (10, 11, 12)]
+    table = vistrack("track", *files, check=True).stdout.splitlines()
+    body = [line for line in table if not line.startswith("#")]
+    assert len(body) == 3 and "NPI" in table[1] and "t1=" in table[-1]
+    rows = list(csv.DictReader(io.StringIO(
+        vistrack("track", *files, "--format", "csv", "--resize", "256x256",
+                 check=True).stdout)))
+    assert len(rows) == 3 and float(rows[0]["npi"]) > 0
+    # a glob, and a folder with the same files, give the same estimates
+    for f in files:
+        shutil.copy(f, tmp_path)
+    a = vistrack("track", str(tmp_path), "--format", "jsonl", check=True).stdout
+    b = vistrack("track", str(tmp_path / "frame1*.png"), "--format", "jsonl", check=True).stdout
+    strip = [{k: v for k, v in json.loads(x).items() if k != "t_ms"} for x in a.splitlines()]
+    strip_b = [{k: v for k, v in json.loads(x).items() if k != "t_ms"} for x in b.splitlines()]
+    assert strip == strip_b and len(strip) == 3
+
+
+def test_video_file_and_builtin(tmp_path):
+    from vistrack.common import synthetic
+
+    frames = synthetic.sequence(6, size=(128, 96), motion=synthetic.Motion(dx=2.0))
+    path = str(tmp_path / "clip.avi")
+    vw = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"MJPG"), 10, (128, 96))
+    for f in frames:
+        vw.write(cv2.cvtColor(f, cv2.COLOR_GRAY2BGR))  # colour in, converted to grey
+    vw.release()
+    rows = [json.loads(x) for x in vistrack("track", path, "--format", "jsonl",
+                                            check=True).stdout.splitlines()]
+    assert len(rows) == 6 and abs(rows[-1]["dx"] - 10.0) < 1.0
+    out = vistrack("track", "--format", "jsonl", check=True).stdout.splitlines()
+    assert len(out) == 60  # the built-in sequence
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["/no/such/file.png"], "no such file"),
+    (["--search-size", "500"], "--search-size 500 is out of range: allowed 2..128"),
+    (["--thres-percent", "9"], "--thres-percent 9.0 is out of range: allowed 0.1..5"),
+    (["--format", "xml"], "invalid choice"),
+    (["--resize", "big"], "WIDTHxHEIGHT"),
+    (["--max-features", "many"], "invalid int value"),
+])
+def test_bad_input_is_one_line_and_exit_2(args, needle):
+    r = vistrack("track", *args)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0] and "Traceback" not in r.stderr
+
+
+def test_bad_files_are_one_line_and_exit_2(tmp_path):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "junk.png").write_bytes(b"not a png")
+    a = np.zeros((40, 50), np.uint8)
+    cv2.imwrite(str(tmp_path / "a.png"), a)
+    cv2.imwrite(str(tmp_path / "b.png"), np.zeros((40, 60), np.uint8))
+    cases = [([str(tmp_path / "empty")], "folder holds no image"),
+             ([str(tmp_path / "junk.png")], "not a readable image"),
+             ([str(tmp_path / "a.png"), str(tmp_path / "b.png")], "60x40 but the first was 50x40"),
+             ([str(tmp_path / "nothing*.png")], "matches no image file")]
+    for args, needle in cases:
+        r = vistrack("track", *args)
+        assert r.returncode == 2, args
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and needle in lines[0], r.stderr

@@ -1,0 +1,144 @@
+"""The tracker and the position estimate against known motion and real ground-truth flow."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from conftest import load_pair
+from vistrack.common import groundtruth, synthetic
+from vistrack.common.params import TrackerParams
+from vistrack.common.vision import Tracker, centroid_scatter, incremental_motion
+
+
+def two_frame_run(a, b, params):
+    tracker = Tracker(params)
+    e0 = tracker.process(a)
+    e1 = tracker.process(b)
+    start = dict(zip(e0.ids.tolist(), e0.points, strict=True))
+    before = np.array([start[i] for i in e1.ids.tolist()])
+    return e0, e1, before
+
+
+@pytest.mark.parametrize("dx,dy", [(3, 0), (0, -2), (2, 1), (0.5, 0), (1.25, -0.75),
+                                   (-2.3, 1.6), (0.2, 0.1)])
+def test_known_shift_of_a_real_image_recovered(real_image, dx, dy):
+    """Real image shifted by a known (sub-)pixel amount: translation within 0.1 px."""
+    m = np.float32([[1, 0, dx], [0, 1, dy]])
+    shifted = cv2.warpAffine(real_image, m, real_image.shape[::-1], flags=cv2.INTER_LINEAR,
+                             borderMode=cv2.BORDER_REFLECT)
+    _, e1, before = two_frame_run(real_image, shifted, TrackerParams(subpixel=True))
+    disp = e1.points - before
+    assert e1.npi >= 80
+    # the estimate of the image motion, and the features themselves
+    assert abs(e1.dx - dx) <= 0.1 and abs(e1.dy - dy) <= 0.1
+    assert np.median(np.abs(disp[:, 0] - dx)) <= 0.1
+    assert np.median(np.abs(disp[:, 1] - dy)) <= 0.1
+
+
+@pytest.mark.parametrize("scale", [0.97, 0.99, 1.02, 1.04])
+def test_known_scale_of_a_real_image_recovered(real_image, scale):
+    """Real image scaled about its centre by a known factor: scale within 1 %."""
+    zoomed = synthetic.warp(real_image, scale=scale)
+    _, e1, before = two_frame_run(real_image, zoomed, TrackerParams(subpixel=True))
+    assert e1.npi >= 50
+    assert abs(e1.scale / scale - 1) <= 0.01
+    # scaling about the image centre moves the features' mean by (s - 1)(mean - centre); the
+    # estimate averages the inliers only, a subset whose mean differs by a fraction of a px
+    centre = (np.array(real_image.shape[::-1]) - 1) / 2.0
+    expect = (scale - 1) * (before.mean(axis=0) - centre)
+    assert abs(e1.dx - expect[0]) < 0.25 and abs(e1.dy - expect[1]) < 0.25
+
+
+@pytest.mark.parametrize("sequence", ["RubberWhale", "Dimetrodon", "Venus"])
+def test_middlebury_median_endpoint_error(sequence):
+    """Tracked features against Middlebury ground-truth flow: median EPE <= 0.5 px."""
+    a, b, flow = load_pair(sequence)
+    _, e1, before = two_frame_run(a, b, TrackerParams(subpixel=True))
+    err = groundtruth.endpoint_errors(before, e1.points, flow)
+    assert len(err) >= 50
+    assert np.median(err) <= 0.5
+
+
+def test_table1_motion_along_x_moves_xc_only():
+    """Table 1a: motion along X moves xc by the true shift while yc stays put."""
+    frames = synthetic.sequence(10, motion=synthetic.Motion(dx=2.0))
+    tracker = Tracker(TrackerParams(subpixel=True, redetect_fraction=0.0))
+    ests = [tracker.process(f) for f in frames]
+    same = 0
+    for prev, cur in zip(ests, ests[1:], strict=False):
+        if cur.npi == prev.npi:  # the paper's sums jump when features are lost
+            assert abs((cur.xc - prev.xc) - 2.0) < 0.1
+            assert abs(cur.yc - prev.yc) < 0.1
+            same += 1
+    assert same >= 5
+    assert abs(ests[-1].dx - 18.0) < 0.3 and abs(ests[-1].dy) < 0.3
+
+
+def test_table1_motion_away_from_camera_shrinks_scatter():
+    """Table 1b: the scene recedes (shrinks in the image): xe and ye decrease."""
+    frames = synthetic.sequence(10, motion=synthetic.Motion(scale=0.97))
+    tracker = Tracker(TrackerParams(subpixel=True, redetect_fraction=0.0))
+    ests = [tracker.process(f) for f in frames]
+    for prev, cur in zip(ests, ests[1:], strict=False):
+        if cur.npi == prev.npi:
+            assert cur.xe < prev.xe and cur.ye < prev.ye
+    assert ests[-1].xe < 0.85 * ests[0].xe and ests[-1].ye < 0.85 * ests[0].ye
+    assert abs(ests[-1].scale - 0.97 ** 9) < 0.01
+
+
+def test_centroid_and_scatter_are_equation_2():
+    pts = np.array([[10.0, 20.0], [14.0, 26.0], [6.0, 17.0]])
+    xc, yc, xe, ye = centroid_scatter(pts)
+    assert (xc, yc) == (10.0, 21.0)
+    assert xe == abs(10 - 10) + abs(10 - 14) + abs(10 - 6)
+    assert ye == abs(21 - 20) + abs(21 - 26) + abs(21 - 17)
+
+
+def test_incremental_motion_ignores_outliers():
+    rng = np.random.default_rng(3)
+    a = rng.uniform(0, 200, (60, 2))
+    b = 100 + 1.05 * (a - 100) + [1.5, -0.5]
+    b[:6] += rng.uniform(-20, 20, (6, 2))  # six mismatches
+    dx, dy, scale = incremental_motion(a, b)
+    inl = slice(6, None)
+    expect = (b[inl] - a[inl]).mean(axis=0)  # computed on the true inliers only
+    assert abs(dx - expect[0]) < 1e-9 and abs(dy - expect[1]) < 1e-9
+    assert abs(scale - 1.05) < 1e-9
+
+
+def test_ids_persist_while_tracked_and_are_never_reused():
+    frames = synthetic.sequence(30, motion=synthetic.Motion(dx=3.0, dy=1.0))
+    tracker = Tracker(TrackerParams(redetect_fraction=0.9))
+    seen: set[int] = set()
+    prev = None
+    for f in frames:
+        e = tracker.process(f)
+        ids = e.ids.tolist()
+        assert len(ids) == len(set(ids))
+        if prev is not None:
+            old = dict(zip(prev.ids.tolist(), prev.points, strict=True))
+            for i, p in zip(ids, e.points, strict=True):
+                if i in old:  # the same feature, moved by the scene's motion
+                    assert np.allclose(p - old[i], [3.0, 1.0], atol=1.0)
+                else:
+                    assert i not in seen  # a new feature gets a new id
+        seen.update(ids)
+        prev = e
+    assert tracker.redetections > 0
+
+
+def test_parameters_change_between_frames():
+    frames = synthetic.sequence(4, motion=synthetic.Motion(dx=1.0))
+    tracker = Tracker(TrackerParams())
+    tracker.process(frames[0])
+    tracker.set_params(TrackerParams(search_size=31, corr_size=15))
+    e = tracker.process(frames[1])
+    assert tracker.params.search_size == 31 and e.npi > 50 and abs(e.dx - 1.0) < 0.2
+
+
+def test_frame_size_change_is_an_error():
+    tracker = Tracker()
+    tracker.process(np.zeros((64, 64), np.uint8))
+    with pytest.raises(ValueError, match="differs"):
+        tracker.process(np.zeros((64, 80), np.uint8))

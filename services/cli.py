@@ -14,6 +14,7 @@ from collections.abc import Sequence
 # name -> (module under vistrack.services, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "track": ("track", "track features over recorded frames, offline (no Zenoh)"),
+    "bench": ("bench", "benchmarks against OpenCV / raw Zenoh peers, printed as tables"),
 }
 
 

@@ -1,0 +1,25 @@
+"""Tracker benchmark (deselected by default: ``pytest -m bench``; or ``vistrack bench tracker``).
+
+Prints the table; asserts only that every figure was measured, never a time.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+
+import pytest
+
+from vistrack.services.bench import bench_tracker
+
+pytestmark = pytest.mark.bench
+
+
+def test_bench_tracker(capsys):
+    buf = io.StringIO()
+    fig = bench_tracker(out=buf)
+    with capsys.disabled():
+        print("\n" + buf.getvalue())
+    for key in ("ssd_15_9", "matchtemplate_15_9", "lk_level0", "lk_level2", "ssd_50_30",
+                "whole_frame"):
+        assert math.isfinite(fig[key]) and fig[key] > 0

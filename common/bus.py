@@ -1,0 +1,663 @@
+"""Zenoh plumbing shared by every service and tool.
+
+* :func:`add_zenoh_args` / :func:`config_from_args`: the command line contract's Zenoh flags
+  (``-m -e -l -c --no-multicast-scouting --robot``) turned into a ``zenoh.Config`` the way
+  zenoh-python's ``examples/common/common.py`` does it.
+* :class:`Node`: the seam a service loop is written against (``subscribe``, ``recv``,
+  ``publish``, ``status``, ``stop``), like dora's node API. :class:`ZenohNode` runs it over a
+  real Zenoh session (liveliness token, status queryable); :class:`MemoryNode` runs the same
+  semantics in memory, so a service loop is tested in-process by feeding scripted payloads.
+* :class:`Status`: the counters every service reports on ``vistrack/<robot>/<service>/status``.
+* :func:`install_signal_handlers`, :func:`query_status`, :func:`alive_services`.
+
+Delivery semantics of :meth:`Node.recv` (identical for both nodes):
+
+* reliable inputs (``subscribe(key, latest=False)``) are queued and delivered in arrival
+  order, before anything else, without loss;
+* latest-only inputs (``latest=True``) keep one slot per key: a newer payload overwrites a
+  pending one, which counts as dropped. Pending slots are delivered oldest-waiting first.
+
+A service loop reads::
+
+    with ZenohNode("preprocessing", conf, robot) as node:
+        install_signal_handlers(node.stop)
+        node.subscribe(node.keys.frame, latest=True)
+        node.subscribe(node.keys.params, latest=False)
+        while not node.stop.is_set():
+            item = node.recv(timeout=0.1)
+            ...
+"""
+
+from __future__ import annotations
+
+import abc
+import argparse
+import collections
+import json
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from types import FrameType, TracebackType
+from typing import Any, ClassVar, NamedTuple, TypeVar
+
+import numpy as np
+import zenoh
+from vistrack.common.keys import Keys, validate_robot_id, validate_service_name
+from vistrack.common.messages import MessageError, pack, peek_seq, unpack
+
+log = logging.getLogger(__name__)
+
+_N = TypeVar("_N", bound="Node")
+
+#: Reliable payloads a node queues before its Zenoh callback blocks (see ZenohNode).
+DEFAULT_CAPACITY = 1024
+# Longest a blocked recv() sleeps before re-checking ``stop``: bounds the shutdown delay
+# without costing latency (data wake it at once through the condition variable).
+_STOP_POLL_S = 0.05
+
+
+class BusError(Exception):
+    """A Zenoh configuration or session problem (bad config file, endpoint, closed node)."""
+
+
+# -- command line --------------------------------------------------------------------------
+
+def _robot_arg(value: str) -> str:
+    try:
+        return validate_robot_id(value)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
+def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
+    """Add the Zenoh flags of the command line contract to ``parser``."""
+    group = parser.add_argument_group("zenoh")
+    group.add_argument("-m", "--mode", choices=["peer", "client", "router"],
+                       help="Zenoh session mode (default: the config file's, else peer)")
+    group.add_argument("-e", "--connect", metavar="ENDPOINT", action="append",
+                       help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    group.add_argument("-l", "--listen", metavar="ENDPOINT", action="append",
+                       help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
+    group.add_argument("-c", "--config", metavar="FILE.json5",
+                       help="Zenoh configuration file; the flags above override it")
+    group.add_argument("--no-multicast-scouting", action="store_true",
+                       help="disable multicast scouting (use with -e)")
+    group.add_argument("--robot", default="robot", type=_robot_arg, metavar="ID",
+                       help="robot id: every key lives under vistrack/<ID>/ (default: robot)")
+
+
+def config_from_args(args: argparse.Namespace) -> zenoh.Config:
+    """The ``zenoh.Config`` described by the flags of :func:`add_zenoh_args`.
+
+    Raises
+    ------
+    BusError
+        If the config file is missing or invalid, or a flag value is rejected by Zenoh; the
+        text names the file or flag and the reason.
+    """
+    path = getattr(args, "config", None)
+    if path is not None:
+        if not Path(path).is_file():
+            raise BusError(f"zenoh config file {path}: not found")
+        try:
+            conf = zenoh.Config.from_file(path)
+        except zenoh.ZError as err:
+            raise BusError(f"zenoh config file {path}: {err}") from None
+    else:
+        conf = zenoh.Config()
+    settings = [
+        ("--mode", "mode", getattr(args, "mode", None)),
+        ("--connect", "connect/endpoints", getattr(args, "connect", None)),
+        ("--listen", "listen/endpoints", getattr(args, "listen", None)),
+        ("--no-multicast-scouting", "scouting/multicast/enabled",
+         False if getattr(args, "no_multicast_scouting", False) else None),
+    ]
+    for flag, key, value in settings:
+        if value is None:
+            continue
+        try:
+            conf.insert_json5(key, json.dumps(value))
+        except zenoh.ZError as err:
+            raise BusError(f"zenoh {flag} {value!r}: {err}") from None
+    return conf
+
+
+def open_session(conf: zenoh.Config) -> zenoh.Session:
+    """``zenoh.open`` with errors (e.g. a listen port in use) raised as :class:`BusError`."""
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as err:
+        raise BusError(f"cannot open zenoh session: {err}") from None
+
+
+# -- status ------------------------------------------------------------------------------
+
+class Status:
+    """Thread-safe service counters, reported by the status queryable.
+
+    Parameters
+    ----------
+    window : number of most recent processing times the percentiles are computed over.
+
+    Attributes
+    ----------
+    received : payloads that arrived on subscribed keys.
+    published : payloads published.
+    dropped : payloads lost: latest-only payloads overwritten before being consumed, plus
+        gaps in the publishers' ``seq``.
+    rejected : bad inputs (counted by the service through :meth:`reject`).
+    last_error : text of the last rejection or error, "" if none.
+    params : the parameters in force (set by the service).
+    extra : service-specific values (e.g. frames, npi), msgpack-encodable; reported as is.
+        Mutate from the service loop's thread only.
+    started : wall-clock start time, s since the Unix epoch.
+    """
+
+    def __init__(self, window: int = 1000) -> None:
+        self._lock = threading.Lock()
+        self._times_ms: collections.deque[float] = collections.deque(maxlen=window)
+        self.received = 0
+        self.published = 0
+        self.dropped = 0
+        self.rejected = 0
+        self.last_error = ""
+        self.params: dict[str, Any] = {}
+        self.extra: dict[str, Any] = {}
+        self.started = time.time()
+        self._started_mono = time.monotonic()
+
+    def count_received(self, n: int = 1) -> None:
+        with self._lock:
+            self.received += n
+
+    def count_published(self, n: int = 1) -> None:
+        with self._lock:
+            self.published += n
+
+    def count_dropped(self, n: int = 1) -> None:
+        with self._lock:
+            self.dropped += n
+
+    def reject(self, error: BaseException | str) -> None:
+        """Count a bad input and remember why (logged by the caller)."""
+        with self._lock:
+            self.rejected += 1
+            self.last_error = str(error)
+
+    def error(self, error: BaseException | str) -> None:
+        """Remember an error that is not a rejected input."""
+        with self._lock:
+            self.last_error = str(error)
+
+    def set_params(self, params: Mapping[str, Any]) -> None:
+        with self._lock:
+            self.params = dict(params)
+
+    def observe_ms(self, ms: float) -> None:
+        """Record one processing time, ms."""
+        with self._lock:
+            self._times_ms.append(float(ms))
+
+    def timed(self) -> _Timer:
+        """Context manager recording the wall time of its block: ``with status.timed():``."""
+        return _Timer(self)
+
+    @property
+    def uptime_s(self) -> float:
+        return time.monotonic() - self._started_mono
+
+    def as_dict(self) -> dict[str, Any]:
+        """A msgpack/JSON-friendly snapshot.
+
+        Keys: received, published, dropped, rejected, last_error, p50_ms, p90_ms, p99_ms
+        (None before the first observation), samples (processing times in the window),
+        params, extra, started.
+        """
+        with self._lock:
+            times = np.fromiter(self._times_ms, dtype=float, count=len(self._times_ms))
+            snap: dict[str, Any] = {
+                "received": self.received, "published": self.published,
+                "dropped": self.dropped, "rejected": self.rejected,
+                "last_error": self.last_error, "params": dict(self.params),
+                "extra": dict(self.extra), "started": self.started,
+            }
+        p50: float | None = None
+        p90: float | None = None
+        p99: float | None = None
+        if times.size:
+            p50, p90, p99 = (float(p) for p in np.percentile(times, [50, 90, 99]))
+        snap.update(p50_ms=p50, p90_ms=p90, p99_ms=p99, samples=int(times.size))
+        return snap
+
+
+class _Timer:
+    def __init__(self, status: Status) -> None:
+        self._status = status
+        self._t0 = 0.0
+
+    def __enter__(self) -> _Timer:
+        self._t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._status.observe_ms((time.perf_counter() - self._t0) * 1e3)
+
+
+class SeqGap:
+    """Counts messages missing from one key's ``seq`` sequence.
+
+    Assumes one publisher per key; a ``seq`` that does not increase (publisher restarted, or
+    a second publisher) restarts the count without counting anything. Payloads without a
+    readable ``seq`` are skipped.
+    """
+
+    def __init__(self) -> None:
+        self._last: int | None = None
+        self._lock = threading.Lock()
+
+    def observe(self, seq: int) -> int:
+        """Record ``seq``; return how many sequence numbers were skipped before it."""
+        with self._lock:
+            last, self._last = self._last, seq
+        if last is None or seq <= last:
+            return 0
+        return seq - last - 1
+
+    def update(self, payload: bytes) -> int:
+        """:meth:`observe` the payload's ``seq`` (peeked, not fully decoded); 0 if none."""
+        seq = peek_seq(payload)
+        return 0 if seq is None else self.observe(seq)
+
+
+# -- the inbox: the delivery semantics both nodes share ------------------------------------
+
+class _Inbox:
+    """Reliable FIFO + one latest-only slot per key, behind one condition variable.
+
+    Why not one zenoh RingChannel(1) per latest-only key and a FifoChannel per reliable one:
+    ``recv`` must wait on *any* input without polling several handlers, and a RingChannel
+    drops silently while the ``dropped`` counter must count every overwrite. A callback that
+    only stores the payload and notifies is cheap enough for Zenoh's delivery thread.
+    """
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity={capacity} must be >= 1")
+        self._capacity = capacity
+        self._lock = threading.Lock()
+        self._not_empty = threading.Condition(self._lock)
+        self._not_full = threading.Condition(self._lock)
+        self._reliable: collections.deque[tuple[str, bytes]] = collections.deque()
+        # dict order = order in which slots became pending; an overwrite keeps the position
+        self._latest: dict[str, bytes] = {}
+        self._closed = False
+
+    def put(self, key: str, payload: bytes, *, latest: bool, block: bool) -> bool:
+        """Queue a payload; return True if it overwrote a pending latest-only payload.
+
+        A full reliable queue blocks (``block``) until there is room or the inbox closes,
+        or raises :class:`BusError` (``not block``).
+        """
+        with self._lock:
+            if self._closed:
+                return False
+            if latest:
+                overwritten = key in self._latest
+                self._latest[key] = payload
+                self._not_empty.notify()
+                return overwritten
+            while len(self._reliable) >= self._capacity:
+                if not block:
+                    raise BusError(f"inbox full ({self._capacity} reliable payloads "
+                                   "pending): consume with recv() first")
+                self._not_full.wait(_STOP_POLL_S)
+                if self._closed:
+                    return False
+            self._reliable.append((key, payload))
+            self._not_empty.notify()
+            return False
+
+    def get(self, timeout: float, stop: threading.Event) -> tuple[str, bytes] | None:
+        deadline = time.monotonic() + max(0.0, timeout)
+        with self._lock:
+            while True:
+                if self._reliable:
+                    item = self._reliable.popleft()
+                    self._not_full.notify()
+                    return item
+                if self._latest:
+                    key = next(iter(self._latest))
+                    return key, self._latest.pop(key)
+                remaining = deadline - time.monotonic()
+                if self._closed or stop.is_set() or remaining <= 0:
+                    return None
+                self._not_empty.wait(min(remaining, _STOP_POLL_S))
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            self._not_empty.notify_all()
+            self._not_full.notify_all()
+
+
+# -- nodes --------------------------------------------------------------------------------
+
+class Node(abc.ABC):
+    """What a service loop sees of the bus.
+
+    Parameters
+    ----------
+    service : the service name (key chunk; see ``keys.SERVICES``).
+    robot : robot id, default ``"robot"``.
+    capacity : reliable payloads queued before arrival blocks (:class:`ZenohNode`) or
+        raises (:class:`MemoryNode`).
+
+    Attributes
+    ----------
+    service, robot : as given.
+    keys : :class:`~vistrack.common.keys.Keys` of ``robot``.
+    status : the node's :class:`Status`; ``received``/``dropped``/``published`` are counted
+        here, ``rejected`` and processing times by the service.
+    stop : set to end the service loop (signal handlers, tests, launcher); ``recv`` returns
+        None promptly once it is set and nothing is pending.
+    """
+
+    # What arrival does when ``capacity`` reliable payloads are pending: block (backpressure
+    # through the transport) or raise BusError (in-memory: the feeder is the consumer too).
+    _BLOCK_WHEN_FULL: ClassVar[bool] = True
+
+    def __init__(self, service: str, robot: str = "robot", *,
+                 capacity: int = DEFAULT_CAPACITY) -> None:
+        self.service = validate_service_name(service)
+        self.robot = validate_robot_id(robot)
+        self.keys = Keys(robot)
+        self.status = Status()
+        self.stop = threading.Event()
+        self._inbox = _Inbox(capacity)
+        self._subscriptions: dict[str, bool] = {}
+        self._closed = False
+
+    # -- the service-facing API ---------------------------------------------------------------
+    def subscribe(self, key: str, *, latest: bool) -> None:
+        """Receive payloads published on ``key`` (a full key expression).
+
+        ``latest=True`` for inputs where only the newest matters (frames, estimates),
+        ``latest=False`` for inputs that must all be processed in order (params, commands).
+        Subscribing again with the same mode is a no-op.
+        """
+        if self._closed:
+            raise BusError(f"node {self.service!r} is closed")
+        if key in self._subscriptions:
+            if self._subscriptions[key] != latest:
+                raise BusError(f"{key} is already subscribed with latest="
+                               f"{self._subscriptions[key]}")
+            return
+        self._declare(key, latest, self._arrival(latest))
+        self._subscriptions[key] = latest
+
+    def recv(self, timeout: float) -> tuple[str, bytes] | None:
+        """The next ``(key, payload)`` from any subscribed key, or None after ``timeout`` s
+        (or once ``stop`` is set or the node is closed, with nothing pending)."""
+        return self._inbox.get(timeout, self.stop)
+
+    def publish(self, key: str, payload: bytes, *, reliable: bool) -> None:
+        """Publish ``payload`` on ``key``.
+
+        ``reliable=True`` (parameters, reports, commands) blocks rather than drop under
+        congestion; ``reliable=False`` (frames, estimates) lets the network drop.
+        """
+        if self._closed:
+            raise BusError(f"node {self.service!r} is closed: cannot publish on {key}")
+        self._send(key, bytes(payload), reliable)
+        self.status.count_published()
+
+    def close(self) -> None:
+        """Stop receiving and release everything; idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._inbox.close()
+        self._release()
+
+    def __enter__(self: _N) -> _N:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    # -- the transport seam -------------------------------------------------------------------
+    @abc.abstractmethod
+    def _declare(self, key: str, latest: bool, deliver: Callable[[str, bytes], None]) -> None:
+        """Start delivering payloads of ``key`` to ``deliver(actual_key, payload)``."""
+
+    @abc.abstractmethod
+    def _send(self, key: str, payload: bytes, reliable: bool) -> None:
+        """Put ``payload`` on ``key``."""
+
+    @abc.abstractmethod
+    def _release(self) -> None:
+        """Release transport resources (called once, by :meth:`close`)."""
+
+    # -- arrival path shared by both transports -------------------------------------------
+    def _arrival(self, latest: bool) -> Callable[[str, bytes], None]:
+        gaps: dict[str, SeqGap] = collections.defaultdict(SeqGap)
+        block = self._BLOCK_WHEN_FULL
+
+        def deliver(key: str, payload: bytes) -> None:
+            self.status.count_received()
+            missing = gaps[key].update(payload)
+            if missing:
+                self.status.count_dropped(missing)
+            if self._inbox.put(key, payload, latest=latest, block=block):
+                self.status.count_dropped()
+        return deliver
+
+
+class Published(NamedTuple):
+    """One payload a :class:`MemoryNode` published."""
+
+    key: str
+    payload: bytes
+    reliable: bool
+
+
+class MemoryNode(Node):
+    """:class:`Node` in memory, for testing a service loop in-process.
+
+    ``feed(key, payload)`` plays a payload arriving from the network: it is delivered to every
+    matching subscription with exactly :class:`ZenohNode`'s semantics (counters, latest-only
+    overwrite, seq gaps). Published payloads are appended to ``published``.
+    """
+
+    _BLOCK_WHEN_FULL: ClassVar[bool] = False
+
+    def __init__(self, service: str = "test", robot: str = "robot", *,
+                 capacity: int = DEFAULT_CAPACITY) -> None:
+        super().__init__(service, robot, capacity=capacity)
+        self.published: list[Published] = []
+        self._deliver: dict[str, tuple[zenoh.KeyExpr, Callable[[str, bytes], None]]] = {}
+        self._published_lock = threading.Lock()
+
+    def feed(self, key: str, payload: bytes) -> bool:
+        """Deliver ``payload`` as if published on ``key``; False if no subscription matches.
+
+        Raises
+        ------
+        BusError
+            If the reliable queue is full (a test would deadlock waiting for itself).
+        """
+        matched = False
+        for expr, deliver in list(self._deliver.values()):
+            if expr.intersects(key):
+                deliver(key, bytes(payload))
+                matched = True
+        return matched
+
+    def published_on(self, key: str) -> list[bytes]:
+        """Payloads published on ``key``, in order."""
+        with self._published_lock:
+            return [p.payload for p in self.published if p.key == key]
+
+    def _declare(self, key: str, latest: bool, deliver: Callable[[str, bytes], None]) -> None:
+        self._deliver[key] = (zenoh.KeyExpr(key), deliver)
+
+    def _send(self, key: str, payload: bytes, reliable: bool) -> None:
+        with self._published_lock:
+            self.published.append(Published(key, payload, reliable))
+
+    def _release(self) -> None:
+        self._deliver.clear()
+
+
+class ZenohNode(Node):
+    """:class:`Node` over a Zenoh session.
+
+    Opening declares the liveliness token ``vistrack/<robot>/alive/<service>`` and a
+    queryable on ``vistrack/<robot>/<service>/status`` that replies a msgpack map ``{v: 1,
+    service, robot, pid, uptime_s, **status.as_dict()}``. Always use it as a context manager
+    (or call :meth:`close`): a session with callback subscribers left open hangs the
+    interpreter at exit.
+
+    Subscriptions use Zenoh callbacks that only store the payload in the node's inbox (see
+    :class:`_Inbox`). When ``capacity`` reliable payloads are pending the callback blocks,
+    which stalls that Zenoh link and, through BLOCK congestion control, the reliable
+    publishers: backpressure instead of loss or unbounded memory.
+
+    Publishers are declared once per (key, reliable) and cached; ``reliable`` selects
+    congestion control BLOCK, otherwise DROP.
+
+    Raises
+    ------
+    BusError
+        If the session cannot be opened.
+    """
+
+    def __init__(self, service: str, conf: zenoh.Config, robot: str = "robot", *,
+                 capacity: int = DEFAULT_CAPACITY) -> None:
+        super().__init__(service, robot, capacity=capacity)
+        self._publishers: dict[tuple[str, bool], zenoh.Publisher] = {}
+        self._publishers_lock = threading.Lock()
+        self._subscribers: list[zenoh.Subscriber] = []
+        self.session = open_session(conf)
+        try:
+            self._token = self.session.liveliness().declare_token(self.keys.alive(service))
+            self._queryable = self.session.declare_queryable(self.keys.status(service),
+                                                             self._on_status_query)
+        except BaseException:
+            self.session.close()
+            raise
+
+    def status_reply(self) -> dict[str, Any]:
+        """The map the status queryable replies."""
+        return {"service": self.service, "robot": self.robot, "pid": os.getpid(),
+                "uptime_s": self.status.uptime_s, **self.status.as_dict()}
+
+    def has_subscribers(self, key: str, *, reliable: bool = True) -> bool:
+        """Whether a subscriber anywhere on the network matches ``key`` (declares and caches
+        the publisher of ``key``)."""
+        # the 1.x stub says bool, but the binding returns an (always truthy) MatchingStatus
+        status = self._publisher(key, reliable).matching_status
+        return bool(getattr(status, "matching", status))
+
+    def _on_status_query(self, query: zenoh.Query) -> None:
+        try:
+            query.reply(self.keys.status(self.service), pack(self.status_reply()))
+        except zenoh.ZError as err:  # the session is closing or the querier went away
+            log.debug("status reply failed: %s", err)
+
+    def _declare(self, key: str, latest: bool, deliver: Callable[[str, bytes], None]) -> None:
+        def on_sample(sample: zenoh.Sample) -> None:
+            if sample.kind == zenoh.SampleKind.PUT:
+                deliver(str(sample.key_expr), sample.payload.to_bytes())
+        self._subscribers.append(self.session.declare_subscriber(key, on_sample))
+
+    def _publisher(self, key: str, reliable: bool) -> zenoh.Publisher:
+        with self._publishers_lock:
+            pub = self._publishers.get((key, reliable))
+            if pub is None:
+                congestion = (zenoh.CongestionControl.BLOCK if reliable
+                              else zenoh.CongestionControl.DROP)
+                pub = self.session.declare_publisher(key, congestion_control=congestion)
+                self._publishers[(key, reliable)] = pub
+            return pub
+
+    def _send(self, key: str, payload: bytes, reliable: bool) -> None:
+        self._publisher(key, reliable).put(payload)
+
+    def _release(self) -> None:
+        # Undeclare in reverse order of use, then close: subscribers first so no callback
+        # runs against a closing session; every step is attempted even if one fails.
+        entities: list[Any] = [*self._subscribers, self._queryable, self._token,
+                               *self._publishers.values()]
+        for entity in entities:
+            try:
+                entity.undeclare()
+            except zenoh.ZError as err:
+                log.debug("undeclare failed: %s", err)
+        self._subscribers.clear()
+        self._publishers.clear()
+        self.session.close()
+
+
+# -- process helpers ----------------------------------------------------------------------
+
+def install_signal_handlers(stop: threading.Event) -> Callable[[], None]:
+    """Make SIGINT and SIGTERM set ``stop`` so the service loop ends and closes its session.
+
+    A second SIGINT raises KeyboardInterrupt, so a stuck process can still be interrupted.
+    Signal handlers can only be installed from the main thread; elsewhere (a service run in
+    a test thread) this does nothing.
+
+    Returns
+    -------
+    restore : call to put the previous handlers back.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        # no logging here: the handler may interrupt the main thread inside the logging module
+        if signum == signal.SIGINT and stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def restore() -> None:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+    return restore
+
+
+def query_status(session: zenoh.Session, keys: Keys, timeout: float = 1.0) -> list[dict]:
+    """Status maps of every live service of ``keys.robot``, sorted by service name.
+
+    Replies that are errors or not valid status maps are logged and skipped.
+    """
+    statuses = []
+    replies = session.get(keys.status_any(), target=zenoh.QueryTarget.ALL, timeout=timeout)
+    for reply in replies:
+        if reply.ok is None:
+            err = reply.err
+            log.warning("status query error reply: %s",
+                        err.payload.to_string() if err is not None else "(empty)")
+            continue
+        try:
+            statuses.append(unpack(reply.ok.payload.to_bytes()))
+        except MessageError as err:
+            log.warning("bad status reply on %s: %s", reply.ok.key_expr, err)
+    return sorted(statuses, key=lambda s: str(s.get("service", "")))
+
+
+def alive_services(session: zenoh.Session, keys: Keys, timeout: float = 1.0) -> list[str]:
+    """Names of the services of ``keys.robot`` whose liveliness token is present, sorted."""
+    names = set()
+    for reply in session.liveliness().get(keys.alive_any(), timeout=timeout):
+        if reply.ok is not None:
+            names.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+    return sorted(names)

@@ -1,0 +1,714 @@
+"""msgpack encoding and validated decoding of every message of the key contract.
+
+Wire format (ARCHITECTURE.md, "CONTRACT: keys and messages"): each payload is a msgpack map with
+string keys, ``"v": 1`` first, then ``"seq"`` and ``"stamp_ns"``, then the message's own fields.
+Array data travel as msgpack ``bin``:
+
+* ``data``: the 8-bit grey image, ``width * height`` bytes, row-major;
+* ``candidates``: int16 little-endian ``x, y`` pairs (4 bytes per candidate);
+* ``strength``: float32 little-endian, one per candidate.
+
+Readers ignore unknown fields. Anything else that is wrong (not msgpack, not a map, wrong
+version, missing field, wrong type -- ``bool`` is not an int --, non-finite number, size
+mismatch, over-long field) raises :class:`MessageError`, whose text names the field. Decoding
+never raises anything else, whatever the bytes, so a service can count and log the rejection
+and go on. The same checks run in each message's constructor, so a producer cannot encode a
+message its consumers would reject.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, TypeVar
+
+import msgpack
+import numpy as np
+from vistrack.common.keys import key_suffix
+from vistrack.common.params import FACTORS, ParamError, TrackerParams
+
+SCHEMA_VERSION = 1
+
+#: Largest frame side in pixels a reader accepts.
+MAX_SIDE = 4096
+MAX_PIXELS = MAX_SIDE * MAX_SIDE
+MAX_TEXT = 4096  # longest free-text field (``reason``), characters
+
+# Explicit msgpack limits: a hostile or corrupt length prefix must not make the reader
+# allocate more than a full-size frame's worth of candidates (4 bytes per pixel).
+_UNPACK_LIMITS = {
+    "max_bin_len": MAX_PIXELS * 4,
+    "max_str_len": 1 << 20,
+    "max_array_len": 1 << 20,
+    "max_map_len": 1 << 16,
+    "max_ext_len": 0,
+}
+# Everything msgpack.unpackb raises on bad input: ValueError covers ExtraData, FormatError,
+# StackError, UnicodeDecodeError and the limit checks; TypeError covers unhashable map keys.
+_UNPACK_ERRORS = (ValueError, TypeError, msgpack.UnpackException)
+
+
+class MessageError(ValueError):
+    """A payload or a message field is invalid.
+
+    Parameters
+    ----------
+    message : what was wrong, naming the field.
+    field : name of the offending top-level field, or None when the payload as a whole is bad
+        (not msgpack, not a map).
+    """
+
+    def __init__(self, message: str, *, field: str | None = None) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+# -- field checks ---------------------------------------------------------------------------
+# A check takes (message key, field name, value) and returns the normalised value (plain
+# Python int/float/bool/str, so msgpack can encode what numpy code produced) or raises.
+
+_Check = Callable[[str, str, Any], Any]
+
+
+def _short(value: Any) -> str:
+    """A bounded description of a bad value for error texts (payloads can be megabytes)."""
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        return f"<{len(value)} bytes>"
+    if isinstance(value, np.ndarray):
+        return f"<array shape={value.shape} dtype={value.dtype}>"
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _error(where: str, name: str, problem: str, value: Any = dataclasses.MISSING) -> MessageError:
+    got = "" if value is dataclasses.MISSING else f", got {_short(value)}"
+    return MessageError(f"{where}: field {name!r} {problem}{got}", field=name.split("[")[0])
+
+
+def _is_bool(value: Any) -> bool:
+    return isinstance(value, (bool, np.bool_))
+
+
+def _int(lo: int | None = 0, hi: int | None = None) -> _Check:
+    def check(where: str, name: str, value: Any) -> int:
+        if _is_bool(value) or not isinstance(value, numbers.Integral):
+            raise _error(where, name, "must be an integer", value)
+        value = int(value)
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            allowed = f">= {lo}" if hi is None else f"in {lo}..{hi}"
+            raise _error(where, name, f"must be {allowed}", value)
+        return value
+    return check
+
+
+def _float(lo: float | None = None, *, positive: bool = False) -> _Check:
+    def check(where: str, name: str, value: Any) -> float:
+        if _is_bool(value) or not isinstance(value, numbers.Real):
+            raise _error(where, name, "must be a number", value)
+        try:
+            value = float(value)
+        except OverflowError:
+            raise _error(where, name, "is too large for a float", value) from None
+        if not math.isfinite(value):
+            raise _error(where, name, "must be finite", value)
+        if positive and value <= 0:
+            raise _error(where, name, "must be > 0", value)
+        if lo is not None and value < lo:
+            raise _error(where, name, f"must be >= {lo}", value)
+        return value
+    return check
+
+
+def _bool(where: str, name: str, value: Any) -> bool:
+    if not _is_bool(value):
+        raise _error(where, name, "must be true or false", value)
+    return bool(value)
+
+
+def _str(choices: tuple[str, ...] | None = None, max_len: int = MAX_TEXT) -> _Check:
+    def check(where: str, name: str, value: Any) -> str:
+        if not isinstance(value, str):
+            raise _error(where, name, "must be a string", value)
+        if choices is not None and value not in choices:
+            raise _error(where, name, f"must be one of {', '.join(map(repr, choices))}", value)
+        if len(value) > max_len:
+            raise _error(where, name, f"is longer than {max_len} characters", value)
+        return value
+    return check
+
+
+def _list(where: str, name: str, value: Any) -> list:
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if not isinstance(value, (list, tuple)):
+        raise _error(where, name, "must be a list", value)
+    return list(value)
+
+
+def _map(where: str, name: str, value: Any) -> dict:
+    if not isinstance(value, Mapping):
+        raise _error(where, name, "must be a map", value)
+    for k in value:
+        if not isinstance(k, str):
+            raise _error(where, name, "must have string keys", k)
+    return dict(value)
+
+
+def _finite_float(value: Any) -> float | None:
+    """``value`` as a finite float, or None if it is not a finite real number."""
+    if _is_bool(value) or not isinstance(value, numbers.Real):
+        return None
+    try:
+        value = float(value)
+    except OverflowError:
+        return None
+    return value if math.isfinite(value) else None
+
+
+def _features(where: str, name: str, value: Any) -> list[list]:
+    """``[[id, x, y], ...]`` with an integer id >= 0 and finite pixel coordinates."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if not isinstance(value, (list, tuple)):
+        raise _error(where, name, "must be a list of [id, x, y]", value)
+    out = []
+    for i, item in enumerate(value):
+        if not isinstance(item, (list, tuple)) or len(item) != 3:
+            raise _error(where, name, f"item {i} must be [id, x, y]", item)
+        fid, x, y = item
+        # fast path for what msgpack produces; numpy scalars from producers take the slow one
+        if not (type(fid) is int and type(x) is float and type(y) is float
+                and math.isfinite(x) and math.isfinite(y)):
+            if _is_bool(fid) or not isinstance(fid, numbers.Integral):
+                raise _error(where, name, f"item {i}: id must be an integer", fid)
+            fid = int(fid)
+            x, y = _finite_float(x), _finite_float(y)
+            if x is None or y is None:
+                raise _error(where, name, f"item {i}: x, y must be finite numbers", item)
+        if fid < 0:
+            raise _error(where, name, f"item {i}: id must be >= 0", fid)
+        out.append([fid, x, y])
+    return out
+
+
+# -- wire helpers -----------------------------------------------------------------------------
+
+def _np_default(obj: Any) -> Any:
+    """msgpack ``default`` hook: numpy scalars and arrays inside maps (reports, status)."""
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(f"cannot encode {type(obj).__name__} in a message")
+
+
+def pack(values: Mapping[str, Any]) -> bytes:
+    """Encode a map as a versioned payload (``"v": 1`` first), numpy values allowed."""
+    return msgpack.packb({"v": SCHEMA_VERSION, **values}, use_bin_type=True,
+                         default=_np_default)
+
+
+def unpack(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
+    """Decode a payload into a map and check its schema version.
+
+    Raises
+    ------
+    MessageError
+        If the payload is not msgpack within the size limits, not a map, or ``v`` is not 1.
+    """
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise MessageError(f"payload must be bytes, got {type(payload).__name__}")
+    try:
+        obj = msgpack.unpackb(payload, raw=False, strict_map_key=True, **_UNPACK_LIMITS)
+    except _UNPACK_ERRORS as err:
+        raise MessageError(f"payload is not valid msgpack ({len(payload)} bytes): "
+                           f"{type(err).__name__} {err}") from None
+    if not isinstance(obj, dict):
+        raise MessageError(f"payload must be a msgpack map, got {type(obj).__name__}")
+    if "v" not in obj:
+        raise MessageError("payload: missing field 'v' (schema version)", field="v")
+    version = obj["v"]
+    if type(version) is not int or version != SCHEMA_VERSION:
+        raise MessageError(f"payload: field 'v' is schema version {_short(version)}, this "
+                           f"reader supports {SCHEMA_VERSION}", field="v")
+    return obj
+
+
+def peek_seq(payload: bytes | bytearray | memoryview) -> int | None:
+    """The ``seq`` field of a payload without decoding the rest, or None if there is none.
+
+    Cheap for our own messages, which put ``v`` and ``seq`` first: only the first bytes are
+    parsed; other key orders fall back to skipping values one by one. Never raises.
+    """
+    view = memoryview(payload)
+    for chunk in (view[:64], view):
+        unpacker = msgpack.Unpacker(raw=False, strict_map_key=False, **_UNPACK_LIMITS)
+        try:
+            unpacker.feed(chunk)
+            for _ in range(unpacker.read_map_header()):
+                if unpacker.unpack() == "seq":
+                    seq = unpacker.unpack()
+                    return seq if type(seq) is int and seq >= 0 else None
+                unpacker.skip()
+            return None
+        except msgpack.OutOfData:
+            if len(chunk) == len(view):
+                return None
+        except _UNPACK_ERRORS:
+            return None
+    return None
+
+
+def _bin_of(array: np.ndarray, dtype: str) -> memoryview:
+    """Zero-copy bytes view of ``array`` as ``dtype`` (copies only if layout/dtype differ)."""
+    flat = np.ascontiguousarray(array, dtype=dtype).reshape(-1)
+    return flat.view(np.uint8).data
+
+
+def _bin_field(where: str, name: str, m: Mapping[str, Any]) -> bytes:
+    value = m[name]
+    if not isinstance(value, bytes):
+        raise _error(where, name, "must be bin (bytes)", value)
+    return value
+
+
+# -- messages -------------------------------------------------------------------------------
+
+_M = TypeVar("_M", bound="_Message")
+
+
+class _Message:
+    """Shared encode/decode/validation. Subclasses are frozen keyword-only dataclasses whose
+    first two fields are ``seq`` and ``stamp_ns``; ``_CHECKS`` validates the scalar fields,
+    ``_validate`` the arrays and cross-field rules."""
+
+    KEY: ClassVar[str]
+    _CHECKS: ClassVar[dict[str, _Check]]
+
+    def __post_init__(self) -> None:
+        for name, check in self._CHECKS.items():
+            object.__setattr__(self, name, check(self.KEY, name, getattr(self, name)))
+        self._validate()
+
+    def _validate(self) -> None:
+        """Array and cross-field checks (none by default)."""
+
+    def _wire_fields(self) -> dict[str, Any]:
+        """Field name -> value as sent; array fields override this."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}  # type: ignore[arg-type]
+
+    def encode(self) -> bytes:
+        """The msgpack payload: a map with ``"v": 1`` and every field."""
+        return pack(self._wire_fields())
+
+    @classmethod
+    def decode(cls: type[_M], payload: bytes | bytearray | memoryview) -> _M:
+        """Parse and validate a payload.
+
+        Raises
+        ------
+        MessageError
+            For any invalid payload (and nothing else), naming the field.
+        """
+        return cls._from_map(unpack(payload))
+
+    @classmethod
+    def _from_map(cls: type[_M], m: dict[str, Any]) -> _M:
+        values = {}
+        for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+            if f.name not in m:
+                raise MessageError(f"{cls.KEY}: missing field {f.name!r}", field=f.name)
+            values[f.name] = m[f.name]
+        return cls(**cls._arrays_from_wire(values))
+
+    @classmethod
+    def _arrays_from_wire(cls, values: dict[str, Any]) -> dict[str, Any]:
+        """Turn bin fields into arrays (after checking their sizes); identity by default."""
+        return values
+
+
+_SEQ = {"seq": _int(), "stamp_ns": _int()}
+_SIDE = _int(1, MAX_SIDE)
+_IMAGE = {"width": _SIDE, "height": _SIDE, "encoding": _str(("mono8",))}
+
+
+def _check_image(where: str, msg: Any) -> None:
+    data = msg.data
+    if not isinstance(data, np.ndarray) or data.dtype != np.uint8:
+        raise _error(where, "data", "must be a uint8 array", data)
+    if data.shape != (msg.height, msg.width):
+        raise _error(where, "data", f"must have shape (height, width) = "
+                                    f"({msg.height}, {msg.width})", data)
+
+
+def _image_from_wire(where: str, values: dict[str, Any]) -> None:
+    width = _SIDE(where, "width", values["width"])
+    height = _SIDE(where, "height", values["height"])
+    data = _bin_field(where, "data", values)
+    if len(data) != width * height:
+        raise _error(where, "data", f"must be width*height = {width * height} bytes", data)
+    values["data"] = np.frombuffer(data, dtype=np.uint8).reshape(height, width)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Frame(_Message):
+    """A camera image (``camera/frame``).
+
+    Parameters
+    ----------
+    seq : per-publisher sequence number, increasing.
+    stamp_ns : capture time, ns since the Unix epoch.
+    width, height : image size in px, 1..4096.
+    data : (height, width) uint8 array, 8-bit grey, row-major on the wire. Decoded frames hold
+        a read-only view of the payload.
+    encoding : ``"mono8"`` (the only encoding).
+    """
+
+    KEY: ClassVar[str] = "camera/frame"
+    _CHECKS: ClassVar[dict[str, _Check]] = {**_SEQ, **_IMAGE}
+
+    seq: int
+    stamp_ns: int
+    width: int
+    height: int
+    encoding: str = "mono8"
+    data: np.ndarray
+
+    @classmethod
+    def from_image(cls, image: np.ndarray, *, seq: int, stamp_ns: int) -> Frame:
+        """A frame of a (height, width) uint8 image."""
+        if not isinstance(image, np.ndarray) or image.ndim != 2:
+            raise _error(cls.KEY, "data", "must be a 2-D (height, width) array", image)
+        return cls(seq=seq, stamp_ns=stamp_ns, width=image.shape[1], height=image.shape[0],
+                   data=image)
+
+    def _validate(self) -> None:
+        _check_image(self.KEY, self)
+
+    def _wire_fields(self) -> dict[str, Any]:
+        return {"seq": self.seq, "stamp_ns": self.stamp_ns, "width": self.width,
+                "height": self.height, "encoding": self.encoding,
+                "data": _bin_of(self.data, "u1")}
+
+    @classmethod
+    def _arrays_from_wire(cls, values: dict[str, Any]) -> dict[str, Any]:
+        _image_from_wire(cls.KEY, values)
+        return values
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class PreFrame(_Message):
+    """A pre-processed frame with its feature candidates (``preprocessing/frame``).
+
+    Parameters
+    ----------
+    seq, stamp_ns, width, height, encoding : as in :class:`Frame` (``stamp_ns`` of the camera
+        frame it derives from).
+    data : (height, width) uint8 array, the filtered frame.
+    candidates : (N, 2) int16 array of ``x, y`` pixel coordinates inside the image, strongest
+        gradient first.
+    strength : (N,) float32 array, finite gradient magnitude of each candidate.
+    params_id : ``params_id`` of the parameters used (THRES_PERCENT).
+    """
+
+    KEY: ClassVar[str] = "preprocessing/frame"
+    _CHECKS: ClassVar[dict[str, _Check]] = {**_SEQ, **_IMAGE, "params_id": _int()}
+
+    seq: int
+    stamp_ns: int
+    width: int
+    height: int
+    encoding: str = "mono8"
+    data: np.ndarray
+    candidates: np.ndarray
+    strength: np.ndarray
+    params_id: int
+
+    def _validate(self) -> None:
+        _check_image(self.KEY, self)
+        cand = self.candidates
+        if not isinstance(cand, np.ndarray) or cand.ndim != 2 or cand.shape[1] != 2 \
+                or not np.issubdtype(cand.dtype, np.integer):
+            raise _error(self.KEY, "candidates", "must be an (N, 2) integer array", cand)
+        if cand.size and (cand.min() < 0 or cand[:, 0].max() >= self.width
+                          or cand[:, 1].max() >= self.height):
+            raise _error(self.KEY, "candidates", f"must lie inside the {self.width}x"
+                                                 f"{self.height} image", cand)
+        strength = self.strength
+        if not isinstance(strength, np.ndarray) or strength.ndim != 1 \
+                or strength.dtype.kind not in "fiu":
+            raise _error(self.KEY, "strength", "must be an (N,) float array", strength)
+        if len(strength) != len(cand):
+            raise _error(self.KEY, "strength", f"must have one value per candidate "
+                                               f"({len(cand)})", strength)
+        strength = strength.astype("<f4", copy=False)
+        if not np.isfinite(strength).all():
+            raise _error(self.KEY, "strength", "must be finite", strength)
+        object.__setattr__(self, "candidates", cand.astype("<i2", copy=False))
+        object.__setattr__(self, "strength", strength)
+
+    def _wire_fields(self) -> dict[str, Any]:
+        return {"seq": self.seq, "stamp_ns": self.stamp_ns, "width": self.width,
+                "height": self.height, "encoding": self.encoding,
+                "data": _bin_of(self.data, "u1"),
+                "candidates": _bin_of(self.candidates, "<i2"),
+                "strength": _bin_of(self.strength, "<f4"), "params_id": self.params_id}
+
+    @classmethod
+    def _arrays_from_wire(cls, values: dict[str, Any]) -> dict[str, Any]:
+        _image_from_wire(cls.KEY, values)
+        cand = _bin_field(cls.KEY, "candidates", values)
+        if len(cand) % 4:
+            raise _error(cls.KEY, "candidates", "length must be a whole number of int16 x,y "
+                                                "pairs (4 bytes each)", cand)
+        strength = _bin_field(cls.KEY, "strength", values)
+        if len(strength) % 4:
+            raise _error(cls.KEY, "strength", "length must be a whole number of float32 "
+                                              "values (4 bytes each)", strength)
+        values["candidates"] = np.frombuffer(cand, dtype="<i2").reshape(-1, 2)
+        values["strength"] = np.frombuffer(strength, dtype="<f4")
+        return values
+
+
+@dataclass(frozen=True, kw_only=True)
+class Estimate(_Message):
+    """The tracker's result for one frame (``motion/estimate``).
+
+    Parameters
+    ----------
+    seq, stamp_ns : as in :class:`Frame` (``stamp_ns`` of the frame it derives from).
+    npi : number of tracked features (NPI).
+    xc, yc : centroid of the features, px (Eq. (2)).
+    xe, ye : scatter, sum of absolute deviations from the centroid, px (Eq. (2)), >= 0.
+    dx, dy : accumulated robust incremental motion, px.
+    scale : accumulated ratio of the matched features' dispersion, > 0.
+    t_ms : processing time of this frame, ms, >= 0.
+    first : True for the first frame of a run (the t1 frame).
+    features : ``[[id, x, y], ...]``, pixel coordinates in this frame; an id is kept while the
+        feature is tracked.
+    params_id : ``params_id`` of the parameters used.
+    """
+
+    KEY: ClassVar[str] = "motion/estimate"
+    _CHECKS: ClassVar[dict[str, _Check]] = {
+        **_SEQ, "npi": _int(), "xc": _float(), "yc": _float(), "xe": _float(0.0),
+        "ye": _float(0.0), "dx": _float(), "dy": _float(), "scale": _float(positive=True),
+        "t_ms": _float(0.0), "first": _bool, "features": _features, "params_id": _int()}
+
+    seq: int
+    stamp_ns: int
+    npi: int
+    xc: float
+    yc: float
+    xe: float
+    ye: float
+    dx: float
+    dy: float
+    scale: float
+    t_ms: float
+    first: bool
+    features: list = field(default_factory=list)
+    params_id: int
+
+
+@dataclass(frozen=True, kw_only=True)
+class Params(_Message):
+    """The tracker parameters in force (``tuner/params``).
+
+    Parameters
+    ----------
+    seq, stamp_ns : as in :class:`Frame`.
+    max_features, thres_percent, search_size, corr_size, ungroup_size : the paper's five
+        factors, validated like :class:`vistrack.common.params.TrackerParams`.
+    params_id : identifier of this parameter set, increasing.
+    source : ``"tuner"`` or ``"user"``.
+    reason : why they changed (free text).
+    """
+
+    KEY: ClassVar[str] = "tuner/params"
+    _CHECKS: ClassVar[dict[str, _Check]] = {
+        **_SEQ, "params_id": _int(), "source": _str(("tuner", "user")), "reason": _str()}
+
+    seq: int
+    stamp_ns: int
+    max_features: int
+    thres_percent: float
+    search_size: int
+    corr_size: int
+    ungroup_size: int
+    params_id: int
+    source: str
+    reason: str = ""
+
+    def _validate(self) -> None:
+        for name in FACTORS:  # one at a time, so the error names the field
+            try:
+                value = getattr(TrackerParams().replace(**{name: getattr(self, name)}), name)
+            except ParamError as err:
+                raise MessageError(f"{self.KEY}: field {name!r}: {err}", field=name) from None
+            object.__setattr__(self, name, value)
+
+    def factors(self) -> dict[str, Any]:
+        """The five factors as a dict."""
+        return {name: getattr(self, name) for name in FACTORS}
+
+    def tracker_params(self, base: TrackerParams | None = None) -> TrackerParams:
+        """``base`` (default: TrackerParams()) with these five factors applied."""
+        return (base if base is not None else TrackerParams()).replace(**self.factors())
+
+    @classmethod
+    def from_tracker_params(cls, params: TrackerParams, *, seq: int, stamp_ns: int,
+                            params_id: int, source: str, reason: str = "") -> Params:
+        """The message announcing ``params``."""
+        return cls(seq=seq, stamp_ns=stamp_ns, params_id=params_id, source=source,
+                   reason=reason, **params.factors())
+
+
+@dataclass(frozen=True, kw_only=True)
+class Report(_Message):
+    """The auto-tuner's design, ANOVA and sweep (``tuner/report``); validated shallowly.
+
+    Parameters
+    ----------
+    seq, stamp_ns : as in :class:`Frame`.
+    design : rows of -1/+1 levels, one per run.
+    factors : factor names, column order of ``design``.
+    order : run order (indices into ``design``).
+    responses : response name -> list of values, one per run.
+    effects : response name -> effect estimates.
+    significant : response name -> ``{"99": [...], "95": [...]}``.
+    optimum : the chosen parameters.
+    sweep : the sensitivity grid and its responses.
+    """
+
+    KEY: ClassVar[str] = "tuner/report"
+    _CHECKS: ClassVar[dict[str, _Check]] = {
+        **_SEQ, "design": _list, "factors": _list, "order": _list, "responses": _map,
+        "effects": _map, "significant": _map, "optimum": _map, "sweep": _map}
+
+    seq: int
+    stamp_ns: int
+    design: list
+    factors: list
+    order: list
+    responses: dict
+    effects: dict
+    significant: dict
+    optimum: dict
+    sweep: dict
+
+
+@dataclass(frozen=True, kw_only=True)
+class CmdVel(_Message):
+    """A velocity command (``control/cmd_vel``).
+
+    Parameters
+    ----------
+    seq, stamp_ns : as in :class:`Frame` (``stamp_ns`` of the estimate it answers).
+    vx, vy : linear velocity in the robot frame, m/s.
+    wz : angular velocity, rad/s.
+    stale : True when the estimates are stale and the robot is being stopped.
+    """
+
+    KEY: ClassVar[str] = "control/cmd_vel"
+    _CHECKS: ClassVar[dict[str, _Check]] = {
+        **_SEQ, "vx": _float(), "vy": _float(), "wz": _float(), "stale": _bool}
+
+    seq: int
+    stamp_ns: int
+    vx: float
+    vy: float
+    wz: float
+    stale: bool = False
+
+
+@dataclass(frozen=True, kw_only=True)
+class Pose(_Message):
+    """Simulator ground truth (``sim/pose``).
+
+    Parameters
+    ----------
+    seq, stamp_ns : as in :class:`Frame` (``stamp_ns`` of the rendered frame).
+    x, y : robot position, m; theta : robot heading, rad.
+    tx, ty : target position, m.
+    """
+
+    KEY: ClassVar[str] = "sim/pose"
+    _CHECKS: ClassVar[dict[str, _Check]] = {
+        **_SEQ, "x": _float(), "y": _float(), "theta": _float(), "tx": _float(),
+        "ty": _float()}
+
+    seq: int
+    stamp_ns: int
+    x: float
+    y: float
+    theta: float
+    tx: float
+    ty: float
+
+
+Message = Frame | PreFrame | Estimate | Params | Report | CmdVel | Pose
+
+#: Contract key suffix -> message class.
+MESSAGE_TYPES: dict[str, type[_Message]] = {
+    cls.KEY: cls for cls in (Frame, PreFrame, Estimate, Params, Report, CmdVel, Pose)}
+
+
+def decode_any(key: str, payload: bytes | bytearray | memoryview) -> Message:
+    """Decode ``payload`` as the message of ``key``.
+
+    Parameters
+    ----------
+    key : a contract key suffix (``"motion/estimate"``) or a full key
+        (``"vistrack/<robot>/motion/estimate"``).
+
+    Raises
+    ------
+    MessageError
+        If the key has no message type (``field`` None) or the payload is invalid.
+    """
+    cls = MESSAGE_TYPES.get(key_suffix(key))
+    if cls is None:
+        raise MessageError(f"no message type for key {key!r}: known are "
+                           f"{', '.join(MESSAGE_TYPES)}")
+    return cls.decode(payload)  # type: ignore[return-value]
+
+
+def to_jsonable(msg: Message | Mapping[str, Any]) -> dict[str, Any]:
+    """A JSON-friendly dict of a message (or of a decoded map such as a status reply).
+
+    Arrays and bins are summarised, not dumped: an image becomes ``{"width", "height",
+    "mean", "nbytes"}``, other arrays ``{"shape", "dtype", "mean", "nbytes"}``, bytes
+    ``{"nbytes"}``. Non-finite floats become None (strict JSON has no NaN).
+    """
+    if isinstance(msg, _Message):
+        out: dict[str, Any] = {"v": SCHEMA_VERSION}
+        out.update({f.name: _jsonable(getattr(msg, f.name))
+                    for f in dataclasses.fields(msg)})  # type: ignore[arg-type]
+        return out
+    return _jsonable(dict(msg))
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        mean = _jsonable(float(value.mean())) \
+            if value.size and value.dtype.kind in "fiub" else None
+        if value.ndim == 2 and value.dtype == np.uint8:
+            return {"width": value.shape[1], "height": value.shape[0], "mean": mean,
+                    "nbytes": value.nbytes}
+        return {"shape": list(value.shape), "dtype": str(value.dtype), "mean": mean,
+                "nbytes": value.nbytes}
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        return {"nbytes": len(value)}
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return value

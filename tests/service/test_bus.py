@@ -1,0 +1,468 @@
+"""The bus seam (common/bus.py): real Zenoh sessions on loopback, and MemoryNode parity.
+
+Two ZenohNodes per test: one listens on tcp/127.0.0.1:<free port>, the other connects there,
+multicast scouting off (it may not work in the sandbox). Conditions are awaited by polling
+with a deadline, never by sleeping a fixed time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+
+import numpy as np
+import pytest
+import zenoh
+from vistrack.common.bus import (
+    BusError,
+    MemoryNode,
+    Node,
+    SeqGap,
+    Status,
+    ZenohNode,
+    add_zenoh_args,
+    alive_services,
+    config_from_args,
+    install_signal_handlers,
+    query_status,
+)
+from vistrack.common.keys import Keys
+from vistrack.common.messages import Frame, pack, unpack
+
+DEADLINE_S = 5.0
+
+
+def wait_for(condition, timeout=DEADLINE_S, what="condition"):
+    """Poll ``condition`` until true; fail after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.002)
+
+
+def parse(argv):
+    parser = argparse.ArgumentParser()
+    add_zenoh_args(parser)
+    return parser.parse_args(argv)
+
+
+def msg(seq, **fields):
+    """A small versioned payload with a seq (the bus only peeks at seq)."""
+    return pack({"seq": seq, "stamp_ns": 0, **fields})
+
+
+def seqs(items):
+    return [unpack(payload)["seq"] for _, payload in items]
+
+
+def drain(node, timeout=0.0):
+    items = []
+    while (item := node.recv(timeout)) is not None:
+        items.append(item)
+    return items
+
+
+@pytest.fixture
+def nodes(free_port):
+    """Factory of connected ZenohNode pairs: ``nodes(service_a, service_b, **kw)``.
+
+    The first listens, the second connects; both are closed at teardown.
+    """
+    endpoint = f"tcp/127.0.0.1:{free_port}"
+    with contextlib.ExitStack() as stack:
+        def make(service_a="camera", service_b="auto_tuner", *, capacity=1024):
+            a = stack.enter_context(ZenohNode(
+                service_a, config_from_args(parse(["-l", endpoint, "--no-multicast-scouting"])),
+                capacity=capacity))
+            b = stack.enter_context(ZenohNode(
+                service_b, config_from_args(parse(["-e", endpoint, "--no-multicast-scouting"]))))
+            wait_for(lambda: b.session.info.peers_zid(), what="the peers to connect")
+            return a, b
+        yield make
+
+
+def subscribe_and_match(sub: ZenohNode, pub: ZenohNode, key: str, *, latest: bool,
+                        reliable: bool = True):
+    sub.subscribe(key, latest=latest)
+    wait_for(lambda: pub.has_subscribers(key, reliable=reliable),
+             what=f"the subscription to {key} to reach the publisher")
+
+
+# -- command line and config ------------------------------------------------------------------
+
+def test_flags_become_config():
+    args = parse(["-m", "client", "-e", "tcp/127.0.0.1:7447", "-e", "tcp/10.0.0.2:7447",
+                  "-l", "tcp/127.0.0.1:0", "--no-multicast-scouting", "--robot", "r2"])
+    conf = config_from_args(args)
+    assert json.loads(conf.get_json("mode")) == "client"
+    assert json.loads(conf.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447",
+                                                              "tcp/10.0.0.2:7447"]
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    assert args.robot == "r2"
+
+
+def test_defaults_leave_config_alone():
+    args = parse([])
+    assert args.robot == "robot" and args.mode is None and args.connect is None
+    conf = config_from_args(args)
+    assert json.loads(conf.get_json("connect/endpoints")) == []
+
+
+def test_config_file_is_read_and_flags_override(tmp_path):
+    path = tmp_path / "peer.json5"
+    path.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7000"] } }')
+    conf = config_from_args(parse(["-c", str(path), "-m", "peer"]))
+    assert json.loads(conf.get_json("mode")) == "peer"
+    assert json.loads(conf.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7000"]
+
+
+def test_missing_config_file(tmp_path):
+    path = tmp_path / "nope.json5"
+    with pytest.raises(BusError, match="not found") as info:
+        config_from_args(parse(["-c", str(path)]))
+    assert str(path) in str(info.value)
+
+
+def test_invalid_config_file(tmp_path):
+    path = tmp_path / "bad.json5"
+    path.write_text("{ mode: ")
+    with pytest.raises(BusError) as info:
+        config_from_args(parse(["-c", str(path)]))
+    assert str(path) in str(info.value)
+
+
+def test_invalid_endpoint_names_the_flag():
+    with pytest.raises(BusError, match="--connect"):
+        config_from_args(parse(["-e", "not-an-endpoint"]))
+
+
+def test_invalid_robot_flag(capsys):
+    with pytest.raises(SystemExit):
+        parse(["--robot", "a/b"])
+    assert "robot id" in capsys.readouterr().err
+
+
+def test_listen_port_in_use_is_a_bus_error(free_port):
+    endpoint = f"tcp/127.0.0.1:{free_port}"
+    conf = config_from_args(parse(["-l", endpoint, "--no-multicast-scouting"]))
+    with ZenohNode("camera", conf):
+        with pytest.raises(BusError, match="cannot open"):
+            ZenohNode("camera", config_from_args(
+                parse(["-l", endpoint, "--no-multicast-scouting"])))
+
+
+# -- real Zenoh --------------------------------------------------------------------------
+
+def test_publish_and_receive(nodes):
+    a, b = nodes()
+    subscribe_and_match(a, b, a.keys.frame, latest=True, reliable=False)
+    frame = Frame.from_image(np.full((4, 5), 7, np.uint8), seq=0, stamp_ns=1)
+    b.publish(b.keys.frame, frame.encode(), reliable=False)
+    key, payload = a.recv(timeout=DEADLINE_S)
+    assert key == "vistrack/robot/camera/frame"
+    assert Frame.decode(payload).data.tolist() == [[7] * 5] * 4
+    assert (a.status.received, a.status.dropped, b.status.published) == (1, 0, 1)
+    assert a.recv(timeout=0.01) is None
+
+
+def test_latest_only_keeps_the_newest_and_counts_drops(nodes):
+    a, b = nodes()
+    # BLOCK on the publisher, so every payload reaches the node: drops are the slot's only
+    subscribe_and_match(a, b, a.keys.frame, latest=True)
+    for seq in range(20):
+        b.publish(b.keys.frame, msg(seq), reliable=True)
+    wait_for(lambda: a.status.received == 20, what="20 frames to arrive")
+    items = drain(a)
+    assert seqs(items) == [19]
+    assert a.status.dropped == 19
+
+
+def test_reliable_before_latest(nodes):
+    a, b = nodes()
+    subscribe_and_match(a, b, a.keys.frame, latest=True)
+    subscribe_and_match(a, b, a.keys.params, latest=False)
+    b.publish(b.keys.frame, msg(0), reliable=True)
+    b.publish(b.keys.params, msg(0), reliable=True)
+    b.publish(b.keys.params, msg(1), reliable=True)
+    wait_for(lambda: a.status.received == 3, what="3 payloads")
+    assert [k for k, _ in drain(a)] == [a.keys.params, a.keys.params, a.keys.frame]
+
+
+def test_reliable_in_order_without_loss_to_a_slow_consumer(nodes):
+    # a small inbox makes the Zenoh callback block: backpressure instead of loss
+    a, b = nodes(capacity=8)
+    subscribe_and_match(a, b, a.keys.params, latest=False)
+    n = 500
+
+    def produce():
+        for seq in range(n):
+            b.publish(b.keys.params, msg(seq, reason="x" * 200), reliable=True)
+
+    producer = threading.Thread(target=produce)
+    producer.start()
+    got = []
+    deadline = time.monotonic() + 10
+    while len(got) < n and time.monotonic() < deadline:
+        item = a.recv(timeout=1.0)
+        if item is not None:
+            got.append(item)
+            if len(got) % 50 == 0:
+                time.sleep(0.02)  # a consumer that falls behind now and then
+    producer.join(timeout=10)
+    assert seqs(got) == list(range(n))
+    assert a.status.dropped == 0 and a.status.received == n and b.status.published == n
+
+
+def test_seq_gaps_are_counted(nodes):
+    a, b = nodes()
+    subscribe_and_match(a, b, a.keys.params, latest=False)
+    payloads = [msg(0), msg(1), msg(2), msg(5), msg(6), b"\xc1 not msgpack", msg(10),
+                msg(0), msg(1)]  # the last two: the publisher restarted, not a gap
+    for payload in payloads:
+        b.publish(b.keys.params, payload, reliable=True)
+    wait_for(lambda: a.status.received == len(payloads), what="all payloads")
+    assert [p for _, p in drain(a)] == payloads  # the bus delivers garbage; services reject
+    assert a.status.dropped == 2 + 3
+
+
+def test_status_queryable_answers_with_counters(nodes):
+    a, b = nodes()
+    subscribe_and_match(a, b, a.keys.params, latest=False)
+    a.status.set_params({"search_size": 15, "corr_size": 9})
+    a.status.extra["frames"] = 3
+    for ms in (1.0, 2.0, 3.0, 4.0):
+        a.status.observe_ms(ms)
+    a.status.reject("tuner/params: field 'corr_size' bad")
+    b.publish(b.keys.params, msg(0), reliable=True)
+    wait_for(lambda: a.status.received == 1, what="the payload")
+    statuses = query_status(b.session, b.keys, timeout=2.0)
+    assert [s["service"] for s in statuses] == ["auto_tuner", "camera"]
+    cam = statuses[1]
+    assert cam["v"] == 1 and cam["robot"] == "robot" and cam["pid"] == os.getpid()
+    assert cam["received"] == 1 and cam["rejected"] == 1 and cam["dropped"] == 0
+    assert cam["last_error"] == "tuner/params: field 'corr_size' bad"
+    assert cam["params"] == {"search_size": 15, "corr_size": 9}
+    assert cam["extra"] == {"frames": 3}
+    assert cam["p50_ms"] == pytest.approx(2.5) and cam["p99_ms"] <= 4.0
+    assert cam["uptime_s"] >= 0 and statuses[0]["published"] == 1
+
+
+def test_liveliness_visible_then_gone_after_close(nodes, free_port):
+    a, b = nodes()
+    wait_for(lambda: alive_services(b.session, b.keys) == ["auto_tuner", "camera"],
+             what="both tokens")
+    a.close()
+    a.close()  # idempotent
+    wait_for(lambda: alive_services(b.session, b.keys) == ["auto_tuner"],
+             what="the camera token to go")
+    with pytest.raises(BusError, match="closed"):
+        a.publish(a.keys.frame, msg(0), reliable=False)
+
+
+def test_robots_do_not_see_each_other(free_port):
+    endpoint = f"tcp/127.0.0.1:{free_port}"
+    listen = config_from_args(parse(["-l", endpoint, "--no-multicast-scouting"]))
+    connect = config_from_args(parse(["-e", endpoint, "--no-multicast-scouting"]))
+    with ZenohNode("camera", listen, "r1") as r1, ZenohNode("camera", connect, "r2") as r2:
+        wait_for(lambda: alive_services(r2.session, r2.keys) == ["camera"], what="r2 token")
+        assert [s["robot"] for s in query_status(r2.session, r2.keys)] == ["r2"]
+        assert alive_services(r1.session, r1.keys) == ["camera"]
+
+
+# -- MemoryNode: the same semantics ------------------------------------------------------
+
+# (key attribute, payload, reliable subscription?) in arrival order
+SCRIPT = [
+    ("frame", msg(0)), ("frame", msg(1)), ("params", msg(0)), ("frame", msg(2)),
+    ("estimate", msg(0)), ("params", msg(1)), ("params", msg(3)), ("frame", msg(3)),
+    ("estimate", msg(1)), ("params", b"garbage"), ("frame", msg(5)),
+]
+
+
+def _subscribe_script(node: Node):
+    node.subscribe(node.keys.frame, latest=True)
+    node.subscribe(node.keys.estimate, latest=True)
+    node.subscribe(node.keys.params, latest=False)
+
+
+def _outcome(node: Node):
+    items = drain(node)
+    reliable = [(k, p) for k, p in items if k == node.keys.params]
+    latest = {k: p for k, p in items if k != node.keys.params}
+    assert items[:len(reliable)] == reliable  # reliable ones come first
+    return reliable, latest, (node.status.received, node.status.dropped)
+
+
+def test_memory_node_behaves_like_zenoh_node(nodes):
+    a, b = nodes()
+    _subscribe_script(a)
+    for attr in ("frame", "estimate", "params"):
+        wait_for(lambda attr=attr: b.has_subscribers(getattr(b.keys, attr)), what=attr)
+    for attr, payload in SCRIPT:
+        b.publish(getattr(b.keys, attr), payload, reliable=True)
+    wait_for(lambda: a.status.received == len(SCRIPT), what="the script")
+    over_zenoh = _outcome(a)
+
+    with MemoryNode("camera") as mem:
+        _subscribe_script(mem)
+        for attr, payload in SCRIPT:
+            assert mem.feed(getattr(mem.keys, attr), payload)
+        in_memory = _outcome(mem)
+
+    assert over_zenoh == in_memory
+    reliable, latest, (received, dropped) = in_memory
+    assert [p for _, p in reliable] == [msg(0), msg(1), msg(3), b"garbage"]
+    assert latest == {a.keys.frame: msg(5), a.keys.estimate: msg(1)}
+    # frames: 4 overwritten + seq 4 missing; estimates: 1 overwritten; params: seq 2 missing
+    assert (received, dropped) == (len(SCRIPT), 4 + 1 + 1 + 1)
+
+
+def test_memory_node_publish_feed_and_limits():
+    with MemoryNode("preprocessing", "r1", capacity=2) as node:
+        assert node.keys.robot == "r1"
+        assert not node.feed(node.keys.frame, msg(0))  # nobody subscribed: like Zenoh
+        node.subscribe("vistrack/r1/tuner/*", latest=False)
+        node.subscribe("vistrack/r1/tuner/*", latest=False)  # same mode: no-op
+        with pytest.raises(BusError, match="latest"):
+            node.subscribe("vistrack/r1/tuner/*", latest=True)
+        assert node.feed(node.keys.params, msg(0))
+        assert node.feed(node.keys.report, msg(0))
+        with pytest.raises(BusError, match="full"):
+            node.feed(node.keys.params, msg(1))
+        assert [k for k, _ in drain(node)] == [node.keys.params, node.keys.report]
+        node.publish(node.keys.pre_frame, b"x", reliable=False)
+        node.publish(node.keys.params, b"y", reliable=True)
+        assert node.published[0] == (node.keys.pre_frame, b"x", False)
+        assert node.published_on(node.keys.params) == [b"y"]
+        assert node.status.published == 2
+    with pytest.raises(BusError, match="closed"):
+        node.publish(node.keys.params, b"z", reliable=True)
+    assert node.recv(timeout=1.0) is None  # closed: returns at once
+
+
+def test_recv_timeout_and_stop():
+    with MemoryNode() as node:
+        node.subscribe(node.keys.frame, latest=True)
+        t0 = time.monotonic()
+        assert node.recv(timeout=0.05) is None
+        assert 0.04 <= time.monotonic() - t0 < 1.0
+        timer = threading.Timer(0.05, node.stop.set)
+        timer.start()
+        t0 = time.monotonic()
+        assert node.recv(timeout=30.0) is None
+        assert time.monotonic() - t0 < 2.0
+        timer.join()
+        node.feed(node.keys.frame, msg(0))
+        assert node.recv(timeout=0.0) is not None  # pending data still come out after stop
+
+
+def test_recv_wakes_on_arrival_from_another_thread():
+    with MemoryNode() as node:
+        node.subscribe(node.keys.params, latest=False)
+        timer = threading.Timer(0.05, node.feed, args=(node.keys.params, msg(0)))
+        timer.start()
+        assert node.recv(timeout=5.0) == (node.keys.params, msg(0))
+        timer.join()
+
+
+# -- status and helpers --------------------------------------------------------------------
+
+def test_status_percentiles_window_and_threads():
+    status = Status(window=100)
+    assert status.as_dict()["p50_ms"] is None
+    for ms in range(1000):  # only the last 100 (900..999) count
+        status.observe_ms(ms)
+    snap = status.as_dict()
+    assert snap["samples"] == 100 and 940 <= snap["p50_ms"] <= 960 and snap["p99_ms"] < 1000
+    with status.timed():
+        pass
+    threads = [threading.Thread(target=lambda: [status.count_received() for _ in range(1000)])
+               for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert status.as_dict()["received"] == 4000
+    assert set(snap) >= {"received", "published", "dropped", "rejected", "last_error",
+                         "p50_ms", "p90_ms", "p99_ms", "params", "extra", "started"}
+
+
+def test_seq_gap_helper():
+    gap = SeqGap()
+    assert [gap.observe(s) for s in (3, 4, 7, 7, 2, 3)] == [0, 0, 2, 0, 0, 0]
+    assert gap.update(b"garbage") == 0 and gap.update(msg(6)) == 2
+
+
+def test_signal_handlers_set_stop():
+    stop = threading.Event()
+    restore = install_signal_handlers(stop)
+    try:
+        os.kill(os.getpid(), signal.SIGTERM)
+        wait_for(stop.is_set, what="SIGTERM to set stop")
+    finally:
+        restore()
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
+def test_signal_handlers_off_main_thread_do_nothing():
+    result = []
+    thread = threading.Thread(target=lambda: result.append(
+        install_signal_handlers(threading.Event())))
+    before = signal.getsignal(signal.SIGTERM)
+    thread.start()
+    thread.join()
+    assert signal.getsignal(signal.SIGTERM) is before
+    result[0]()  # the no-op restore
+
+
+SERVICE_SCRIPT = textwrap.dedent("""
+    import sys
+    from vistrack.common.bus import ZenohNode, install_signal_handlers
+    from vistrack.common.bus import add_zenoh_args, config_from_args
+    import argparse
+    parser = argparse.ArgumentParser()
+    add_zenoh_args(parser)
+    args = parser.parse_args(sys.argv[1:])
+    with ZenohNode("fuzzy_controller", config_from_args(args), args.robot) as node:
+        install_signal_handlers(node.stop)
+        node.subscribe(node.keys.estimate, latest=True)
+        node.subscribe(node.keys.params, latest=False)
+        print("ready", flush=True)
+        while not node.stop.is_set():
+            node.recv(timeout=5.0)
+    print("closed", flush=True)
+""")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_service_process_stops_on_signal_and_exits(free_port, sig):
+    """A service loop with callback subscribers ends on SIGTERM/SIGINT and the interpreter
+    exits (an unclosed session would hang it)."""
+    endpoint = f"tcp/127.0.0.1:{free_port}"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", SERVICE_SCRIPT, "-l", endpoint, "--no-multicast-scouting"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        conf = config_from_args(parse(["-e", endpoint, "--no-multicast-scouting"]))
+        with zenoh.open(conf) as session:
+            wait_for(lambda: alive_services(session, Keys()) == ["fuzzy_controller"],
+                     what="the service token")
+            proc.send_signal(sig)
+            out, err = proc.communicate(timeout=10)
+        assert proc.returncode == 0, err
+        assert out.strip() == "closed"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()

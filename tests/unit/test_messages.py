@@ -1,0 +1,517 @@
+"""msgpack messages of the contract (common/messages.py): round trips and every rejection."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import msgpack
+import numpy as np
+import pytest
+from vistrack.common.messages import (
+    MESSAGE_TYPES,
+    SCHEMA_VERSION,
+    CmdVel,
+    Estimate,
+    Frame,
+    MessageError,
+    Params,
+    Pose,
+    PreFrame,
+    Report,
+    decode_any,
+    pack,
+    peek_seq,
+    to_jsonable,
+    unpack,
+)
+from vistrack.common.params import TrackerParams
+
+RNG_SEED = 20240611
+
+
+def _image(height=6, width=8):
+    return np.arange(height * width, dtype=np.uint8).reshape(height, width)
+
+
+def make(cls):
+    """A valid instance of every message class."""
+    common = {"seq": 7, "stamp_ns": 1_700_000_000_123_456_789}
+    if cls is Frame:
+        return Frame(**common, width=8, height=6, data=_image())
+    if cls is PreFrame:
+        return PreFrame(**common, width=8, height=6, data=_image(),
+                        candidates=np.array([[0, 0], [7, 5], [3, 2]], dtype=np.int16),
+                        strength=np.array([9.5, 3.0, 1.25], dtype=np.float32), params_id=2)
+    if cls is Estimate:
+        return Estimate(**common, npi=2, xc=10.5, yc=20.0, xe=3.0, ye=4.5, dx=-1.5, dy=0.25,
+                        scale=1.02, t_ms=3.2, first=False,
+                        features=[[0, 10.0, 18.0], [4, 11.0, 22.0]], params_id=2)
+    if cls is Params:
+        return Params(**common, max_features=100, thres_percent=2.0, search_size=15,
+                      corr_size=9, ungroup_size=5, params_id=3, source="tuner",
+                      reason="scene change")
+    if cls is Report:
+        return Report(**common, design=[[-1, 1], [1, -1]], factors=["search_size", "corr_size"],
+                      order=[1, 0], responses={"tf": [1.5, 2.5]},
+                      effects={"tf": {"search_size": 0.5}},
+                      significant={"tf": {"99": [], "95": ["search_size"]}},
+                      optimum={"search_size": 15, "corr_size": 9},
+                      sweep={"search_size": [10, 20], "tf": [[1.0, 2.0]]})
+    if cls is CmdVel:
+        return CmdVel(**common, vx=0.2, vy=0.0, wz=-0.1, stale=False)
+    if cls is Pose:
+        return Pose(**common, x=1.0, y=2.0, theta=0.5, tx=3.0, ty=4.0)
+    raise AssertionError(cls)
+
+
+ALL = list(MESSAGE_TYPES.values())
+ARRAY_FIELDS = {"data", "candidates", "strength"}
+
+
+def assert_same(a, b):
+    assert type(a) is type(b)
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray):
+            assert x.dtype == y.dtype and x.shape == y.shape, f.name
+            np.testing.assert_array_equal(x, y, err_msg=f.name)
+        else:
+            assert x == y, f.name
+
+
+def raw_map(msg):
+    return msgpack.unpackb(msg.encode(), raw=False)
+
+
+def repack(m):
+    return msgpack.packb(m, use_bin_type=True)
+
+
+def expect_error(cls, payload, field):
+    with pytest.raises(MessageError) as info:
+        cls.decode(payload)
+    assert info.value.field == field, str(info.value)
+    if field is not None:
+        assert repr(field) in str(info.value)
+    return info.value
+
+
+# -- round trips ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("cls", ALL, ids=lambda c: c.__name__)
+def test_round_trip(cls):
+    msg = make(cls)
+    back = cls.decode(msg.encode())
+    assert_same(msg, back)
+
+
+@pytest.mark.parametrize("cls", ALL, ids=lambda c: c.__name__)
+def test_wire_map_is_versioned_with_string_keys(cls):
+    msg = make(cls)
+    m = raw_map(msg)
+    assert list(m)[:3] == ["v", "seq", "stamp_ns"]
+    assert m["v"] == SCHEMA_VERSION == 1
+    assert all(isinstance(k, str) for k in m)
+    assert set(m) == {"v"} | {f.name for f in dataclasses.fields(msg)}
+    assert cls.KEY in MESSAGE_TYPES and MESSAGE_TYPES[cls.KEY] is cls
+
+
+def test_bins_have_the_contract_layout():
+    msg = make(PreFrame)
+    m = raw_map(msg)
+    assert m["data"] == _image().tobytes()
+    assert m["candidates"] == np.array([[0, 0], [7, 5], [3, 2]], "<i2").tobytes()
+    assert m["candidates"][4:8] == (7).to_bytes(2, "little") + (5).to_bytes(2, "little")
+    assert m["strength"] == np.array([9.5, 3.0, 1.25], "<f4").tobytes()
+    assert m["encoding"] == "mono8"
+
+
+def test_frame_from_image_and_large_frame():
+    rng = np.random.default_rng(RNG_SEED)
+    image = rng.integers(0, 256, (256, 256), dtype=np.uint8)
+    frame = Frame.from_image(image[:, ::-1], seq=1, stamp_ns=2)  # non-contiguous view
+    back = Frame.decode(frame.encode())
+    np.testing.assert_array_equal(back.data, image[:, ::-1])
+    assert (back.width, back.height) == (256, 256)
+    assert not back.data.flags.writeable  # a view of the payload, not a copy
+
+
+def test_empty_candidates_round_trip():
+    msg = PreFrame(seq=0, stamp_ns=0, width=2, height=2, data=np.zeros((2, 2), np.uint8),
+                   candidates=np.zeros((0, 2), np.int16), strength=np.zeros(0, np.float32),
+                   params_id=0)
+    back = PreFrame.decode(msg.encode())
+    assert back.candidates.shape == (0, 2) and back.strength.shape == (0,)
+
+
+def test_constructor_normalises_numpy_scalars():
+    est = Estimate(seq=np.int64(1), stamp_ns=2, npi=np.int32(1), xc=np.float32(1.5), yc=2,
+                   xe=0, ye=0, dx=0, dy=0, scale=1, t_ms=0.5, first=np.bool_(True),
+                   features=[(np.int64(3), np.float32(1.5), 2.5)], params_id=0)
+    assert type(est.seq) is int and type(est.xc) is float and est.first is True
+    assert est.features == [[3, 1.5, 2.5]] and type(est.features[0][0]) is int
+    assert Estimate.decode(est.encode()) == est
+
+
+def test_params_conversion_with_tracker_params():
+    tp = TrackerParams(search_size=17, corr_size=7)
+    msg = Params.from_tracker_params(tp, seq=1, stamp_ns=2, params_id=5, source="user",
+                                     reason="set by hand")
+    assert msg.factors() == tp.factors()
+    assert msg.tracker_params() == TrackerParams(search_size=17, corr_size=7)
+    assert Params.decode(msg.encode()) == msg
+
+
+def test_params_integral_floats_are_normalised():
+    m = raw_map(make(Params))
+    m["search_size"] = 15.0
+    assert Params.decode(repack(m)).search_size == 15
+    assert type(Params.decode(repack(m)).search_size) is int
+
+
+def test_unknown_fields_are_ignored():
+    for cls in ALL:
+        m = raw_map(make(cls))
+        m["future_field"] = {"anything": [1, 2, 3]}
+        m["zz"] = b"\x00" * 10
+        assert_same(cls.decode(repack(m)), make(cls))
+
+
+def test_decode_accepts_bytearray_and_memoryview():
+    payload = make(CmdVel).encode()
+    assert CmdVel.decode(bytearray(payload)) == make(CmdVel)
+    assert CmdVel.decode(memoryview(payload)) == make(CmdVel)
+
+
+# -- rejections ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize(("cls", "name"), [
+    (cls, f.name) for cls in ALL for f in dataclasses.fields(cls)
+], ids=lambda x: x if isinstance(x, str) else x.__name__)
+def test_missing_field_is_named(cls, name):
+    m = raw_map(make(cls))
+    del m[name]
+    err = expect_error(cls, repack(m), name)
+    assert "missing" in str(err)
+
+
+@pytest.mark.parametrize("cls", ALL, ids=lambda c: c.__name__)
+@pytest.mark.parametrize("version", [2, 0, True, "1", 1.0, None])
+def test_wrong_version(cls, version):
+    m = raw_map(make(cls))
+    m["v"] = version
+    expect_error(cls, repack(m), "v")
+
+
+@pytest.mark.parametrize("cls", ALL, ids=lambda c: c.__name__)
+def test_missing_version(cls):
+    m = raw_map(make(cls))
+    del m["v"]
+    expect_error(cls, repack(m), "v")
+
+
+NAN, INF = float("nan"), float("inf")
+
+BAD_VALUES = [
+    # (class, field, bad value, words expected in the message)
+    (Frame, "seq", -1, ">= 0"),
+    (Frame, "seq", True, "integer"),
+    (Frame, "seq", 1.5, "integer"),
+    (Frame, "stamp_ns", "now", "integer"),
+    (Frame, "width", -3, "in 1..4096"),
+    (Frame, "width", 0, "in 1..4096"),
+    (Frame, "width", 4097, "in 1..4096"),
+    (Frame, "height", True, "integer"),
+    (Frame, "height", None, "integer"),
+    (Frame, "encoding", "rgb8", "mono8"),
+    (Frame, "encoding", 8, "string"),
+    (Frame, "data", b"\x00" * 47, "48 bytes"),
+    (Frame, "data", b"", "48 bytes"),
+    (Frame, "data", "not bytes", "bin"),
+    (Frame, "data", [0] * 48, "bin"),
+    (PreFrame, "data", b"\x00" * 49, "48 bytes"),
+    (PreFrame, "candidates", b"\x00" * 5, "pairs"),
+    (PreFrame, "candidates", b"\x00" * 6, "pairs"),
+    (PreFrame, "candidates", [[0, 0]], "bin"),
+    (PreFrame, "candidates", np.array([[8, 0]], "<i2").tobytes(), "inside"),
+    (PreFrame, "candidates", np.array([[0, 6]], "<i2").tobytes(), "inside"),
+    (PreFrame, "candidates", np.array([[-1, 0]], "<i2").tobytes(), "inside"),
+    (PreFrame, "strength", b"\x00" * 7, "float32"),
+    (PreFrame, "strength", np.zeros(2, "<f4").tobytes(), "one value per candidate"),
+    (PreFrame, "strength", np.array([1, NAN, 2], "<f4").tobytes(), "finite"),
+    (PreFrame, "strength", np.array([1, INF, 2], "<f4").tobytes(), "finite"),
+    (PreFrame, "params_id", -1, ">= 0"),
+    (Estimate, "npi", True, "integer"),
+    (Estimate, "npi", -1, ">= 0"),
+    (Estimate, "xc", NAN, "finite"),
+    (Estimate, "yc", INF, "finite"),
+    (Estimate, "xc", "1.0", "number"),
+    (Estimate, "xc", True, "number"),
+    (Estimate, "xe", -0.5, ">= 0"),
+    (Estimate, "dx", -INF, "finite"),
+    (Estimate, "scale", 0.0, "> 0"),
+    (Estimate, "scale", -1.0, "> 0"),
+    (Estimate, "t_ms", -1.0, ">= 0"),
+    (Estimate, "first", 1, "true or false"),
+    (Estimate, "first", None, "true or false"),
+    (Estimate, "features", {"0": [1, 2]}, "list"),
+    (Estimate, "features", [[1, 2.0]], "item 0 must be [id, x, y]"),
+    (Estimate, "features", [1, 2.0, 3.0], "item 0 must be [id, x, y]"),
+    (Estimate, "features", [[0, 1.0, 2.0], [True, 1.0, 2.0]], "item 1: id must be an integer"),
+    (Estimate, "features", [[-1, 1.0, 2.0]], "id must be >= 0"),
+    (Estimate, "features", [[1, NAN, 2.0]], "finite"),
+    (Estimate, "features", [[1, 1.0, "2"]], "finite numbers"),
+    (Estimate, "params_id", 1.5, "integer"),
+    (Params, "max_features", 0, "out of range"),
+    (Params, "max_features", True, "integer"),
+    (Params, "thres_percent", 9.0, "out of range"),
+    (Params, "thres_percent", NAN, "out of range"),
+    (Params, "thres_percent", False, "number"),
+    (Params, "search_size", 1000, "out of range"),
+    (Params, "search_size", 15.5, "integer"),
+    (Params, "corr_size", "9", "integer"),
+    (Params, "ungroup_size", -1, "out of range"),
+    (Params, "params_id", -1, ">= 0"),
+    (Params, "source", "robot", "'tuner', 'user'"),
+    (Params, "source", None, "string"),
+    (Params, "reason", 5, "string"),
+    (Params, "reason", "x" * 5000, "longer"),
+    (Report, "design", {"a": 1}, "list"),
+    (Report, "factors", "abc", "list"),
+    (Report, "order", 3, "list"),
+    (Report, "responses", [1, 2], "map"),
+    (Report, "effects", None, "map"),
+    (Report, "significant", "99", "map"),
+    (Report, "optimum", [], "map"),
+    (Report, "sweep", 1.0, "map"),
+    (CmdVel, "vx", NAN, "finite"),
+    (CmdVel, "vy", None, "number"),
+    (CmdVel, "wz", INF, "finite"),
+    (CmdVel, "stale", 0, "true or false"),
+    (CmdVel, "stale", "yes", "true or false"),
+    (Pose, "x", NAN, "finite"),
+    (Pose, "theta", None, "number"),
+    (Pose, "tx", [1.0], "number"),
+    (Pose, "ty", True, "number"),
+]
+
+
+@pytest.mark.parametrize(("cls", "name", "value", "words"), BAD_VALUES,
+                         ids=[f"{c.__name__}-{n}-{i}" for i, (c, n, _, _) in
+                              enumerate(BAD_VALUES)])
+def test_bad_field_is_rejected_and_named(cls, name, value, words):
+    m = raw_map(make(cls))
+    m[name] = value
+    err = expect_error(cls, repack(m), name)
+    assert words in str(err)
+
+
+def test_params_error_keeps_the_param_error_text():
+    m = raw_map(make(Params))
+    m["search_size"] = 1000
+    err = expect_error(Params, repack(m), "search_size")
+    assert "search_size=1000 is out of range: allowed 2..128" in str(err)
+
+
+def test_report_map_keys_must_be_strings():
+    m = raw_map(make(Report))
+    m["responses"] = {b"tf": [1.0]}
+    expect_error(Report, repack(m), "responses")
+
+
+@pytest.mark.parametrize("payload", [
+    b"", b"\xc1", b"\x92\x01\x02", b"\xa5hello", b"\x01", b"\xc0",
+    msgpack.packb({"v": 1}) + b"\x00",  # trailing data
+    msgpack.packb({1: 2}),  # non-string map key
+    msgpack.packb(msgpack.ExtType(1, b"x")),
+    b"\x91" * 5000,  # deep nesting
+    b"\xc6\xff\xff\xff\xff",  # bin claiming 4 GiB
+    b"\xdd\xff\xff\xff\xff",  # array claiming 4 G items
+])
+def test_not_a_versioned_map(payload):
+    for cls in ALL:
+        expect_error(cls, payload, None)
+
+
+def test_non_bytes_payload():
+    with pytest.raises(MessageError):
+        Frame.decode("a string")  # type: ignore[arg-type]
+
+
+def test_limits_reject_oversized_fields():
+    m = raw_map(make(Params))
+    m["reason"] = "x" * (2 << 20)
+    expect_error(Params, repack(m), None)  # over max_str_len: rejected by the unpacker
+
+
+@pytest.mark.parametrize(("cls", "kwargs", "name"), [
+    (Frame, {"data": np.zeros((6, 8), np.float32)}, "data"),
+    (Frame, {"data": np.zeros((8, 6), np.uint8)}, "data"),
+    (Frame, {"data": b"\x00" * 48}, "data"),
+    (PreFrame, {"candidates": np.zeros((3, 3), np.int16)}, "candidates"),
+    (PreFrame, {"candidates": np.zeros((3, 2), np.float32)}, "candidates"),
+    (PreFrame, {"strength": np.zeros((3, 1), np.float32)}, "strength"),
+    (Estimate, {"features": [[0, 1.0]]}, "features"),
+    (Params, {"corr_size": 65}, "corr_size"),
+    (CmdVel, {"vx": float("nan")}, "vx"),
+])
+def test_constructor_rejects_what_decode_rejects(cls, kwargs, name):
+    with pytest.raises(MessageError) as info:
+        dataclasses.replace(make(cls), **kwargs)
+    assert info.value.field == name and repr(name) in str(info.value)
+
+
+def test_frame_from_image_rejects_3d():
+    with pytest.raises(MessageError, match="'data'"):
+        Frame.from_image(np.zeros((4, 4, 3), np.uint8), seq=0, stamp_ns=0)
+
+
+# -- fuzzing: decode raises MessageError and nothing else ---------------------------------
+
+def _decode_all(payload):
+    for cls in ALL:
+        try:
+            cls.decode(payload)
+        except MessageError:
+            pass
+
+
+def test_fuzz_random_bytes():
+    rng = np.random.default_rng(RNG_SEED)
+    for _ in range(3000):
+        n = int(rng.integers(0, 120))
+        payload = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+        _decode_all(payload)
+        # random bytes behind a valid map prefix reach the field checks more often
+        _decode_all(b"\x8f\xa1v\x01" + payload)
+
+
+def test_fuzz_mutated_valid_messages():
+    rng = np.random.default_rng(RNG_SEED + 1)
+    originals = [make(cls).encode() for cls in ALL]
+    for _ in range(3000):
+        payload = bytearray(originals[int(rng.integers(len(originals)))])
+        op = int(rng.integers(4))
+        if op == 0:  # flip bytes
+            for _ in range(int(rng.integers(1, 4))):
+                payload[int(rng.integers(len(payload)))] = int(rng.integers(256))
+        elif op == 1:  # truncate
+            payload = payload[:int(rng.integers(len(payload)))]
+        elif op == 2:  # insert bytes
+            pos = int(rng.integers(len(payload)))
+            payload[pos:pos] = rng.integers(0, 256, int(rng.integers(1, 6)),
+                                            dtype=np.uint8).tobytes()
+        else:  # delete a range
+            pos = int(rng.integers(len(payload)))
+            del payload[pos:pos + int(rng.integers(1, 6))]
+        _decode_all(bytes(payload))
+        try:
+            decode_any(ALL[int(rng.integers(len(ALL)))].KEY, bytes(payload))
+        except MessageError:
+            pass
+
+
+# a value valid on its own may break a cross-field rule reported on the other field
+RELATED = {("PreFrame", "candidates"): {"candidates", "strength"}}
+
+TYPE_CONFUSION = [None, True, False, -1, 0, 2**63, -2**63, 1.5, NAN, INF, "", "x", b"",
+                  b"\x00" * 4, [], [1], [[1, 2, 3]], {}, {"a": 1}]
+
+
+@pytest.mark.parametrize("cls", ALL, ids=lambda c: c.__name__)
+def test_fuzz_type_confusion_names_the_field(cls):
+    """Every field replaced by values of every msgpack type: either accepted or rejected
+    with an error naming exactly that field."""
+    for f in dataclasses.fields(cls):
+        for value in TYPE_CONFUSION:
+            m = raw_map(make(cls))
+            m[f.name] = value
+            try:
+                cls.decode(repack(m))
+            except MessageError as err:
+                allowed = RELATED.get((cls.__name__, f.name), {f.name})
+                assert err.field in allowed, (f.name, value, str(err))
+
+
+# -- helpers ------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("cls", ALL, ids=lambda c: c.__name__)
+def test_decode_any_by_suffix_and_full_key(cls):
+    payload = make(cls).encode()
+    assert_same(decode_any(cls.KEY, payload), make(cls))
+    assert_same(decode_any(f"vistrack/r7/{cls.KEY}", payload), make(cls))
+
+
+def test_decode_any_unknown_key():
+    with pytest.raises(MessageError, match="no message type"):
+        decode_any("camera/status", make(Frame).encode())
+
+
+def test_decode_any_wrong_type_for_key():
+    with pytest.raises(MessageError) as info:
+        decode_any("camera/frame", make(Pose).encode())
+    assert info.value.field == "width"
+
+
+@pytest.mark.parametrize("cls", ALL, ids=lambda c: c.__name__)
+def test_to_jsonable_is_strict_json(cls):
+    out = to_jsonable(make(cls))
+    text = json.dumps(out, allow_nan=False)
+    assert out["v"] == 1 and out["seq"] == 7
+    assert len(text) < 2000  # arrays summarised, never dumped
+
+
+def test_to_jsonable_summarises_frames():
+    image = np.full((256, 256), 10, np.uint8)
+    out = to_jsonable(Frame.from_image(image, seq=1, stamp_ns=2))
+    assert out["data"] == {"width": 256, "height": 256, "mean": 10.0, "nbytes": 65536}
+    out = to_jsonable(make(PreFrame))
+    assert out["candidates"]["shape"] == [3, 2] and out["candidates"]["nbytes"] == 12
+    assert out["strength"]["mean"] == pytest.approx((9.5 + 3.0 + 1.25) / 3)
+
+
+def test_to_jsonable_maps_non_finite_to_none():
+    report = dataclasses.replace(make(Report), responses={"tf": [1.0, NAN],
+                                                          "raw": np.array([INF])})
+    out = to_jsonable(report)
+    assert out["responses"] == {"tf": [1.0, None],
+                                "raw": {"shape": [1], "dtype": "float64", "mean": None,
+                                        "nbytes": 8}}
+    assert to_jsonable({"v": 1, "blob": b"abc", "x": np.float32(2.0)}) == \
+        {"v": 1, "blob": {"nbytes": 3}, "x": 2.0}
+
+
+def test_report_encodes_numpy_contents():
+    report = dataclasses.replace(make(Report), responses={"tf": np.array([1.0, 2.0])},
+                                 optimum={"search_size": np.int64(15)})
+    back = Report.decode(report.encode())
+    assert back.responses == {"tf": [1.0, 2.0]} and back.optimum == {"search_size": 15}
+
+
+def test_pack_unpack():
+    payload = pack({"seq": 3, "x": np.float64(1.5)})
+    assert unpack(payload) == {"v": 1, "seq": 3, "x": 1.5}
+
+
+def test_peek_seq():
+    for cls in ALL:
+        assert peek_seq(make(cls).encode()) == 7
+    # seq after a large bin (another encoder's key order): found by skipping
+    late = msgpack.packb({"v": 1, "data": b"\x00" * 100_000, "seq": 42}, use_bin_type=True)
+    assert peek_seq(late) == 42
+    for bad in [b"", b"\xc1", b"\x92\x01\x02", msgpack.packb({"v": 1}),
+                msgpack.packb({"seq": -1}), msgpack.packb({"seq": True}),
+                msgpack.packb({"seq": "1"}), b"\x81\xa3seq"]:
+        assert peek_seq(bad) is None
+    rng = np.random.default_rng(RNG_SEED + 2)
+    for _ in range(2000):
+        result = peek_seq(rng.integers(0, 256, int(rng.integers(0, 80)),
+                                       dtype=np.uint8).tobytes())
+        assert result is None or (isinstance(result, int) and result >= 0)
+
+
+def test_error_is_a_value_error():
+    assert issubclass(MessageError, ValueError)
+    assert math.isnan(NAN)

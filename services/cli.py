@@ -15,6 +15,13 @@ from collections.abc import Sequence
 COMMANDS: dict[str, tuple[str, str]] = {
     "track": ("track", "track features over recorded frames, offline (no Zenoh)"),
     "bench": ("bench", "benchmarks against OpenCV / raw Zenoh peers, printed as tables"),
+    "camera": ("camera.service", "service: publish frames (file camera, device, built-in)"),
+    "preprocessing": ("preprocessing.service", "service: filter, gradient, candidates"),
+    "motion-estimation": ("motion_estimation.service",
+                          "service: SSD tracking and the motion estimate"),
+    "auto-tuner": ("auto_tuner.service", "service: frame buffer, experiments, parameters"),
+    "fuzzy-controller": ("fuzzy_controller.service",
+                         "service: velocity commands that cancel the image motion"),
 }
 
 

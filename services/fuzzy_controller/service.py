@@ -1,0 +1,90 @@
+"""fuzzy-controller: turn each motion estimate into a velocity command that cancels the
+apparent motion (keeps the target centred and at the reference distance).
+
+Reads   ``vistrack/<robot>/motion/estimate``  (latest only)
+Writes  ``vistrack/<robot>/control/cmd_vel``  (reliable; zero with ``stale: true`` while the
+        estimates are older than the watchdog bound or too few features are tracked)
+
+The law is the fuzzy rule base of ``rules.py`` compiled into a control surface
+(``--law fuzzy``, default) or a plain proportional law (``--law proportional``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+
+from ...common.bus import Node
+from ...common.messages import CmdVel, Estimate, MessageError
+from ..runtime import add_service_args, serve
+from .control import STOP, ControllerConfig, FuzzyController, FuzzySurface, ProportionalController
+
+log = logging.getLogger("vistrack.fuzzy_controller")
+
+STALE_REPEAT_S = 0.1  # how often the stop is repeated while the estimates are stale
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--law", choices=("fuzzy", "proportional"), default="fuzzy",
+                        help="control law (default fuzzy)")
+    parser.add_argument("--image-width", type=float, default=256.0, metavar="PX",
+                        help="image width used to normalise the centring error (default 256)")
+    parser.add_argument("--x-ref", type=float, default=None, metavar="PX",
+                        help="set-point centroid x (default: captured from the first estimate)")
+    parser.add_argument("--stale-after", type=float, default=0.3, metavar="S",
+                        help="watchdog: stop the robot when estimates are older (default 0.3)")
+    parser.add_argument("--min-npi", type=int, default=5,
+                        help="stop the robot when fewer features are tracked (default 5)")
+    add_service_args(parser)
+
+
+def make_controller(args: argparse.Namespace) -> FuzzyController | ProportionalController:
+    config = ControllerConfig(stale_after_s=args.stale_after, min_npi=args.min_npi,
+                              x_ref=args.x_ref)
+    if args.law == "fuzzy":
+        return FuzzyController(FuzzySurface.compile(), config)
+    return ProportionalController(config=config)
+
+
+def loop(node: Node, args: argparse.Namespace) -> None:
+    ctrl = make_controller(args)
+    node.subscribe(node.keys.estimate, latest=True)
+    seq = 0
+    last_stop = 0.0
+    while not node.stop.is_set():
+        item = node.recv(timeout=STALE_REPEAT_S / 2)
+        now = time.time()
+        if item is None:
+            cmd = ctrl.command_at(now)
+            if cmd.stale and now - last_stop >= STALE_REPEAT_S and ctrl.x_ref is not None:
+                node.publish(node.keys.cmd_vel, CmdVel(seq=seq, stamp_ns=time.time_ns(), vx=0.0,
+                             vy=0.0, wz=0.0, stale=True).encode(), reliable=True)
+                seq += 1
+                last_stop = now
+            continue
+        t0 = time.perf_counter()
+        try:
+            est = Estimate.decode(item[1])
+            cmd = ctrl.update(est.xc, est.scale, est.stamp_ns * 1e-9, args.image_width,
+                              npi=est.npi)
+        except (MessageError, ValueError) as e:
+            node.status.reject(e)
+            log.error("rejected motion/estimate: %s", e)
+            continue
+        if cmd is STOP or cmd.stale:
+            last_stop = now
+        node.publish(node.keys.cmd_vel, CmdVel(seq=seq, stamp_ns=est.stamp_ns, vx=cmd.vx,
+                     vy=cmd.vy, wz=cmd.wz, stale=cmd.stale).encode(), reliable=True)
+        node.status.observe_ms((time.perf_counter() - t0) * 1e3)
+        seq += 1
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        make_controller(args) if args.law == "proportional" else ControllerConfig(
+            stale_after_s=args.stale_after, min_npi=args.min_npi, x_ref=args.x_ref)
+    except ValueError as e:
+        print(f"vistrack fuzzy-controller: error: {e}", file=__import__("sys").stderr)
+        return 2
+    return serve("fuzzy_controller", args, loop)

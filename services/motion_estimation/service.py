@@ -1,0 +1,81 @@
+"""motion-estimation: feature selection, SSD tracking (Eq. 1) and the estimate (Eq. 2).
+
+Reads   ``vistrack/<robot>/preprocessing/frame``   (latest only: drops are counted)
+        ``vistrack/<robot>/tuner/params``          (reliable: applied between frames)
+Writes  ``vistrack/<robot>/motion/estimate``       (one per processed frame)
+
+The tracker is the library's :class:`~vistrack.common.vision.Tracker`, fed the filtered frame
+and candidates computed upstream, so the pipeline computes exactly what ``vistrack track`` does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+
+import numpy as np
+
+from ...common.bus import Node
+from ...common.messages import Estimate, MessageError, PreFrame
+from ...common.vision import Preprocessed, Tracker, warm_up
+from ..runtime import ParamsInForce, add_service_args, serve
+
+log = logging.getLogger("vistrack.motion_estimation")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_service_args(parser, tracker_params=True)
+
+
+def estimate_message(e, *, seq: int, stamp_ns: int, params_id: int) -> Estimate:
+    """The ``motion/estimate`` message of a library estimate."""
+    return Estimate(seq=seq, stamp_ns=stamp_ns, npi=e.npi, xc=e.xc, yc=e.yc, xe=e.xe, ye=e.ye,
+                    dx=e.dx, dy=e.dy, scale=e.scale, t_ms=e.t_ms, first=e.first,
+                    features=e.features(), params_id=params_id)
+
+
+def loop(node: Node, args: argparse.Namespace) -> None:
+    state = ParamsInForce.from_args(args)
+    state.publish_status(node)
+    warm_up()
+    tracker = Tracker(state.params)
+    node.subscribe(node.keys.params, latest=False)
+    node.subscribe(node.keys.pre_frame, latest=True)
+    seq = 0
+    while not node.stop.is_set():
+        item = node.recv(timeout=0.1)
+        if item is None:
+            continue
+        key, payload = item
+        if key == node.keys.params:
+            if state.apply(payload, node, log):
+                tracker.set_params(state.params)
+            continue
+        t0 = time.perf_counter()
+        try:
+            msg = PreFrame.decode(payload)
+        except MessageError as e:
+            node.status.reject(e)
+            log.error("rejected preprocessing/frame: %s", e)
+            continue
+        # decoded arrays are read-only views of the payload; numba would compile (and cache)
+        # a second specialisation of every kernel for read-only inputs, 40 ms on frame one
+        pre = Preprocessed(np.array(msg.data), msg.candidates, msg.strength)
+        try:
+            est = tracker.update(pre, seq=seq, t_start=t0)
+        except ValueError as e:  # the only one: the frame size changed (another camera)
+            log.warning("%s: restarting the track", e)
+            tracker.reset()
+            est = tracker.update(pre, seq=seq, t_start=t0)
+        node.publish(node.keys.estimate, estimate_message(
+            est, seq=seq, stamp_ns=msg.stamp_ns, params_id=state.params_id).encode(),
+            reliable=False)
+        node.status.observe_ms((time.perf_counter() - t0) * 1e3)
+        node.status.extra.update(npi=est.npi, lost=tracker.lost_total,
+                                 redetections=tracker.redetections)
+        seq += 1
+
+
+def main(args: argparse.Namespace) -> int:
+    return serve("motion_estimation", args, loop)

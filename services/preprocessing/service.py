@@ -1,0 +1,58 @@
+"""preprocessing: filter, gradient and THRES_PERCENT candidates for every camera frame.
+
+Reads   ``vistrack/<robot>/camera/frame``          (latest only: a slow stage drops, counted)
+        ``vistrack/<robot>/tuner/params``          (reliable: applied between frames)
+Writes  ``vistrack/<robot>/preprocessing/frame``   (filtered frame + candidates + strength)
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+
+from ...common.bus import Node
+from ...common.messages import Frame, MessageError, PreFrame
+from ...common.vision import preprocess, warm_up
+from ..runtime import ParamsInForce, add_service_args, serve
+
+log = logging.getLogger("vistrack.preprocessing")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_service_args(parser, tracker_params=True)
+
+
+def loop(node: Node, args: argparse.Namespace) -> None:
+    state = ParamsInForce.from_args(args)
+    state.publish_status(node)
+    warm_up()
+    node.subscribe(node.keys.params, latest=False)
+    node.subscribe(node.keys.frame, latest=True)
+    seq = 0
+    while not node.stop.is_set():
+        item = node.recv(timeout=0.1)
+        if item is None:
+            continue
+        key, payload = item
+        if key == node.keys.params:
+            state.apply(payload, node, log)
+            continue
+        t0 = time.perf_counter()
+        try:
+            frame = Frame.decode(payload)
+        except MessageError as e:
+            node.status.reject(e)
+            log.error("rejected camera/frame: %s", e)
+            continue
+        pre = preprocess(frame.data, state.params)
+        out = PreFrame(seq=seq, stamp_ns=frame.stamp_ns, width=frame.width, height=frame.height,
+                       data=pre.filtered, candidates=pre.candidates, strength=pre.strength,
+                       params_id=state.params_id)
+        node.publish(node.keys.pre_frame, out.encode(), reliable=False)
+        node.status.observe_ms((time.perf_counter() - t0) * 1e3)
+        seq += 1
+
+
+def main(args: argparse.Namespace) -> int:
+    return serve("preprocessing", args, loop)

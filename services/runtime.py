@@ -1,0 +1,114 @@
+"""What every service process shares: flags, logging, the session, parameters in force.
+
+A service module defines ``loop(node, args)`` (the dora-style loop over ``node.recv``) and calls
+:func:`serve` from its ``main``; this keeps each ``service.py`` to its loop.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from ..common.bus import (
+    BusError,
+    Node,
+    ZenohNode,
+    add_zenoh_args,
+    config_from_args,
+    install_signal_handlers,
+)
+from ..common.messages import MessageError, Params
+from ..common.params import ParamError, TrackerParams
+from .track import add_param_flags, params_from_args
+
+log = logging.getLogger("vistrack")
+
+LOG_FORMAT = "%(asctime)s.%(msecs)03d %(levelname)s %(name)s: %(message)s"
+
+
+def setup_logging(level: str = "info") -> None:
+    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), format=LOG_FORMAT,
+                        datefmt="%H:%M:%S", stream=sys.stderr, force=True)
+
+
+def add_service_args(parser: argparse.ArgumentParser, *, tracker_params: bool = False) -> None:
+    """Zenoh flags, ``--log-level``, and optionally the initial tracker parameters."""
+    add_zenoh_args(parser)
+    parser.add_argument("--log-level", default="info",
+                        choices=("debug", "info", "warning", "error"))
+    if tracker_params:
+        add_param_flags(parser)
+
+
+def serve(service: str, args: argparse.Namespace,
+          loop: Callable[[Node, argparse.Namespace], int | None]) -> int:
+    """Open the service's Zenoh node, run ``loop`` until it returns or SIGINT/SIGTERM, and
+    close the session (always: a callback subscriber left open hangs the interpreter)."""
+    setup_logging(args.log_level)
+    logger = logging.getLogger(f"vistrack.{service}")
+    try:
+        conf = config_from_args(args)
+    except BusError as e:
+        print(f"vistrack {service}: error: {e}", file=sys.stderr)
+        return 2
+    with ZenohNode(service, conf, args.robot) as node:
+        restore = install_signal_handlers(node.stop)
+        try:
+            # launchers and tests wait for this line (or the liveliness token)
+            logger.info("ready (robot %s, pid of this service alive on %s)", args.robot,
+                        node.keys.alive(service))
+            rc = loop(node, args)
+        finally:
+            restore()
+    logger.info("stopped")
+    return int(rc or 0)
+
+
+@dataclass
+class ParamsInForce:
+    """The tracker parameters a service runs with and how it accepts ``tuner/params``.
+
+    An update is validated first and applied only if it is valid and newer (a larger
+    ``params_id``) than what is in force: a bad or stale update is rejected with a logged error
+    naming the field and range, counted, and the old parameters stay (validate-then-apply, as
+    ROS 2 parameter callbacks do).
+    """
+
+    params: TrackerParams
+    params_id: int = 0
+    source: str = "flags"
+    reason: str = "start-up"
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> ParamsInForce:
+        return cls(params_from_args(args))
+
+    def apply(self, payload: bytes, node: Node, logger: logging.Logger) -> bool:
+        """Apply an encoded ``tuner/params``; return True when the parameters changed."""
+        try:
+            msg = Params.decode(payload)
+            new = msg.tracker_params(self.params)
+        except (MessageError, ParamError) as e:
+            node.status.reject(e)
+            logger.error("rejected tuner/params: %s; keeping params_id %d", e, self.params_id)
+            return False
+        if msg.params_id == self.params_id and new == self.params:
+            return False  # the tuner's periodic reminder of what is in force
+        if msg.params_id <= self.params_id:
+            node.status.reject(f"stale params_id {msg.params_id} <= {self.params_id}")
+            logger.warning("ignored tuner/params with params_id %d: %d is in force",
+                           msg.params_id, self.params_id)
+            return False
+        self.params, self.params_id = new, msg.params_id
+        self.source, self.reason = msg.source, msg.reason
+        self.publish_status(node)
+        logger.info("params_id %d from %s (%s): %s", msg.params_id, msg.source,
+                    msg.reason or "no reason given", new.factors())
+        return True
+
+    def publish_status(self, node: Node) -> None:
+        node.status.set_params({**self.params.factors(), "params_id": self.params_id,
+                                "source": self.source, "reason": self.reason})

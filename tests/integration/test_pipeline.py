@@ -1,0 +1,55 @@
+"""The distributed pipeline computes exactly what the library does, over real Zenoh."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import msgpack
+import pytest
+import zenoh
+
+from vistrack.common import groundtruth
+
+from procs import Collector, router, service, services, zenoh_config
+
+pytestmark = pytest.mark.integration
+
+
+@pytest.fixture(scope="module")
+def rubberwhale():
+    folder = groundtruth.middlebury("RubberWhale")
+    if folder is None:
+        pytest.skip("Middlebury RubberWhale not found: set VISTRACK_DATA or put the shared "
+                    "data at ../shared/data")
+    return folder
+
+
+def test_every_estimate_equals_vistrack_track(rubberwhale, free_port):
+    """File camera over RubberWhale frame07-14 through all five services: every
+    motion/estimate equals, field for field, what `vistrack track` prints."""
+    flags = ["--search-size", "21", "--corr-size", "11", "--subpixel"]
+    offline = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "track",
+                              str(rubberwhale), "--format", "jsonl", *flags],
+                             capture_output=True, text=True, check=True).stdout
+    expected = [json.loads(line) for line in offline.splitlines()]
+    assert len(expected) == 8
+    tracker_flags = {"preprocessing": flags, "motion-estimation": flags, "auto-tuner": flags}
+    with router(free_port) as ep, zenoh.open(zenoh_config(ep)) as session, \
+            services(ep, extra=tracker_flags):
+        est = Collector(session, "vistrack/robot/motion/estimate")
+        cmd = Collector(session, "vistrack/robot/control/cmd_vel")
+        cam = service("camera", ep, "--source", f"file:{rubberwhale}")
+        try:
+            assert cam.p.wait(60) == 0  # a file camera ends after its last frame
+        finally:
+            cam.stop()
+        got = [msgpack.unpackb(p) for _, p in est.wait(lambda items: len(items) >= 8)]
+        cmd.wait(lambda items: len(items) >= 8)
+    assert len(got) == 8  # no frame lost, none processed twice
+    for row, msg in zip(expected, got, strict=True):
+        for k in ("seq", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale", "first"):
+            assert msg[k] == row[k], (row["seq"], k)
+        assert msg["features"] == row["features"]
+        assert msg["params_id"] >= 0 and msg["t_ms"] > 0

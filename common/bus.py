@@ -46,6 +46,7 @@ from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import numpy as np
 import zenoh
+
 from vistrack.common.keys import Keys, validate_robot_id, validate_service_name
 from vistrack.common.messages import MessageError, pack, peek_seq, unpack
 

@@ -27,6 +27,7 @@ from typing import Any, ClassVar, TypeVar
 
 import msgpack
 import numpy as np
+
 from vistrack.common.keys import key_suffix
 from vistrack.common.params import FACTORS, ParamError, TrackerParams
 

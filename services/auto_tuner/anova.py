@@ -25,6 +25,7 @@ from typing import Protocol, TypeAlias
 
 import numpy as np
 from scipy import stats
+
 from vistrack.services.auto_tuner.design import LETTERS, Design, number_label
 
 DesignLike: TypeAlias = Design | np.ndarray

@@ -30,6 +30,7 @@ from functools import cached_property
 from types import MappingProxyType
 
 import numpy as np
+
 from vistrack.common.params import FACTORS as PAPER_FACTORS
 
 #: Factor letters in column order; I is left out (it is the identity of a defining relation).

@@ -21,6 +21,7 @@ import time
 import numpy as np
 import pytest
 import zenoh
+
 from vistrack.common.bus import (
     BusError,
     MemoryNode,

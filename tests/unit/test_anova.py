@@ -20,6 +20,7 @@ import itertools
 import numpy as np
 import pytest
 from scipy import stats
+
 from vistrack.services.auto_tuner.anova import (
     AnovaTable,
     anova,

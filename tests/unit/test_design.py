@@ -10,6 +10,7 @@ import itertools
 
 import numpy as np
 import pytest
+
 from vistrack.services.auto_tuner.design import (
     PAPER_FACTORS,
     Design,

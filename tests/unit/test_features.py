@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import preprocess, select_features
 from vistrack.common.vision.preprocess import threshold_candidates

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import zenoh
+
 from vistrack.common.keys import (
     CONTRACT_SUFFIXES,
     SERVICES,

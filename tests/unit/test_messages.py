@@ -9,6 +9,7 @@ import math
 import msgpack
 import numpy as np
 import pytest
+
 from vistrack.common.messages import (
     MESSAGE_TYPES,
     SCHEMA_VERSION,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+
 from vistrack.common.params import BOUNDS, FACTORS, ParamError, TrackerParams
 
 

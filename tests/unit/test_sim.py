@@ -9,6 +9,7 @@ import time
 import cv2
 import numpy as np
 import pytest
+
 from vistrack.services.camera.scenarios import (
     BUILTIN_SCENARIOS,
     ScenarioError,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+
 from vistrack.common.vision.ssd import ssd_surface, track_ssd, window_weights
 
 

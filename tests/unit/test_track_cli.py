@@ -12,6 +12,7 @@ import sys
 import cv2
 import numpy as np
 import pytest
+
 from vistrack.common import groundtruth
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker, to_gray

@@ -5,10 +5,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from conftest import load_pair
+
 from vistrack.common import groundtruth, synthetic
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker, centroid_scatter, incremental_motion
+
+from conftest import load_pair
 
 
 def two_frame_run(a, b, params):

@@ -7,7 +7,8 @@ our SSD tracker at (15, 9); a per-feature ``cv2.matchTemplate`` loop doing the s
 the ratios, and the median end-point error of ours and of LK against the Middlebury ground truth.
 Everything runs on one core (OpenCV's threads set to 1; numba kernels are single-threaded).
 
-Other benchmarks register here as they exist (``vistrack bench --help``).
+``vistrack bench pipeline`` (:mod:`.bench_pipeline`) measures the five-process pipeline against
+the same stages in one process and a raw Zenoh round trip.
 """
 
 from __future__ import annotations
@@ -189,7 +190,14 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
     return fig
 
 
-BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": bench_tracker}
+def _pipeline(out=sys.stdout) -> dict[str, float]:
+    from .bench_pipeline import bench_pipeline  # starts processes: imported only when run
+
+    return bench_pipeline(out)
+
+
+BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": bench_tracker,
+                                                       "pipeline": _pipeline}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -27,6 +27,8 @@ from .sources import BUILTIN, SourceError, open_device, open_files, parse_size
 
 log = logging.getLogger("vistrack.camera")
 
+LOOP_CACHE_BYTES = 256 * 1024 * 1024
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", default=BUILTIN, metavar="SOURCE",
@@ -53,7 +55,18 @@ def open_source(spec: str, size: tuple[int, int] | None, loop: bool) -> Iterator
         return open_device(index, size)
     path = spec[len("file:"):] if spec.startswith("file:") else spec
     frames: Iterable[np.ndarray] = open_files([path] if path else [], size)
-    return itertools.chain.from_iterable(itertools.repeat(frames)) if loop else iter(frames)
+    if not loop:
+        return iter(frames)
+    # a looping source is decoded once and replayed from memory while it fits comfortably,
+    # so the camera spends its CPU on publishing, not on decoding the same files again
+    cached: list[np.ndarray] = []
+    total = 0
+    for f in frames:
+        cached.append(f)
+        total += f.nbytes
+        if total > LOOP_CACHE_BYTES:
+            return itertools.chain.from_iterable(itertools.repeat(frames))
+    return itertools.chain.from_iterable(itertools.repeat(cached))
 
 
 def _wait_for_estimate(node: Node, stamp_ns: int, timeout: float) -> bool:

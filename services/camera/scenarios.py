@@ -6,7 +6,7 @@ changes. It is a YAML mapping::
     name: default
     duration_s: 20
     distance_m: 2.0              # nominal = reference distance of the target, optional (2.0)
-    target_size_m: 1.0           # width of the target plane, optional (1.0)
+    target_size_m: 1.8           # width of the target plane, optional (1.8)
     background_distance_m: 6.0   # distance of the background plane, optional (6.0)
     components:
       - {type: sine, axis: lateral, amplitude_m: 0.3, period_s: 10}
@@ -181,7 +181,7 @@ class Scenario:
     duration_s: float
     components: tuple[Component, ...] = ()
     distance_m: float = 2.0
-    target_size_m: float = 1.0
+    target_size_m: float = 1.8
     background_distance_m: float = 6.0
 
     def offsets(self, t: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,11 @@
 """camera: publish 8-bit grey frames from a file camera, a device, or the built-in sequence.
 
-Reads   ``vistrack/<robot>/motion/estimate``  (only with ``--fps 0``: pacing to the pipeline)
-Writes  ``vistrack/<robot>/camera/frame``
+Reads   ``vistrack/<robot>/motion/estimate``  (pacing to the pipeline, and end of file)
+        ``vistrack/<robot>/control/cmd_vel``  (simulator only: it moves the robot)
+Writes  ``vistrack/<robot>/camera/frame``, ``vistrack/<robot>/sim/pose`` (simulator only)
+
+Sources: ``file:PATH`` (video, image folder or glob), ``device:N``, ``builtin`` (a generated
+textured scene), ``sim[:SCENARIO]`` (the robot simulator, see :mod:`.simcam`).
 
 ``--fps F`` paces frames at F per second. ``--fps 0`` (the default for files) runs "as fast as
 consumers allow": each frame is sent once the estimate of the previous one is back (or after
@@ -23,6 +27,7 @@ import numpy as np
 from ...common.bus import Node
 from ...common.messages import Estimate, Frame, MessageError
 from ..runtime import add_service_args, serve
+from .simcam import make_simulator, run_sim
 from .sources import BUILTIN, SourceError, open_device, open_files, parse_size
 
 log = logging.getLogger("vistrack.camera")
@@ -32,8 +37,10 @@ LOOP_CACHE_BYTES = 256 * 1024 * 1024
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", default=BUILTIN, metavar="SOURCE",
-                        help="file:PATH (video, image folder or glob), device:N, or builtin "
-                             "(default: the built-in generated sequence)")
+                        help="file:PATH (video, image folder or glob), device:N, builtin (the "
+                             "built-in generated sequence, default), or sim[:SCENARIO] (the "
+                             "robot simulator; scenarios: default, sideways, approach, steps, "
+                             "still, lighting, or a YAML file)")
     parser.add_argument("--fps", type=float, default=0.0,
                         help="frames per second; 0 = as fast as the pipeline takes them "
                              "(default 0)")
@@ -42,6 +49,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="resize frames (default: native size)")
     parser.add_argument("--ack-timeout", type=float, default=1.0, metavar="S",
                         help="with --fps 0, longest wait for a frame's estimate (default 1 s)")
+    sim = parser.add_argument_group("simulator source")
+    sim.add_argument("--lockstep", action="store_true",
+                     help="render a frame only after the previous frame's command (or, with "
+                          "--no-control, its estimate): deterministic runs")
+    sim.add_argument("--no-control", action="store_true",
+                     help="ignore control/cmd_vel: the robot stands still")
+    sim.add_argument("--texture", metavar="PATH", default=None,
+                     help="target texture image (default: built-in procedural texture)")
+    sim.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
+                     help="Gaussian sensor noise, grey levels (default 0)")
+    sim.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     add_service_args(parser)
 
 
@@ -85,6 +103,8 @@ def _wait_for_estimate(node: Node, stamp_ns: int, timeout: float) -> bool:
 
 def loop(node: Node, args: argparse.Namespace) -> int:
     size = parse_size(args.size) if args.size else None
+    if args.source.split(":", 1)[0] == "sim":
+        return run_sim(node, args, make_simulator(args, size))
     frames = open_source(args.source, size, args.loop)
     paced = args.fps > 0
     # estimates tell when a frame has been through the pipeline: pacing with --fps 0, and the
@@ -130,9 +150,11 @@ def main(args: argparse.Namespace) -> int:
             raise SourceError(f"--fps {args.fps:g} is out of range: allowed 0..1000")
         if args.size:
             parse_size(args.size)
-        if not args.source.startswith(("device:", "sim")):
+        if args.source.split(":", 1)[0] == "sim":
+            make_simulator(args, parse_size(args.size) if args.size else None)
+        elif not args.source.startswith("device:"):
             open_source(args.source, None, False)  # fail fast on a bad path, before Zenoh
-    except SourceError as e:
+    except (SourceError, ValueError) as e:
         print(f"vistrack camera: error: {e}", file=sys.stderr)
         return 2
     return serve("camera", args, loop)

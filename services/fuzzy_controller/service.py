@@ -18,11 +18,24 @@ import time
 from ...common.bus import Node
 from ...common.messages import CmdVel, Estimate, MessageError
 from ..runtime import add_service_args, serve
-from .control import STOP, ControllerConfig, FuzzyController, FuzzySurface, ProportionalController
+from .control import (
+    STOP,
+    ControllerConfig,
+    FuzzyController,
+    FuzzySurface,
+    ProportionalController,
+    ProportionalGains,
+)
+from .rules import FuzzyLimits
 
 log = logging.getLogger("vistrack.fuzzy_controller")
 
 STALE_REPEAT_S = 0.1  # how often the stop is repeated while the estimates are stale
+
+# Full command at a quarter image width off centre (~32 px at 256) and at a 20 % size error:
+# the whole-image limits of the rule base's defaults left the robot trailing a target that
+# moves at 0.25 m/s by ~20 px.
+LIMITS = FuzzyLimits(ex_max=0.1, dex_max=0.3, ez_max=0.1, dez_max=0.3, vy_max=0.8, vx_max=0.8)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,8 +56,10 @@ def make_controller(args: argparse.Namespace) -> FuzzyController | ProportionalC
     config = ControllerConfig(stale_after_s=args.stale_after, min_npi=args.min_npi,
                               x_ref=args.x_ref)
     if args.law == "fuzzy":
-        return FuzzyController(FuzzySurface.compile(), config)
-    return ProportionalController(config=config)
+        return FuzzyController(FuzzySurface.compile(LIMITS), config)
+    return ProportionalController(ProportionalGains(
+        kx=LIMITS.vy_max / LIMITS.ex_max, kz=LIMITS.vx_max / LIMITS.ez_max,
+        vy_max=LIMITS.vy_max, vx_max=LIMITS.vx_max), config=config)
 
 
 def loop(node: Node, args: argparse.Namespace) -> None:

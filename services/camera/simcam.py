@@ -1,0 +1,110 @@
+"""The simulator as the camera service's source (``--source sim[:SCENARIO]``).
+
+Reads   ``vistrack/<robot>/control/cmd_vel``  (reliable: every command moves the robot)
+Writes  ``vistrack/<robot>/camera/frame``, ``vistrack/<robot>/sim/pose`` (ground truth)
+
+Real time (default): a frame every 1/fps s of wall time, the robot driven by the latest command.
+Lockstep (``--lockstep``): frame k+1 is rendered only once the command answering frame k is in
+(matched by ``stamp_ns``), or, with ``--no-control``, its estimate; the simulated clock advances
+1/fps per frame whatever the wall clock does, so a run is deterministic.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+
+from ...common.bus import Node
+from ...common.messages import CmdVel, Estimate, Frame, MessageError, Pose
+from .sim import Camera, Command, Simulator
+
+log = logging.getLogger("vistrack.camera")
+
+
+def make_simulator(args: argparse.Namespace, size: tuple[int, int] | None) -> Simulator:
+    scenario = args.source.split(":", 1)[1] if ":" in args.source else "default"
+    w, h = size if size is not None else (256, 256)
+    return Simulator(scenario or "default", camera=Camera(width=w, height=h,
+                                                          noise_sigma=args.noise),
+                     texture=args.texture, seed=args.seed)
+
+
+def _wait_answer(node: Node, stamp_ns: int, want_cmd: bool, timeout: float
+                 ) -> CmdVel | None:
+    """Wait for the command (or estimate) of the frame stamped ``stamp_ns``; returns the
+    newest command seen meanwhile."""
+    deadline = time.monotonic() + timeout
+    latest: CmdVel | None = None
+    while not node.stop.is_set():
+        item = node.recv(timeout=max(0.0, deadline - time.monotonic()))
+        if item is None:
+            return latest
+        key, payload = item
+        try:
+            if key == node.keys.cmd_vel:
+                latest = CmdVel.decode(payload)
+                if want_cmd and latest.stamp_ns >= stamp_ns:
+                    return latest
+            elif not want_cmd and Estimate.decode(payload).stamp_ns >= stamp_ns:
+                return latest
+        except MessageError as e:
+            node.status.reject(e)
+            log.error("rejected %s: %s", key, e)
+    return latest
+
+
+def _drain_commands(node: Node) -> CmdVel | None:
+    latest = None
+    while (item := node.recv(timeout=0.0)) is not None:
+        key, payload = item
+        if key != node.keys.cmd_vel:
+            continue
+        try:
+            latest = CmdVel.decode(payload)
+        except MessageError as e:
+            node.status.reject(e)
+            log.error("rejected control/cmd_vel: %s", e)
+    return latest
+
+
+def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
+    fps = args.fps if args.fps > 0 else 30.0
+    dt = 1.0 / fps
+    control = not args.no_control
+    node.subscribe(node.keys.cmd_vel, latest=False)
+    if args.lockstep and not control:
+        node.subscribe(node.keys.estimate, latest=True)
+    cmd = Command()
+    t0_ns = time.time_ns()
+    next_t = time.perf_counter()
+    seq = 0
+    while not node.stop.is_set():
+        if sim.done:
+            if not args.loop:
+                log.info("scenario %s finished after %d frames", sim.scenario.name, seq)
+                return 0
+            sim.reset()
+        # lockstep stamps run on the simulated clock, so they are reproducible
+        stamp = t0_ns + round(seq * dt * 1e9) if args.lockstep else time.time_ns()
+        frame = sim.render()
+        node.publish(node.keys.frame, Frame.from_image(frame, seq=seq, stamp_ns=stamp).encode(),
+                     reliable=False)
+        p = sim.pose()
+        node.publish(node.keys.pose, Pose(seq=seq, stamp_ns=stamp, **p).encode(), reliable=True)
+        node.status.extra["frames"] = seq + 1
+        if args.lockstep:
+            got = _wait_answer(node, stamp, control, args.ack_timeout)
+        else:
+            next_t += dt
+            delay = next_t - time.perf_counter()
+            if delay > 0:
+                node.stop.wait(delay)
+            else:
+                next_t = time.perf_counter()
+            got = _drain_commands(node)
+        if control and got is not None:
+            cmd = Command(vx=got.vx, vy=got.vy, wz=got.wz)
+        sim.step(cmd if control else Command(), dt)
+        seq += 1
+    return 0

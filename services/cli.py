@@ -14,6 +14,7 @@ from collections.abc import Sequence
 # name -> (module under vistrack.services, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "track": ("track", "track features over recorded frames, offline (no Zenoh)"),
+    "tune": ("tune", "factorial design, ANOVA, sweep and optimum over recorded frames, offline"),
     "bench": ("bench", "benchmarks against OpenCV / raw Zenoh peers, printed as tables"),
     "camera": ("camera.service", "service: publish frames (file camera, device, built-in)"),
     "preprocessing": ("preprocessing.service", "service: filter, gradient, candidates"),
@@ -22,6 +23,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "auto-tuner": ("auto_tuner.service", "service: frame buffer, experiments, parameters"),
     "fuzzy-controller": ("fuzzy_controller.service",
                          "service: velocity commands that cancel the image motion"),
+    "echo": ("echo", "print the samples of a key as JSON lines"),
+    "hz": ("hz", "rate, period jitter and seq gaps of a key, once a second"),
+    "status": ("status", "live services and their counters"),
+    "params": ("params", "get the tracker parameters in force, or set them live"),
+    "record": ("record", "record samples of chosen keys to a file"),
+    "replay": ("replay", "publish a recording again at its timing"),
+    "up": ("launcher", "start and supervise the five services (and a Zenoh router)"),
+    "router": ("router", "run a Zenoh router for the services and tools to connect to"),
 }
 
 
@@ -32,22 +41,30 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``vistrack`` parser. Only ``command``'s module is imported (all of them when None,
+    e.g. for documentation), so ``vistrack track`` never loads Zenoh and one broken or slow
+    subcommand cannot break the others."""
     parser = _Parser(prog="vistrack", description="Fast, self-tuning visual tracking for "
                      "mobile robots: the services, the launcher and the tools.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     for name, (module, text) in COMMANDS.items():
+        if command is not None and name != command:
+            sub.add_parser(name, help=text, add_help=False)
+            continue
         mod = importlib.import_module(f"vistrack.services.{module}")
-        p = sub.add_parser(name, help=text, description=(mod.__doc__ or text).strip())
-        p.formatter_class = argparse.RawDescriptionHelpFormatter
+        p = sub.add_parser(name, help=text, description=(mod.__doc__ or text).strip(),
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
         mod.add_arguments(p)
         p.set_defaults(_module=mod)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    args = build_parser(command if command in COMMANDS else "").parse_args(argv)
     try:
         return int(args._module.main(args) or 0)
     except KeyboardInterrupt:

@@ -439,8 +439,8 @@ name: steps
 duration_s: 16
 components:
   - {type: step, axis: lateral, at_s: 2, offset_m: 0.05}
-  - {type: step, axis: lateral, at_s: 5, offset_m: -0.1}
-  - {type: step, axis: lateral, at_s: 8, offset_m: 0.05}
+  - {type: step, axis: lateral, at_s: 5, offset_m: -0.05}
+  - {type: step, axis: lateral, at_s: 8, offset_m: -0.05}
   - {type: step, axis: distance, at_s: 11, offset_m: -0.1}
 """,
     # nothing moves: noise floor and drift of the tracker and controller

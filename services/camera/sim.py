@@ -320,6 +320,28 @@ def _r_cw(theta: float) -> np.ndarray:
     return _R_CR @ r_wr.T
 
 
+def image_truth(pose: Mapping[str, float], camera: Camera, distance_m: float
+                ) -> tuple[float, float]:
+    """Ground truth of the target in the image from a ``sim/pose`` message's fields.
+
+    Parameters
+    ----------
+    pose : x, y, theta of the robot and tx, ty of the target (m, rad).
+    camera : the simulator's camera.
+    distance_m : the scenario's reference distance.
+
+    Returns
+    -------
+    u : image x of the target centre, px; scale : apparent size relative to the reference
+    (``distance_m / depth``), as :meth:`Simulator.target_scale`. NaN when behind the camera.
+    """
+    r = _r_cw(float(pose["theta"]))
+    pc = r @ np.array([pose["tx"] - pose["x"], pose["ty"] - pose["y"], 0.0])
+    if pc[2] <= NEAR_M:
+        return math.nan, math.nan
+    return float(camera.K[0, 0] * pc[0] / pc[2] + camera.K[0, 2]), distance_m / float(pc[2])
+
+
 # -- textures ----------------------------------------------------------------------------------
 
 def load_texture(path: str | os.PathLike[str]) -> np.ndarray:

@@ -5,7 +5,8 @@ Reads   ``vistrack/<robot>/motion/estimate``  (latest only)
 Writes  ``vistrack/<robot>/control/cmd_vel``  (reliable; zero with ``stale: true`` while the
         estimates are older than the watchdog bound or too few features are tracked)
 
-The law is the fuzzy rule base of ``rules.py`` compiled into a control surface
+The set point (centroid and scale) is captured from the first estimate of each track, unless
+``--x-ref`` fixes it. The law is the fuzzy rule base of ``rules.py`` compiled into a control surface
 (``--law fuzzy``, default) or a plain proportional law (``--law proportional``).
 """
 
@@ -67,6 +68,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     node.subscribe(node.keys.estimate, latest=True)
     seq = 0
     last_stop = 0.0
+    xc0: float | None = None  # xc of the track's first estimate
     while not node.stop.is_set():
         item = node.recv(timeout=STALE_REPEAT_S / 2)
         now = time.time()
@@ -81,8 +83,13 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         t0 = time.perf_counter()
         try:
             est = Estimate.decode(item[1])
-            cmd = ctrl.update(est.xc, est.scale, est.stamp_ns * 1e-9, args.image_width,
-                              npi=est.npi)
+            if est.first or xc0 is None:  # a new track: new features, so a new set point
+                ctrl.reset()
+                xc0 = est.xc
+            # the centroid followed through the robust motion of the matched features, not the
+            # raw xc, which jumps whenever features are lost or re-detected (Table 1b)
+            cmd = ctrl.update(xc0 + est.dx, est.scale, est.stamp_ns * 1e-9,
+                              args.image_width, npi=est.npi)
         except (MessageError, ValueError) as e:
             node.status.reject(e)
             log.error("rejected motion/estimate: %s", e)

@@ -6,6 +6,8 @@ Writes  ``vistrack/<robot>/motion/estimate``       (one per processed frame)
 
 The tracker is the library's :class:`~vistrack.common.vision.Tracker`, fed the filtered frame
 and candidates computed upstream, so the pipeline computes exactly what ``vistrack track`` does.
+Estimates keep the camera frame's ``seq``; when it goes back (the camera restarted), or the
+frame size changes, the track starts again (``first: true``).
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     tracker = Tracker(state.params)
     node.subscribe(node.keys.params, latest=False)
     node.subscribe(node.keys.pre_frame, latest=True)
-    seq = 0
+    last_seq = -1
     while not node.stop.is_set():
         item = node.recv(timeout=0.1)
         if item is None:
@@ -62,19 +64,22 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         # decoded arrays are read-only views of the payload; numba would compile (and cache)
         # a second specialisation of every kernel for read-only inputs, 40 ms on frame one
         pre = Preprocessed(np.array(msg.data), msg.candidates, msg.strength)
+        if msg.seq <= last_seq:
+            log.info("camera restarted (seq %d after %d): new track", msg.seq, last_seq)
+            tracker.reset()
+        last_seq = msg.seq
         try:
-            est = tracker.update(pre, seq=seq, t_start=t0)
+            est = tracker.update(pre, seq=msg.seq, t_start=t0)
         except ValueError as e:  # the only one: the frame size changed (another camera)
             log.warning("%s: restarting the track", e)
             tracker.reset()
-            est = tracker.update(pre, seq=seq, t_start=t0)
+            est = tracker.update(pre, seq=msg.seq, t_start=t0)
         node.publish(node.keys.estimate, estimate_message(
-            est, seq=seq, stamp_ns=msg.stamp_ns, params_id=state.params_id).encode(),
+            est, seq=msg.seq, stamp_ns=msg.stamp_ns, params_id=state.params_id).encode(),
             reliable=False)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
         node.status.extra.update(npi=est.npi, lost=tracker.lost_total,
                                  redetections=tracker.redetections)
-        seq += 1
 
 
 def main(args: argparse.Namespace) -> int:

@@ -3,6 +3,9 @@
 Reads   ``vistrack/<robot>/camera/frame``          (latest only: a slow stage drops, counted)
         ``vistrack/<robot>/tuner/params``          (reliable: applied between frames)
 Writes  ``vistrack/<robot>/preprocessing/frame``   (filtered frame + candidates + strength)
+
+A pre-processed frame keeps its camera frame's ``seq``: downstream sees the camera's gaps, and
+a ``seq`` that goes back (the camera restarted) tells motion-estimation to start a new track.
 """
 
 from __future__ import annotations
@@ -29,7 +32,6 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     warm_up()
     node.subscribe(node.keys.params, latest=False)
     node.subscribe(node.keys.frame, latest=True)
-    seq = 0
     while not node.stop.is_set():
         item = node.recv(timeout=0.1)
         if item is None:
@@ -46,12 +48,11 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             log.error("rejected camera/frame: %s", e)
             continue
         pre = preprocess(frame.data, state.params)
-        out = PreFrame(seq=seq, stamp_ns=frame.stamp_ns, width=frame.width, height=frame.height,
-                       data=pre.filtered, candidates=pre.candidates, strength=pre.strength,
-                       params_id=state.params_id)
+        out = PreFrame(seq=frame.seq, stamp_ns=frame.stamp_ns, width=frame.width,
+                       height=frame.height, data=pre.filtered, candidates=pre.candidates,
+                       strength=pre.strength, params_id=state.params_id)
         node.publish(node.keys.pre_frame, out.encode(), reliable=False)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
-        seq += 1
 
 
 def main(args: argparse.Namespace) -> int:

@@ -1,0 +1,286 @@
+"""``vistrack demo``: the whole system on the built-in default, in closed loop.
+
+Starts an embedded Zenoh router and the five services with the robot simulator as the camera
+(a scenario in which the target moves sideways and approaches and recedes; the robot follows),
+shows a live status line, stops after ``--duration`` (default: the scenario's length) and writes
+to ``--out``:
+
+* ``summary.json``: frames, fps, latency_ms_p50/p99 (capture to estimate), rms_center_error_px
+  and rms_scale_error (against the simulator's ground truth), retunes, and more;
+* ``strip.png``: frames through the run with the tracked features and their centroid;
+* ``errors.png``, ``trajectories.png``, ``commands.png``: image and distance error over time,
+  robot and target paths, velocity commands;
+* ``services.log``: every service's log, prefixed with its name.
+
+``--no-control`` runs the same scenario with the robot standing still, for comparison.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import json
+import math
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import msgpack
+import numpy as np
+import zenoh
+
+from ..common.bus import add_zenoh_args
+from .camera.scenarios import ScenarioError, load_scenario
+from .camera.sim import Camera, image_truth
+from .launcher import Launcher, LaunchError, LaunchSpec, default_launch
+
+TRACKER_FLAGS = ("--subpixel",)  # closed loop needs sub-pixel motion (see README)
+STRIP_FRAMES = 8
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="seconds to run (default: the scenario's duration)")
+    parser.add_argument("--scenario", default="default",
+                        help="built-in scenario (default, sideways, approach, steps, still, "
+                             "lighting) or a scenario YAML file")
+    parser.add_argument("--no-control", action="store_true",
+                        help="the robot stands still: the same run without the controller")
+    parser.add_argument("--out", default="vistrack-demo", metavar="DIR",
+                        help="output folder (default ./vistrack-demo)")
+    add_zenoh_args(parser)
+
+
+def _with_flags(launch: LaunchSpec, service: str, *flags: str) -> LaunchSpec:
+    spec = launch.service(service)
+    if spec is None:
+        return launch
+    new = dataclasses.replace(spec, flags=(*spec.flags, *flags))
+    return dataclasses.replace(launch, services=tuple(new if s is spec else s
+                                                      for s in launch.services))
+
+
+class Recorder:
+    """Collects what the demo reports, from Zenoh callbacks (thread-safe)."""
+
+    def __init__(self, session: zenoh.Session, keys: Any, duration: float) -> None:
+        self.lock = threading.Lock()
+        self.estimates: list[tuple[int, dict]] = []  # (arrival ns, message)
+        self.poses: list[dict] = []
+        self.cmds: list[dict] = []
+        self.params: dict = {}
+        self.params_ids: set[int] = set()
+        self.frames: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
+        self.strip: list[tuple[np.ndarray, dict]] = []
+        self._next_strip = 0.0
+        self._strip_every = duration / STRIP_FRAMES
+        self._t0 = time.monotonic()
+        self.subs = [session.declare_subscriber(keys.estimate, self._on_estimate),
+                     session.declare_subscriber(keys.pose, self._on(self.poses)),
+                     session.declare_subscriber(keys.cmd_vel, self._on(self.cmds)),
+                     session.declare_subscriber(keys.params, self._on_params),
+                     session.declare_subscriber(keys.frame, self._on_frame)]
+
+    def _on(self, store: list) -> Any:
+        def on(sample: zenoh.Sample) -> None:
+            m = msgpack.unpackb(sample.payload.to_bytes())
+            with self.lock:
+                store.append(m)
+        return on
+
+    def _on_params(self, sample: zenoh.Sample) -> None:
+        m = msgpack.unpackb(sample.payload.to_bytes())
+        with self.lock:
+            self.params = m
+            if m.get("source") == "tuner":
+                self.params_ids.add(m["params_id"])
+
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        if time.monotonic() - self._t0 < self._next_strip:
+            return  # only frames that may go into the strip are kept
+        m = msgpack.unpackb(sample.payload.to_bytes())
+        img = np.frombuffer(m["data"], np.uint8).reshape(m["height"], m["width"])
+        with self.lock:
+            self.frames[m["stamp_ns"]] = img
+            while len(self.frames) > 8:
+                self.frames.popitem(last=False)
+
+    def _on_estimate(self, sample: zenoh.Sample) -> None:
+        t = time.time_ns()
+        m = msgpack.unpackb(sample.payload.to_bytes())
+        with self.lock:
+            self.estimates.append((t, m))
+            frame = self.frames.pop(m["stamp_ns"], None)
+            if frame is not None and len(self.strip) < STRIP_FRAMES:
+                self.strip.append((frame, m))
+                self._next_strip += self._strip_every
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+
+
+def _annotate(frame: np.ndarray, est: dict) -> np.ndarray:
+    img = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+    for _, x, y in est["features"]:
+        cv2.rectangle(img, (int(x) - 2, int(y) - 2), (int(x) + 2, int(y) + 2), (0, 200, 0), 1)
+    if math.isfinite(est["xc"]):
+        c = (int(round(est["xc"])), int(round(est["yc"])))
+        cv2.drawMarker(img, c, (0, 0, 255), cv2.MARKER_CROSS, 14, 2)
+    cv2.putText(img, f"seq {est['seq']} NPI {est['npi']}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX,
+                0.4, (0, 255, 255), 1, cv2.LINE_AA)
+    return img
+
+
+def summarise(rec: Recorder, scenario: Any, wall_s: float) -> dict[str, Any]:
+    """summary.json: the contract's fields and a few more."""
+    with rec.lock:
+        est = list(rec.estimates)
+        poses = list(rec.poses)
+        cmds = list(rec.cmds)
+    lat = np.array([(t - m["stamp_ns"]) * 1e-6 for t, m in est]) if est else np.array([np.nan])
+    cam = Camera()
+    truth = np.array([image_truth(p, cam, scenario.distance_m) for p in poses]) \
+        if poses else np.full((1, 2), np.nan)
+    u, scale = truth[:, 0], truth[:, 1]
+    effort = [math.hypot(c["vx"], c["vy"]) for c in cmds if not c["stale"]]
+    return {
+        "scenario": scenario.name, "frames": len(est), "wall_s": round(wall_s, 3),
+        "fps": len(est) / wall_s if wall_s > 0 else 0.0,
+        "latency_ms_p50": float(np.nanmedian(lat)), "latency_ms_p99": float(np.nanpercentile(
+            lat, 99)),
+        "rms_center_error_px": float(np.sqrt(np.nanmean((u - u[0]) ** 2))),
+        "rms_scale_error": float(np.sqrt(np.nanmean((scale / scale[0] - 1) ** 2))),
+        "retunes": max(0, len(rec.params_ids) - 1),
+        "npi_mean": float(np.mean([m["npi"] for _, m in est])) if est else 0.0,
+        "commands": len(cmds), "stale_commands": sum(1 for c in cmds if c["stale"]),
+        "mean_speed_cmd_m_s": float(np.mean(effort)) if effort else 0.0,
+        "params": {k: rec.params.get(k) for k in ("max_features", "thres_percent",
+                                                 "search_size", "corr_size", "ungroup_size",
+                                                 "params_id", "source", "reason")},
+    }
+
+
+def write_outputs(out: Path, rec: Recorder, scenario: Any, summary: dict) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    written = ["summary.json"]
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    with rec.lock:
+        strip = list(rec.strip)
+        poses, cmds = list(rec.poses), list(rec.cmds)
+    if strip:
+        cv2.imwrite(str(out / "strip.png"), np.hstack([_annotate(f, m) for f, m in strip]))
+        written.append("strip.png")
+    if poses:
+        cam = Camera()
+        t = np.array([(p["stamp_ns"] - poses[0]["stamp_ns"]) * 1e-9 for p in poses])
+        truth = np.array([image_truth(p, cam, scenario.distance_m) for p in poses])
+        fig, ax = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+        ax[0].plot(t, truth[:, 0] - truth[0, 0])
+        ax[0].set_ylabel("centring error, px")
+        ax[1].plot(t, truth[:, 1] / truth[0, 1] - 1)
+        ax[1].set_ylabel("scale error")
+        ax[1].set_xlabel("time, s")
+        fig.suptitle(f"{scenario.name}: error against ground truth")
+        fig.tight_layout()
+        fig.savefig(out / "errors.png", dpi=90)
+        fig, ax = plt.subplots(figsize=(6, 5))
+        ax.plot([p["y"] for p in poses], [p["x"] for p in poses], label="robot")
+        ax.plot([p["ty"] for p in poses], [p["tx"] for p in poses], label="target")
+        ax.set_xlabel("y (left), m")
+        ax.set_ylabel("x (forward), m")
+        ax.invert_xaxis()
+        ax.legend()
+        ax.set_title("trajectories (top view)")
+        fig.tight_layout()
+        fig.savefig(out / "trajectories.png", dpi=90)
+        written += ["errors.png", "trajectories.png"]
+    if cmds:
+        tc = np.array([(c["stamp_ns"] - cmds[0]["stamp_ns"]) * 1e-9 for c in cmds])
+        fig, ax = plt.subplots(figsize=(8, 3))
+        ax.plot(tc, [c["vx"] for c in cmds], label="vx (forward)")
+        ax.plot(tc, [c["vy"] for c in cmds], label="vy (left)")
+        ax.set_xlabel("time, s")
+        ax.set_ylabel("m/s")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / "commands.png", dpi=90)
+        written.append("commands.png")
+    plt.close("all")
+    return written
+
+
+def _status_line(rec: Recorder, t0: float) -> str:
+    with rec.lock:
+        est = rec.estimates[-60:]
+        params = rec.params
+        n = len(rec.estimates)
+    if len(est) < 2:
+        return f"waiting for estimates... ({time.monotonic() - t0:.0f} s)"
+    span = (est[-1][0] - est[0][0]) * 1e-9
+    fps = (len(est) - 1) / span if span > 0 else 0.0
+    lat = np.median([(t - m["stamp_ns"]) * 1e-6 for t, m in est])
+    last = est[-1][1]
+    return (f"{time.monotonic() - t0:5.1f} s  frames {n:5d}  {fps:5.1f} fps  latency "
+            f"{lat:5.1f} ms  NPI {last['npi']:3d}  search {params.get('search_size', '?')} "
+            f"corr {params.get('corr_size', '?')} (params_id {params.get('params_id', '?')})")
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        scenario = load_scenario(args.scenario)
+        duration = args.duration if args.duration is not None else scenario.duration_s
+        if not 1.0 <= duration <= 3600:
+            raise ValueError(f"--duration {duration:g} is out of range: allowed 1..3600 s")
+        launch = default_launch().with_camera(source=f"sim:{args.scenario}", fps=30.0)
+        if args.no_control:
+            launch = _with_flags(launch, "camera", "--no-control")
+        for name in ("preprocessing", "motion-estimation", "auto-tuner"):
+            launch = _with_flags(launch, name, *TRACKER_FLAGS)
+        if args.listen:
+            launch = dataclasses.replace(launch, listen=tuple(args.listen))
+    except (ScenarioError, LaunchError, ValueError) as e:
+        print(f"vistrack demo: error: {e}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    tty = sys.stderr.isatty()
+    with open(out / "services.log", "w") as log, \
+            Launcher(launch, connect=args.connect, out=log) as launcher:
+        print(f"vistrack demo: starting the five services (scenario {scenario.name}, "
+              f"{'robot still' if args.no_control else 'closed loop'}); logs in "
+              f"{out / 'services.log'}", file=sys.stderr)
+        launcher.wait_ready()
+        assert launcher.session is not None
+        rec = Recorder(launcher.session, launcher.keys, duration)
+        t0 = time.monotonic()
+        last_print = 0.0
+        code = None
+        while time.monotonic() - t0 < duration and code is None:
+            code = launcher.poll()
+            time.sleep(0.1)
+            if time.monotonic() - last_print >= (0.25 if tty else 2.0):
+                line = _status_line(rec, t0)
+                print(f"\r{line}\033[K" if tty else line, end="" if tty else "\n",
+                      file=sys.stderr, flush=True)
+                last_print = time.monotonic()
+        wall = time.monotonic() - t0
+        rec.close()
+    if tty:
+        print(file=sys.stderr)
+    summary = summarise(rec, scenario, wall)
+    written = write_outputs(out, rec, scenario, summary)
+    print(json.dumps({k: summary[k] for k in ("frames", "fps", "latency_ms_p50",
+                                                "latency_ms_p99", "rms_center_error_px",
+                                                "rms_scale_error", "retunes")}, indent=2))
+    print(f"vistrack demo: wrote {', '.join(written)} to {out}/", file=sys.stderr)
+    return 0 if summary["frames"] > 0 else 1

@@ -1,0 +1,232 @@
+"""What the command-line tools share (``echo``, ``hz``, ``status``, ``params``, ``record``,
+``replay``): one-line errors, the session, signals, a sample inbox, service status, tables.
+
+Each tool is its own module under ``vistrack.services`` (``add_arguments(parser)`` and
+``main(args) -> exit code``, as ``cli.py`` expects), modelled on ``ros2 topic`` and dora's CLI
+but smaller. Exit codes: 0 success, 1 a runtime failure (timeout, nothing answered), 2 a usage
+error (bad key, bad value, bad file, bad Zenoh flags), 130 interrupted twice.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import queue
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import zenoh
+
+from ..common.bus import (
+    BusError,
+    add_zenoh_args,
+    alive_services,
+    config_from_args,
+    install_signal_handlers,
+    open_session,
+    query_status,
+)
+from ..common.keys import Keys
+
+
+class ToolError(Exception):
+    """A failure a tool reports as one line ``vistrack <tool>: error: ...``.
+
+    Parameters
+    ----------
+    message : what went wrong, naming the key, field, file or service.
+    code : exit code: 2 for usage errors (bad input from the user), 1 for runtime failures.
+    """
+
+    def __init__(self, message: str, code: int = 1) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+def add_tool_args(parser: argparse.ArgumentParser) -> None:
+    """The Zenoh flags of the command line contract (``-m -e -l -c --no-multicast-scouting
+    --robot``)."""
+    add_zenoh_args(parser)
+
+
+def error(tool: str, message: object) -> None:
+    """Print the one-line error of ``tool`` on stderr."""
+    print(f"vistrack {tool}: error: {message}", file=sys.stderr, flush=True)
+
+
+def warn(tool: str, message: object) -> None:
+    """Print a one-line warning of ``tool`` on stderr."""
+    print(f"vistrack {tool}: warning: {message}", file=sys.stderr, flush=True)
+
+
+def resolve_key(keys: Keys, key: str) -> str:
+    """``keys.resolve(key)`` with a bad key as a usage error."""
+    try:
+        return keys.resolve(key)
+    except ValueError as e:
+        raise ToolError(str(e), code=2) from None
+
+
+def run(tool: str, args: argparse.Namespace,
+        body: Callable[[zenoh.Session, Keys], int]) -> int:
+    """Open the Zenoh session of ``args``, run ``body(session, keys)``, close the session.
+
+    Every expected failure becomes one line on stderr and an exit code; a closed stdout
+    (``vistrack echo ... | head``) ends the tool quietly with 0.
+    """
+    try:
+        conf = config_from_args(args)
+        keys = Keys(args.robot)
+        with open_session(conf) as session:
+            return int(body(session, keys) or 0)
+    except ToolError as e:
+        error(tool, e)
+        return e.code
+    except BusError as e:
+        error(tool, e)
+        return 2
+    except BrokenPipeError:
+        _silence_stdout()
+        return 0
+
+
+def _silence_stdout() -> None:
+    # The reader went away: point stdout at /dev/null so the interpreter's final flush does
+    # not raise a second BrokenPipeError at exit.
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+
+
+@contextlib.contextmanager
+def stop_on_signals() -> Iterator[threading.Event]:
+    """An event set by SIGINT/SIGTERM, so a streaming tool ends its loop, flushes and closes
+    its session instead of dying inside a Zenoh call (a second Ctrl-C still interrupts)."""
+    stop = threading.Event()
+    restore = install_signal_handlers(stop)
+    try:
+        yield stop
+    finally:
+        restore()
+
+
+def print_json(obj: Any) -> None:
+    """One JSON line on stdout, flushed (tools are read line by line by other programs)."""
+    print(json.dumps(obj, separators=(", ", ": "), allow_nan=False), flush=True)
+
+
+def has_subscriber(publisher: zenoh.Publisher) -> bool:
+    """Whether a subscriber anywhere on the network matches ``publisher``'s key."""
+    # the 1.x stub says bool, but the binding returns a MatchingStatus (always truthy)
+    status = publisher.matching_status
+    return bool(getattr(status, "matching", status))
+
+
+# -- receiving samples ------------------------------------------------------------------------
+
+class Received(NamedTuple):
+    """One sample as a tool sees it."""
+
+    key: str
+    payload: bytes
+    t_ns: int  # arrival, wall clock, ns since the Unix epoch
+    mono_ns: int  # arrival, monotonic clock, ns (for rates and replay timing)
+
+
+class Inbox:
+    """Zenoh subscriber callback that queues samples for the tool's main loop.
+
+    The callback runs on a Zenoh thread and must not block it, so a full queue drops the
+    sample and counts it in ``overflow`` instead (the main loop is too slow, e.g. a terminal).
+
+    Parameters
+    ----------
+    capacity : samples held before new ones are dropped.
+    """
+
+    def __init__(self, capacity: int = 10_000) -> None:
+        self._queue: queue.Queue[Received] = queue.Queue(capacity)
+        self.overflow = 0
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.PUT:
+            return  # the project never deletes; a DELETE carries no message
+        item = Received(str(sample.key_expr), sample.payload.to_bytes(), time.time_ns(),
+                        time.monotonic_ns())
+        try:
+            self._queue.put_nowait(item)
+        except queue.Full:
+            self.overflow += 1
+
+    def get(self, timeout: float) -> Received | None:
+        """The next sample, or None after ``timeout`` s."""
+        try:
+            return self._queue.get(timeout=max(0.0, timeout))
+        except queue.Empty:
+            return None
+
+
+# -- services and their status ----------------------------------------------------------------
+
+@dataclass
+class ServiceState:
+    """What the network says about one service.
+
+    Attributes
+    ----------
+    service : service name (``motion_estimation``, ...).
+    alive : its liveliness token is present.
+    status : its status reply (``ZenohNode.status_reply``), or None if it did not answer.
+    """
+
+    service: str
+    alive: bool
+    status: dict[str, Any] | None
+
+    @property
+    def state(self) -> str:
+        """``ok``, ``no reply`` (alive, not answering: busy or stuck) or ``no token``."""
+        if self.status is None:
+            return "no reply"
+        return "ok" if self.alive else "no token"
+
+
+def gather(session: zenoh.Session, keys: Keys, timeout: float = 1.0) -> list[ServiceState]:
+    """Every service that is alive or answers its status query, sorted by name.
+
+    A session that has just connected may not know every token and queryable yet (a first
+    liveliness query can come back empty), so both queries are repeated while their answers
+    disagree or are both empty, until ``timeout`` s have passed: a service alive but silent,
+    or a robot without services, costs the timeout.
+    """
+    deadline = time.monotonic() + timeout
+    alive: set[str] = set()
+    statuses: dict[str, dict[str, Any]] = {}
+    while True:
+        remaining = max(0.2, deadline - time.monotonic())
+        alive.update(alive_services(session, keys, timeout=remaining))
+        for reply in query_status(session, keys, timeout=remaining):
+            statuses[str(reply.get("service", "?"))] = reply
+        if (alive and alive == statuses.keys()) or time.monotonic() >= deadline:
+            break
+        time.sleep(0.05)  # let the missing declarations arrive, then ask again
+    return [ServiceState(name, name in alive, statuses.get(name))
+            for name in sorted(alive | statuses.keys())]
+
+
+def format_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    """Rows aligned in columns under ``headers`` (the last column is not padded)."""
+    cells = [[str(h) for h in headers]] + [["-" if c is None else str(c) for c in r]
+                                           for r in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
+    lines = []
+    for r in cells:
+        padded = [c.ljust(w) for c, w in zip(r[:-1], widths[:-1], strict=True)] + [r[-1]]
+        lines.append("  ".join(padded).rstrip())
+    return "\n".join(lines)

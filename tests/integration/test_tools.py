@@ -1,0 +1,438 @@
+"""The tools (echo, hz, status, params, record, replay) and the key contract, over real Zenoh.
+
+One router in the test process and the five services as real processes, started once for the
+module (camera: the built-in sequence at 20 fps, looping). Contract checks use a subscriber
+written with plain zenoh and msgpack only, as an outside program would. Everything waits for a
+condition with a deadline, never a bare sleep.
+
+``tuner/report`` and ``sim/pose`` are not checked yet: no service publishes them in this
+pipeline (the auto-tuner's experiments and the simulator camera come in later issues).
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+import msgpack
+import pytest
+import zenoh
+
+from procs import Collector, Proc, router, services, zenoh_config
+
+pytestmark = pytest.mark.integration
+
+ROOT = "vistrack/robot"
+ALL = ("camera", "preprocessing", "motion-estimation", "auto-tuner", "fuzzy-controller")
+SERVICE_NAMES = ("auto_tuner", "camera", "fuzzy_controller", "motion_estimation",
+                 "preprocessing")
+CAMERA = ["--source", "builtin", "--fps", "20", "--loop"]
+
+# Contract fields besides v, seq, stamp_ns, with their msgpack-decoded Python types.
+CONTRACT: dict[str, dict[str, type]] = {
+    "camera/frame": {"width": int, "height": int, "encoding": str, "data": bytes},
+    "preprocessing/frame": {"width": int, "height": int, "encoding": str, "data": bytes,
+                            "candidates": bytes, "strength": bytes, "params_id": int},
+    "motion/estimate": {"npi": int, "xc": float, "yc": float, "xe": float, "ye": float,
+                        "dx": float, "dy": float, "scale": float, "t_ms": float, "first": bool,
+                        "features": list, "params_id": int},
+    "tuner/params": {"max_features": int, "thres_percent": float, "search_size": int,
+                     "corr_size": int, "ungroup_size": int, "params_id": int, "source": str,
+                     "reason": str},
+    "control/cmd_vel": {"vx": float, "vy": float, "wz": float, "stale": bool},
+}
+
+
+# -- fixtures and helpers -------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def endpoint() -> Iterator[str]:
+    """A Zenoh router in the test process on a free loopback port (one for the module)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    with router(port) as ep:
+        yield ep
+
+
+@pytest.fixture(scope="module")
+def session(endpoint: str) -> Iterator[zenoh.Session]:
+    """A plain Zenoh session of the test, connected to the router."""
+    with zenoh.open(zenoh_config(endpoint)) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def pipeline(endpoint: str) -> Iterator[dict[str, Proc]]:
+    """The five services, ready, with estimates flowing."""
+    with services(endpoint, names=ALL, extra={"camera": CAMERA}) as procs:
+        with zenoh.open(zenoh_config(endpoint)) as s:
+            Collector(s, f"{ROOT}/motion/estimate").wait(lambda items: len(items) >= 3)
+        yield procs
+
+
+def tool(endpoint: str, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    """Run ``vistrack ARGS -e ENDPOINT --no-multicast-scouting`` to completion."""
+    return subprocess.run([sys.executable, "-m", "vistrack.services.cli", *args, "-e", endpoint,
+                           "--no-multicast-scouting"], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def json_lines(text: str) -> list[dict]:
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
+
+
+def status_of(session: zenoh.Session, service: str) -> dict:
+    """One service's status reply, read with plain zenoh + msgpack."""
+    for reply in session.get(f"{ROOT}/{service}/status", timeout=2.0):
+        if reply.ok is not None:
+            return msgpack.unpackb(reply.ok.payload.to_bytes())
+    raise AssertionError(f"{service} did not answer its status query")
+
+
+def wait_until(pred: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() >= deadline:
+            raise AssertionError(f"not within {timeout} s: {what}")
+        time.sleep(0.02)
+
+
+def estimates_since(collector: Collector, start: int) -> list[dict]:
+    return [msgpack.unpackb(p) for _, p in collector.items[start:]]
+
+
+def wait_for_subscribers(session: zenoh.Session, keys: list[str], timeout: float) -> None:
+    """Wait until each key has a subscriber (services subscribe after their "ready" line,
+    once their kernels are compiled)."""
+    publishers = [session.declare_publisher(k) for k in keys]
+    try:
+        def matched() -> bool:
+            # the binding returns a MatchingStatus whose .matching is the bool
+            return all(p.matching_status.matching for p in publishers)
+        wait_until(matched, timeout, f"subscribers of {keys}")
+    finally:
+        for p in publishers:
+            p.undeclare()
+
+
+@contextmanager
+def collecting(session: zenoh.Session, key: str) -> Iterator[Collector]:
+    """A :class:`Collector` undeclared on exit (frames would pile up for the whole module)."""
+    collector = Collector(session, key)
+    try:
+        yield collector
+    finally:
+        collector.sub.undeclare()
+
+
+# -- the key contract, read by a plain subscriber ----------------------------------------
+
+def check_contract(suffix: str, m: object) -> None:
+    """Assert that a decoded payload of ``suffix`` follows ARCHITECTURE.md's contract."""
+    assert isinstance(m, dict), suffix
+    assert m.get("v") == 1, suffix
+    assert type(m.get("seq")) is int and m["seq"] >= 0, suffix
+    assert type(m.get("stamp_ns")) is int and m["stamp_ns"] > 1_600_000_000 * 10**9, suffix
+    for name, typ in CONTRACT[suffix].items():
+        assert type(m.get(name)) is typ, (suffix, name, type(m.get(name)))
+    if "data" in m:
+        assert m["encoding"] == "mono8"
+        assert len(m["data"]) == m["width"] * m["height"], suffix
+    if suffix == "preprocessing/frame":
+        assert len(m["candidates"]) % 4 == 0  # int16 x, y pairs
+        assert len(m["strength"]) == len(m["candidates"])  # one float32 per pair
+        assert len(m["candidates"]) > 0
+    if suffix == "motion/estimate":
+        assert m["npi"] == len(m["features"])
+        for f in m["features"]:
+            assert type(f[0]) is int and type(f[1]) is float and type(f[2]) is float
+        assert m["scale"] > 0 and m["xe"] >= 0 and m["ye"] >= 0 and m["t_ms"] >= 0
+    if suffix == "tuner/params":
+        assert m["source"] in ("tuner", "user")
+
+
+def test_plain_subscriber_decodes_every_contract_key(pipeline, session):
+    for suffix in CONTRACT:
+        with collecting(session, f"{ROOT}/{suffix}") as collector:
+            items = collector.wait(lambda items: len(items) >= 2, timeout=20)
+        for key, payload in items[:2]:
+            assert key == f"{ROOT}/{suffix}"
+            check_contract(suffix, msgpack.unpackb(payload))
+
+
+# -- echo, hz, status ----------------------------------------------------------------------
+
+def test_echo_count_prints_decoded_json_lines(pipeline, endpoint):
+    run = tool(endpoint, "echo", "motion/estimate", "--count", "3", "--timeout", "20")
+    assert run.returncode == 0, run.stderr
+    lines = json_lines(run.stdout)
+    assert len(lines) == 3
+    for line in lines:
+        assert line["key"] == f"{ROOT}/motion/estimate"
+        assert line["npi"] == len(line["features"]) and "params_id" in line
+    frames = tool(endpoint, "echo", "frame", "--count", "1", "--timeout", "20")
+    assert frames.returncode == 0, frames.stderr
+    (frame,) = json_lines(frames.stdout)
+    assert frame["data"]["width"] == frame["width"] == 256  # summarised, not dumped
+    assert frame["data"]["nbytes"] == 256 * 256 and 0 < frame["data"]["mean"] < 255
+    assert len(frames.stdout) < 1000
+
+
+BAD = b"\xc1 not msgpack"
+
+
+def test_echo_prints_an_error_line_for_a_bad_payload(pipeline, endpoint, session):
+    # sim/pose: a contract key nothing publishes in this pipeline
+    with subprocess.Popen([sys.executable, "-m", "vistrack.services.cli", "echo", "sim/pose",
+                           "--count", "1", "--timeout", "30", "-e", endpoint,
+                           "--no-multicast-scouting"], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True) as echo:
+        # until echo's subscription is known, a put is lost: repeat it until echo is done
+        deadline = time.monotonic() + 30
+        while echo.poll() is None and time.monotonic() < deadline:
+            session.put(f"{ROOT}/sim/pose", BAD)
+            time.sleep(0.1)
+        out, err = echo.communicate(timeout=10)
+    assert echo.returncode == 0, err
+    (line,) = json_lines(out)
+    assert line["key"] == f"{ROOT}/sim/pose" and line["nbytes"] == len(BAD)
+    assert "msgpack" in line["error"]
+
+
+def test_hz_reports_rate_jitter_and_gaps(pipeline, endpoint):
+    run = tool(endpoint, "hz", "camera/frame", "--duration", "2.5", "--json")
+    assert run.returncode == 0, run.stderr
+    reports = json_lines(run.stdout)
+    assert len(reports) >= 2
+    last = reports[-1]
+    assert last["key"] == f"{ROOT}/camera/frame"
+    assert 10 < last["hz"] < 30  # the camera runs at 20 fps on a loaded test machine
+    assert last["min_ms"] <= last["mean_ms"] <= last["max_ms"] and last["std_ms"] >= 0
+    assert last["samples"] >= last["window"] >= 10 and last["gaps"] >= 0
+    text = tool(endpoint, "hz", "camera/frame", "--duration", "1.3")
+    assert "Hz" in text.stdout and "gaps" in text.stdout
+
+
+def test_status_lists_every_service_and_a_silent_one(pipeline, endpoint, session):
+    ghost = session.liveliness().declare_token(f"{ROOT}/alive/ghost")  # alive, never answers
+    try:
+        run = tool(endpoint, "status", "--json")
+        table = tool(endpoint, "status")
+    finally:
+        ghost.undeclare()
+    assert run.returncode == 0, run.stderr
+    rows = {r["service"]: r for r in json_lines(run.stdout)}
+    assert set(rows) == {*SERVICE_NAMES, "ghost"}
+    assert rows["ghost"]["state"] == "no reply" and rows["ghost"]["answered"] is False
+    for name in SERVICE_NAMES:
+        r = rows[name]
+        assert r["state"] == "ok" and r["alive"] and r["answered"]
+        for field in ("received", "published", "dropped", "rejected", "pid"):
+            assert type(r[field]) is int, (name, field)
+        assert {"last_error", "p50_ms", "p99_ms", "params", "extra"} <= r.keys()
+    assert rows["motion_estimation"]["published"] > 0
+    assert rows["motion_estimation"]["params"]["params_id"] >= 1
+    assert table.returncode == 0 and table.stdout.startswith("SERVICE")
+    assert all(name in table.stdout for name in SERVICE_NAMES)
+    assert "no reply" in table.stdout
+
+
+# -- params --------------------------------------------------------------------------------
+
+def test_params_set_reaches_motion_estimation(pipeline, endpoint, session):
+    with collecting(session, f"{ROOT}/motion/estimate") as est:
+        _params_set_and_get(endpoint, est)
+
+
+def _params_set_and_get(endpoint: str, est: Collector) -> None:
+    run = tool(endpoint, "params", "set", "search_size=21", "corr_size=11", "--json")
+    assert run.returncode == 0, run.stderr
+    (result,) = json_lines(run.stdout)
+    new_id = result["params_id"]
+    assert result["service"] == "motion_estimation" and result["source"] == "user"
+    assert (result["search_size"], result["corr_size"]) == (21, 11)
+    # the estimates computed with the new parameters say so
+    est.wait(lambda items: any(msgpack.unpackb(p)["params_id"] == new_id for _, p in items))
+    got = {r["service"]: r for r in json_lines(tool(endpoint, "params", "get", "--json").stdout)}
+    assert {"motion_estimation", "preprocessing", "auto_tuner"} <= got.keys()
+    me = got["motion_estimation"]
+    assert (me["params_id"], me["search_size"], me["corr_size"]) == (new_id, 21, 11)
+    assert (me["source"], me["reason"]) == ("user", "set by user")
+    text = tool(endpoint, "params", "get")
+    assert text.stdout.startswith("SERVICE") and "set by user" in text.stdout
+
+    # invalid sets: one line naming the field and the range, exit 2, nothing changes
+    bad_range = tool(endpoint, "params", "set", "search_size=500")
+    assert bad_range.returncode == 2
+    assert bad_range.stderr.count("\n") == 1
+    assert bad_range.stderr.startswith("vistrack params: error:")
+    assert "search_size" in bad_range.stderr and "2..128" in bad_range.stderr
+    unknown = tool(endpoint, "params", "set", "search_sise=21")
+    assert unknown.returncode == 2 and unknown.stderr.count("\n") == 1
+    assert "search_sise" in unknown.stderr and "search_size (2..128)" in unknown.stderr
+    start = len(est.items)
+    est.wait(lambda items: len(items) >= start + 5)
+    assert {e["params_id"] for e in estimates_since(est, start)} == {new_id}
+
+
+# -- malformed input -----------------------------------------------------------------------
+
+HUGE = 20 * 1024 * 1024
+
+# A well-formed message of each input key (params_id 0: stale, never applied even if valid).
+GOOD: dict[str, dict] = {
+    "camera/frame": {"v": 1, "seq": 1, "stamp_ns": 1, "width": 64, "height": 48,
+                     "encoding": "mono8", "data": bytes(64 * 48)},
+    "preprocessing/frame": {"v": 1, "seq": 1, "stamp_ns": 1, "width": 64, "height": 48,
+                            "encoding": "mono8", "data": bytes(64 * 48), "candidates": b"",
+                            "strength": b"", "params_id": 0},
+    "tuner/params": {"v": 1, "seq": 1, "stamp_ns": 1, "max_features": 100,
+                     "thres_percent": 2.0, "search_size": 15, "corr_size": 9,
+                     "ungroup_size": 5, "params_id": 0, "source": "user", "reason": "test"},
+    "motion/estimate": {"v": 1, "seq": 1, "stamp_ns": 1, "npi": 0, "xc": 1.0, "yc": 1.0,
+                        "xe": 0.0, "ye": 0.0, "dx": 0.0, "dy": 0.0, "scale": 1.0, "t_ms": 1.0,
+                        "first": False, "features": [], "params_id": 0},
+}
+# (field to mistype, wrong value), (field to make 20 MB)
+WRONG_TYPE = {"camera/frame": ("width", "64"), "preprocessing/frame": ("candidates", [1, 2]),
+              "tuner/params": ("search_size", "21"), "motion/estimate": ("npi", 1.5)}
+HUGE_FIELD = {"camera/frame": "data", "preprocessing/frame": "data", "tuner/params": "reason",
+              "motion/estimate": "features"}
+# services that decode each input key (and so count what they reject)
+CONSUMERS = {"camera/frame": ("preprocessing", "auto_tuner"),
+             "preprocessing/frame": ("motion_estimation",),
+             "tuner/params": ("preprocessing", "motion_estimation", "auto_tuner"),
+             "motion/estimate": ("fuzzy_controller",)}
+
+
+def malformed(suffix: str) -> dict[str, bytes]:
+    """Name -> bad payload for one input key, built with plain msgpack."""
+    good = GOOD[suffix]
+    pack = msgpack.packb
+    field, wrong = WRONG_TYPE[suffix]
+    missing = dict(good)
+    del missing[list(good)[3]]  # the first field after v, seq, stamp_ns
+    bad = {
+        "random bytes": random.Random(suffix).randbytes(200),
+        "not a map": pack([1, 2, 3]),
+        "version 2": pack({**good, "v": 2}),
+        "missing field": pack(missing),
+        "wrong type": pack({**good, field: wrong}),
+        "huge bin": pack({**good, HUGE_FIELD[suffix]: bytes(HUGE)}),
+    }
+    if "data" in good:
+        bad["data length != width*height"] = pack({**good, "data": bytes(64 * 48 - 1)})
+    return bad
+
+
+def test_malformed_input_is_rejected_counted_and_survived(pipeline, endpoint, session):
+    rejected = {s: status_of(session, s)["rejected"] for s in SERVICE_NAMES}
+    sent = dict.fromkeys(SERVICE_NAMES, 0)
+    for suffix, consumers in CONSUMERS.items():
+        for name, payload in malformed(suffix).items():
+            before = {s: status_of(session, s)["rejected"] for s in consumers}
+            # a latest-only input may be overwritten by a good frame before it is read:
+            # publish again until every consumer has counted one more rejection
+            deadline = time.monotonic() + 15
+            while True:
+                session.put(f"{ROOT}/{suffix}", payload,
+                            congestion_control=zenoh.CongestionControl.BLOCK)
+                wait_deadline = time.monotonic() + 1.0
+                done = False
+                while not done and time.monotonic() < wait_deadline:
+                    done = all(status_of(session, s)["rejected"] > before[s] for s in consumers)
+                    time.sleep(0.01)
+                if done:
+                    break
+                assert time.monotonic() < deadline, f"{suffix} {name}: not counted"
+            for s in consumers:
+                sent[s] += 1
+    for name, proc in pipeline.items():
+        assert proc.p.poll() is None, f"{name} died:\n" + "\n".join(proc.lines[-20:])
+    # good frames are still processed
+    with collecting(session, f"{ROOT}/motion/estimate") as est:
+        est.wait(lambda items: len(items) >= 5, timeout=20)
+    status = {r["service"]: r for r in json_lines(tool(endpoint, "status", "--json").stdout)}
+    for s, n in sent.items():
+        assert status[s]["state"] == "ok"
+        assert status[s]["rejected"] >= rejected[s] + n, s
+    assert status["motion_estimation"]["last_error"]
+
+
+# -- record and replay ---------------------------------------------------------------------
+
+def read_recording(path) -> tuple[dict, list[dict]]:
+    """The documented file format, read with plain msgpack."""
+    with open(path, "rb") as f:
+        objects = list(msgpack.Unpacker(f, raw=False))
+    return objects[0], objects[1:]
+
+
+def test_record_then_replay_drives_a_fresh_pipeline(pipeline, endpoint, session, tmp_path):
+    path = tmp_path / "frames.vtr"
+    run = tool(endpoint, "record", str(path), "camera/frame", "--duration", "1.5")
+    assert run.returncode == 0, run.stderr
+    header, records = read_recording(path)
+    assert header["format"] == "vistrack-record" and header["version"] == 1
+    assert header["robot"] == "robot" and header["keys"] == [f"{ROOT}/camera/frame"]
+    assert len(records) >= 10
+    assert all(r["key"] == f"{ROOT}/camera/frame" for r in records)
+    stamps = [r["t_ns"] for r in records]
+    assert stamps == sorted(stamps) and stamps[0] >= header["start_ns"]
+    check_contract("camera/frame", msgpack.unpackb(records[0]["payload"]))
+
+    # a fresh pipeline for another robot id on the same router, driven by the recording
+    fresh = {"preprocessing": ["--robot", "replayed"], "motion-estimation": ["--robot",
+                                                                            "replayed"]}
+    with services(endpoint, names=("preprocessing", "motion-estimation"), extra=fresh), \
+            collecting(session, "vistrack/replayed/motion/estimate") as est:
+        wait_for_subscribers(session, ["vistrack/replayed/camera/frame",
+                                       "vistrack/replayed/preprocessing/frame"], 30)
+        replay = tool(endpoint, "replay", str(path), "--fast", "--remap-robot", "replayed")
+        assert replay.returncode == 0, replay.stderr
+        items = est.wait(lambda items: len(items) >= 1, timeout=20)
+    check_contract("motion/estimate", msgpack.unpackb(items[0][1]))
+
+    # a file cut short: what is valid is replayed, then a warning and a one-line error
+    cut = tmp_path / "cut.vtr"
+    data = path.read_bytes()
+    cut.write_bytes(data[:len(data) // 2])
+    bad = tool(endpoint, "replay", str(cut), "--fast", "--remap-robot", "nobody",
+               "--wait", "0")
+    assert bad.returncode == 2
+    warning, error = bad.stderr.splitlines()
+    assert "warning" in warning and "valid samples" in warning
+    assert error.startswith("vistrack replay: error:") and str(cut) in error
+    assert "byte offset" in error
+    junk = tmp_path / "junk.vtr"
+    junk.write_bytes(b"\x93\x01\x02\x03 not a recording")
+    bad = tool(endpoint, "replay", str(junk))
+    assert bad.returncode == 2 and "byte offset 0" in bad.stderr and str(junk) in bad.stderr
+
+
+def test_record_stops_and_flushes_on_ctrl_c(pipeline, endpoint, tmp_path):
+    path = tmp_path / "all.vtr"
+    with subprocess.Popen([sys.executable, "-m", "vistrack.services.cli", "record", str(path),
+                           "-e", endpoint, "--no-multicast-scouting"], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True) as rec:
+        try:
+            # the file is flushed every second: wait for estimates in it, then interrupt
+            wait_until(lambda: path.exists() and path.stat().st_size > 300_000, 20,
+                       "samples in the recording")
+        finally:
+            rec.send_signal(signal.SIGINT)
+            _, err = rec.communicate(timeout=10)
+    assert rec.returncode == 0, err
+    header, records = read_recording(path)  # complete: the last record is whole
+    assert header["keys"] == [f"{ROOT}/**"]
+    keys = {r["key"] for r in records}
+    assert {f"{ROOT}/camera/frame", f"{ROOT}/motion/estimate"} <= keys
+    assert f"{len(records)} samples" in err

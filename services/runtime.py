@@ -57,14 +57,18 @@ def serve(service: str, args: argparse.Namespace,
     with ZenohNode(service, conf, args.robot) as node:
         restore = install_signal_handlers(node.stop)
         try:
-            # launchers and tests wait for this line (or the liveliness token)
-            logger.info("ready (robot %s, pid of this service alive on %s)", args.robot,
-                        node.keys.alive(service))
             rc = loop(node, args)
         finally:
             restore()
     logger.info("stopped")
     return int(rc or 0)
+
+
+def ready(node: Node) -> None:
+    """Log the line launchers and tests wait for: call it once the loop has warmed up and
+    subscribed to its inputs, so nothing published after the line is missed."""
+    logging.getLogger(f"vistrack.{node.service}").info(
+        "ready (robot %s, liveliness token %s)", node.robot, node.keys.alive(node.service))
 
 
 @dataclass

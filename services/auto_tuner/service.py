@@ -18,7 +18,7 @@ import numpy as np
 
 from ...common.bus import Node
 from ...common.messages import Frame, MessageError, Params
-from ..runtime import ParamsInForce, add_service_args, serve
+from ..runtime import ParamsInForce, add_service_args, ready, serve
 
 log = logging.getLogger("vistrack.auto_tuner")
 
@@ -58,6 +58,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     node.subscribe(node.keys.params, latest=False)
     node.subscribe(node.keys.frame, latest=True)
     node.subscribe(node.keys.estimate, latest=True)
+    ready(node)
     seq = 0
     announce(node, state, seq, "initial")
     seq += 1

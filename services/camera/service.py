@@ -26,7 +26,7 @@ import numpy as np
 
 from ...common.bus import Node
 from ...common.messages import Estimate, Frame, MessageError
-from ..runtime import add_service_args, serve
+from ..runtime import add_service_args, ready, serve
 from .simcam import make_simulator, run_sim
 from .sources import BUILTIN, SourceError, open_device, open_files, parse_size
 
@@ -110,6 +110,7 @@ def loop(node: Node, args: argparse.Namespace) -> int:
     # estimates tell when a frame has been through the pipeline: pacing with --fps 0, and the
     # end of a file either way
     node.subscribe(node.keys.estimate, latest=True)
+    ready(node)
     period = 1.0 / args.fps if paced else 0.0
     next_t = time.perf_counter()
     try:
@@ -136,7 +137,10 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], pac
         node.publish(node.keys.frame, Frame.from_image(image, seq=seq, stamp_ns=stamp).encode(),
                      reliable=False)
         node.status.extra["frames"] = seq + 1
-        if not paced and not _wait_for_estimate(node, stamp, args.ack_timeout):
+        if paced:
+            while node.recv(timeout=0.0) is not None:
+                pass  # estimates only matter at the end: consume them, they are no drops
+        elif not _wait_for_estimate(node, stamp, args.ack_timeout):
             node.status.extra["ack_timeouts"] = node.status.extra.get("ack_timeouts", 0) + 1
     if stamp and not node.stop.is_set():
         _wait_for_estimate(node, stamp, max(args.ack_timeout, 1.0))

@@ -17,6 +17,7 @@ import time
 
 from ...common.bus import Node
 from ...common.messages import CmdVel, Estimate, Frame, MessageError, Pose
+from ..runtime import ready
 from .sim import Camera, Command, Simulator
 
 log = logging.getLogger("vistrack.camera")
@@ -75,6 +76,7 @@ def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
     node.subscribe(node.keys.cmd_vel, latest=False)
     if args.lockstep and not control:
         node.subscribe(node.keys.estimate, latest=True)
+    ready(node)
     cmd = Command()
     t0_ns = time.time_ns()
     next_t = time.perf_counter()

@@ -18,7 +18,7 @@ import time
 
 from ...common.bus import Node
 from ...common.messages import CmdVel, Estimate, MessageError
-from ..runtime import add_service_args, serve
+from ..runtime import add_service_args, ready, serve
 from .control import (
     STOP,
     ControllerConfig,
@@ -66,6 +66,7 @@ def make_controller(args: argparse.Namespace) -> FuzzyController | ProportionalC
 def loop(node: Node, args: argparse.Namespace) -> None:
     ctrl = make_controller(args)
     node.subscribe(node.keys.estimate, latest=True)
+    ready(node)
     seq = 0
     last_stop = 0.0
     xc0: float | None = None  # xc of the track's first estimate

@@ -21,7 +21,7 @@ import numpy as np
 from ...common.bus import Node
 from ...common.messages import Estimate, MessageError, PreFrame
 from ...common.vision import Preprocessed, Tracker, warm_up
-from ..runtime import ParamsInForce, add_service_args, serve
+from ..runtime import ParamsInForce, add_service_args, ready, serve
 
 log = logging.getLogger("vistrack.motion_estimation")
 
@@ -44,6 +44,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     tracker = Tracker(state.params)
     node.subscribe(node.keys.params, latest=False)
     node.subscribe(node.keys.pre_frame, latest=True)
+    ready(node)
     last_seq = -1
     while not node.stop.is_set():
         item = node.recv(timeout=0.1)

@@ -17,7 +17,7 @@ import time
 from ...common.bus import Node
 from ...common.messages import Frame, MessageError, PreFrame
 from ...common.vision import preprocess, warm_up
-from ..runtime import ParamsInForce, add_service_args, serve
+from ..runtime import ParamsInForce, add_service_args, ready, serve
 
 log = logging.getLogger("vistrack.preprocessing")
 
@@ -32,6 +32,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     warm_up()
     node.subscribe(node.keys.params, latest=False)
     node.subscribe(node.keys.frame, latest=True)
+    ready(node)
     while not node.stop.is_set():
         item = node.recv(timeout=0.1)
         if item is None:

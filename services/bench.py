@@ -196,8 +196,15 @@ def _pipeline(out=sys.stdout) -> dict[str, float]:
     return bench_pipeline(out)
 
 
+def _tuner(out=sys.stdout) -> dict[str, float]:
+    from .auto_tuner.bench import bench_tuner
+
+    return bench_tuner(out=out)
+
+
 BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": bench_tracker,
-                                                       "pipeline": _pipeline}
+                                                       "pipeline": _pipeline,
+                                                       "tuner": _tuner}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

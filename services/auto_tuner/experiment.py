@@ -1,0 +1,557 @@
+"""Running the tracker as an experiment: the responses t1, tf, ex, ey of Section 6.1.
+
+One *point* is one setting of the tracker parameters, run with a fresh
+:class:`~vistrack.common.vision.Tracker` (the library code the services run) over a buffer of
+grey frames. Its responses, as the paper defines them and ``docs/ARCHITECTURE.md`` makes precise:
+
+``t1``
+    wall time to process the first frame (pre-processing, feature selection, initialisation), ms.
+``tf``
+    mean wall time to process each following frame, ms.
+``ex``, ``ey``
+    mean absolute difference, over frames 1 .. n-1, between the run's estimated image motion
+    since the first frame and that of a *reference run* with SEARCH_SIZE 50 and CORR_SIZE 30 and
+    the run's other parameters, px. Frame 0 is left out: both motions are 0 there by definition.
+``npi_mean``
+    mean number of feature points per frame (the paper's NPI): the times scale with it.
+
+Measurement choices (why)
+-------------------------
+* **Image motion = the estimate's accumulated robust motion** (``Estimate.dx``, ``dy``), not the
+  raw centroid displacement ``xc - xc[0]``. The centroid moves whenever a feature is lost or
+  re-detected (the paper's Table 1b: NPI 19 -> 8 moved xc by 6 px with no motion), and settings
+  that lose features at different frames would differ by those jumps rather than by how well
+  they track. ``dx``, ``dy`` accumulate the mean displacement of the features matched in both
+  frames only, so they measure the tracking itself.
+* **Times as the pipeline spends them.** The pre-processing service runs
+  :func:`~vistrack.common.vision.preprocess` and the motion-estimation service
+  ``Tracker.update`` (whose ``t_ms`` it publishes); a point's time per frame is the sum of the
+  two, each measured with ``time.perf_counter`` after :func:`warm_up` compiled the numba kernels
+  (the JIT is never timed). The paper's ``clock()`` counted processor time; wall time is what a
+  robot waits for. Splitting the two lets the buffer be pre-processed once per distinct
+  pre-processing (THRES_PERCENT, CORR_SIZE's border margin, the filter) rather than once per
+  run: on a 30-frame 256x256 buffer this cut a tuning cycle from 4.6 to 3.2 s. The numbers
+  tracked are identical to ``Tracker.process``'s.
+* **Noise: per-frame minimum over repeated, interleaved, shuffled passes.** A run is
+  deterministic, so frame i does the same work in every repeat and any extra time is
+  interference (other processes on this 2-core machine, interrupts, the garbage collector). The
+  minimum over repeats of each frame's time estimates the interference-free cost (pre-processing
+  and tracking each at their least-disturbed pass); ``tf`` is the mean over frames of those
+  minima, ``t1`` the minimum of the first frame's. The thread's CPU time was tried instead and
+  was no steadier: the two vCPUs share a core, so a busy neighbour slows the work itself (by up
+  to 50 % for seconds at a time), it does not just pre-empt it. One run over a 30-frame buffer
+  lasts some 30 ms, far shorter than such a spell, so repeats made back to back would share it:
+  the repeats are *passes over all the points*, a whole pass apart. The first pass follows the
+  run order; every later pass a fresh random order from the same seed, so a spell lands on
+  different points in each pass rather than on the same neighbours, and is never lined up with
+  a factor.
+* **Reference runs** are deterministic and untimed, so each distinct reference is run once and
+  cached; the 16 runs of the 2^(5-1) design need only 8 (one per combination of factors 1, 2, 5).
+  Runs are cached by their *effective* geometry too: widths w and w + 1 with the same
+  ``w // 2`` behave identically (:mod:`vistrack.common.params`), so they are run once.
+
+Ground truth (optional, :class:`GroundTruth`): with the true image motion of every frame
+(generated sequences, the simulator's poses) the run's motion is also scored against it
+(``gt_ex``, ``gt_ey``); with a dense flow between two frames (Middlebury ``.flo``), the median
+end-point error of the features tracked across that pair (``gt_epe``).
+
+Design and analysis: :func:`run_design` runs every design point in randomised order and
+:func:`analyse` turns the responses into effects and the Table 3 significance map, by Lenth's
+method (default) or ANOVA with the inactive effects pooled into error.
+
+Pure numpy/scipy (through :mod:`.anova`): no Zenoh, no msgpack.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from vistrack.common import groundtruth
+from vistrack.common.params import TrackerParams
+from vistrack.common.vision import Preprocessed, Tracker, preprocess, warm_up
+from vistrack.services.auto_tuner import anova as anova_mod
+from vistrack.services.auto_tuner.design import Design, number_label
+
+#: The paper's responses, in Table 3's order.
+RESPONSES = ("t1", "tf", "ex", "ey")
+
+#: SEARCH_SIZE and CORR_SIZE of the reference run ("large search and correlation windows").
+REFERENCE_WINDOWS = (50, 30)
+
+#: Passes over the points whose per-frame minimum gives the times (see the module notes).
+DEFAULT_REPEATS = 3
+
+#: Significance tests offered by :func:`analyse`.
+METHODS = ("lenth", "anova")
+
+#: progress(phase, done, total): called after every tracker run.
+Progress = Callable[[str, int, int], None]
+
+
+@dataclass(frozen=True, eq=False)
+class GroundTruth:
+    """What is known about a buffer's true motion; either part may be absent.
+
+    Attributes
+    ----------
+    motion : (n_frames, 2) float64, optional
+        True image motion (x, y) of the scene since frame 0, px; row 0 is (0, 0). For a pure
+        translation every point moves by it. Scale changes are not scored: under a zoom a
+        point's motion depends on where it is, so no single true value exists for the mean.
+    flow : (H, W, 2) float, optional
+        Dense ground-truth flow (u, v) from frame ``flow_frame`` to the next, NaN where unknown
+        (as :func:`vistrack.common.groundtruth.read_flo` returns it).
+    flow_frame : int
+        The frame the flow starts from.
+    """
+
+    motion: np.ndarray | None = None
+    flow: np.ndarray | None = None
+    flow_frame: int = 0
+
+    def __post_init__(self) -> None:
+        if self.motion is not None:
+            m = np.asarray(self.motion, np.float64)
+            if m.ndim != 2 or m.shape[1] != 2 or not np.all(np.isfinite(m)):
+                raise ValueError(f"motion must be a finite (n_frames, 2) array, got {m.shape}")
+            object.__setattr__(self, "motion", m)
+        if self.flow is not None:
+            f = np.asarray(self.flow)
+            if f.ndim != 3 or f.shape[2] != 2:
+                raise ValueError(f"flow must be an (H, W, 2) array, got {f.shape}")
+        if self.flow_frame < 0:
+            raise ValueError(f"flow_frame={self.flow_frame} must be >= 0")
+
+    @classmethod
+    def from_steps(cls, steps: Sequence[Any]) -> GroundTruth:
+        """From per-frame translation steps, e.g. the ``synthetic.Motion`` list of a generated
+        sequence (objects with ``dx``, ``dy`` and ``scale`` attributes, ``scale`` == 1)."""
+        for s in steps:
+            if getattr(s, "scale", 1.0) != 1.0:
+                raise ValueError("only translations have one true image motion; got a scale step")
+        d = np.array([[s.dx, s.dy] for s in steps], np.float64).reshape(-1, 2)
+        return cls(motion=np.vstack([np.zeros((1, 2)), np.cumsum(d, axis=0)]))
+
+
+@dataclass(frozen=True)
+class Responses:
+    """Responses of one point. Times in ms, errors in px, ``npi_mean`` in features.
+
+    The ``gt_*`` scores are None unless ground truth of that kind was given.
+    """
+
+    t1: float
+    tf: float
+    ex: float
+    ey: float
+    npi_mean: float
+    gt_ex: float | None = None
+    gt_ey: float | None = None
+    gt_epe: float | None = None
+
+    def as_dict(self) -> dict[str, float]:
+        """Every response that has a value, as plain floats."""
+        return {k: float(v) for k, v in dataclasses.asdict(self).items() if v is not None}
+
+
+@dataclass
+class _Run:
+    """What one (deterministic) run left behind: the motion, the NPI and every pass's times."""
+
+    dx: np.ndarray  # (n,) accumulated x motion since frame 0, px
+    dy: np.ndarray
+    npi: np.ndarray  # (n,)
+    epe: float | None  # median end-point error against the ground-truth flow
+    times: list[np.ndarray] = field(default_factory=list)  # each (n,) t_ms of one pass
+
+
+def bounce(frames: Sequence[np.ndarray], n: int) -> list[np.ndarray]:
+    """``n`` frames made by playing ``frames`` forwards, backwards, forwards ... (no frame is
+    shown twice in a row), so a short sequence such as RubberWhale's 8 frames fills a buffer.
+
+    Returns a list of the same array objects, in the new order.
+    """
+    if len(frames) < 2 or n < 1:
+        raise ValueError(f"need at least 2 frames and n >= 1, got {len(frames)} and {n}")
+    cycle = list(range(len(frames))) + list(range(len(frames) - 2, 0, -1))
+    return [frames[cycle[i % len(cycle)]] for i in range(n)]
+
+
+class Experiment:
+    """A buffer of frames and the runs made on it, cached.
+
+    Parameters
+    ----------
+    frames : sequence of (H, W) uint8 arrays, at least 2, all one size.
+    repeats : passes whose per-frame minimum gives the times (1 = a single pass).
+    ground_truth : optional :class:`GroundTruth` of the buffer.
+    reference : (SEARCH_SIZE, CORR_SIZE) of the reference runs.
+
+    It keeps every run's motion and times and every distinct pre-processing of the buffer
+    (about 2 MB each for 30 frames of 256x256; a tuning cycle makes 13): drop it when done.
+    """
+
+    def __init__(self, frames: Sequence[np.ndarray], *, repeats: int = DEFAULT_REPEATS,
+                 ground_truth: GroundTruth | None = None,
+                 reference: tuple[int, int] = REFERENCE_WINDOWS) -> None:
+        self.frames = _check_frames(frames)
+        if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
+            raise ValueError(f"repeats={repeats!r} must be an int >= 1")
+        self.repeats = repeats
+        if ground_truth is not None:
+            n = len(self.frames)
+            if ground_truth.motion is not None and len(ground_truth.motion) != n:
+                raise ValueError(f"ground-truth motion has {len(ground_truth.motion)} rows for "
+                                 f"{n} frames")
+            if ground_truth.flow is not None:
+                if ground_truth.flow_frame + 1 >= n:
+                    raise ValueError(f"flow_frame={ground_truth.flow_frame} needs a next frame; "
+                                     f"the buffer has {n}")
+                if ground_truth.flow.shape[:2] != self.frames[0].shape:
+                    raise ValueError(f"flow is {ground_truth.flow.shape[:2]} (H, W) but frames "
+                                     f"are {self.frames[0].shape}")
+        self.ground_truth = ground_truth
+        self.reference = (int(reference[0]), int(reference[1]))
+        TrackerParams(search_size=self.reference[0], corr_size=self.reference[1])  # validate
+        self._runs: dict[tuple, _Run] = {}
+        self._pre: dict[tuple, list[Preprocessed]] = {}
+        self._pre_times: dict[tuple, list[np.ndarray]] = {}
+        warm_up()  # compile (or load) the numba kernels once, before anything is timed
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) of the frames, px."""
+        h, w = self.frames[0].shape
+        return w, h
+
+    def reference_params(self, params: TrackerParams) -> TrackerParams:
+        """The run's parameters with the reference SEARCH_SIZE and CORR_SIZE."""
+        return params.replace(search_size=self.reference[0], corr_size=self.reference[1])
+
+    # -- running -------------------------------------------------------------------------
+    def measure(self, points: Sequence[TrackerParams], *, order: Sequence[int] | None = None,
+                shuffle_seed: int | None = None, progress: Progress | None = None,
+                phase: str = "runs") -> list[Responses]:
+        """Run every point ``repeats`` times in interleaved passes and score it.
+
+        Parameters
+        ----------
+        points : the settings to run.
+        order : the order of the points within the first pass (default: as given); a
+            permutation.
+        shuffle_seed : when given, every later pass runs the points in a fresh random order
+            (``numpy.random.default_rng(shuffle_seed)``), so a slow spell of the machine that
+            outlasts a pass lands on different points each time; otherwise every pass follows
+            ``order``.
+        progress : optional ``progress(phase, done, total)`` after every tracker run.
+
+        Returns
+        -------
+        One :class:`Responses` per point, in the order of ``points``.
+        """
+        points = list(points)
+        order = list(range(len(points))) if order is None else [int(i) for i in order]
+        if sorted(order) != list(range(len(points))):
+            raise ValueError(f"order must be a permutation of 0..{len(points) - 1}")
+        keys = [_key(p) for p in points]
+        refs = {_key(self.reference_params(p)): self.reference_params(p) for p in points}
+        # a point already measured (by an earlier call, or the same geometry twice in this
+        # list) is not run again: only the first of each key, and only the passes it lacks
+        first: dict[tuple, int] = {}
+        for i in order:
+            first.setdefault(keys[i], i)
+        have = {k: len(self._runs[k].times) if k in self._runs else 0 for k in first}
+        todo = [[i for k, i in first.items() if have[k] <= r] for r in range(self.repeats)]
+        if shuffle_seed is not None:
+            rng = np.random.default_rng(shuffle_seed)
+            todo = [todo[0]] + [[t[j] for j in rng.permutation(len(t))] for t in todo[1:]]
+        missing_refs = [k for k in refs if k not in self._runs and k not in keys]
+        total = sum(len(t) for t in todo) + len(missing_refs)
+        done = 0
+        for r in range(self.repeats):
+            for i in todo[r]:
+                self._run(points[i], keys[i], timed_passes=r + 1)
+                done += 1
+                if progress is not None:
+                    progress(phase, done, total)
+        for k in missing_refs:  # untimed: only their motion is used
+            self._run(refs[k], k)
+            done += 1
+            if progress is not None:
+                progress(phase, done, total)
+        return [self.responses(p) for p in points]
+
+    def responses(self, params: TrackerParams) -> Responses:
+        """The responses of a point already run (see :meth:`measure`)."""
+        run = self._runs[_key(params)]
+        ref = self._runs[_key(self.reference_params(params))]
+        # each part at its least-disturbed pass (see the module notes)
+        times = (np.min(np.stack(run.times), axis=0)
+                 + np.min(np.stack(self._pre_times[_pre_key(params)]), axis=0))
+        gt_ex = gt_ey = None
+        if self.ground_truth is not None and self.ground_truth.motion is not None:
+            truth = self.ground_truth.motion
+            gt_ex = float(np.mean(np.abs(run.dx[1:] - truth[1:, 0])))
+            gt_ey = float(np.mean(np.abs(run.dy[1:] - truth[1:, 1])))
+        return Responses(
+            t1=float(times[0]), tf=float(np.mean(times[1:])),
+            ex=float(np.mean(np.abs(run.dx[1:] - ref.dx[1:]))),
+            ey=float(np.mean(np.abs(run.dy[1:] - ref.dy[1:]))),
+            npi_mean=float(np.mean(run.npi)), gt_ex=gt_ex, gt_ey=gt_ey, gt_epe=run.epe)
+
+    def _run(self, params: TrackerParams, key: tuple, timed_passes: int = 0) -> None:
+        frames = self._preprocessed(params, timed_passes)
+        tracker = Tracker(params)
+        estimates = [tracker.update(pre) for pre in frames]
+        times = np.array([e.t_ms for e in estimates])
+        run = self._runs.get(key)
+        if run is None:
+            run = _Run(dx=np.array([e.dx for e in estimates]),
+                       dy=np.array([e.dy for e in estimates]),
+                       npi=np.array([e.npi for e in estimates], np.float64),
+                       epe=self._epe(estimates))
+            self._runs[key] = run
+        run.times.append(times)
+
+    def _preprocessed(self, params: TrackerParams, timed_passes: int) -> list[Preprocessed]:
+        """The buffer pre-processed for ``params``, timed at least ``timed_passes`` times."""
+        key = _pre_key(params)
+        times = self._pre_times.setdefault(key, [])
+        if key not in self._pre or len(times) < timed_passes:
+            out = []
+            t_ms = np.empty(len(self.frames))
+            for i, frame in enumerate(self.frames):
+                t0 = time.perf_counter()
+                out.append(preprocess(frame, params))
+                t_ms[i] = (time.perf_counter() - t0) * 1e3
+            self._pre[key] = out
+            times.append(t_ms)
+        return self._pre[key]
+
+    def _epe(self, estimates: list) -> float | None:
+        gt = self.ground_truth
+        if gt is None or gt.flow is None:
+            return None
+        a, b = estimates[gt.flow_frame], estimates[gt.flow_frame + 1]
+        start = dict(zip(a.ids.tolist(), a.points, strict=True))
+        both = [k for k, i in enumerate(b.ids.tolist()) if i in start]
+        if not both:
+            return None
+        before = np.array([start[int(b.ids[k])] for k in both])
+        err = groundtruth.endpoint_errors(before, b.points[both], gt.flow)
+        return float(np.median(err)) if err.size else None
+
+
+def _key(params: TrackerParams) -> tuple:
+    """Cache key: every parameter, with the window widths reduced to what the tracker uses."""
+    values = params.as_dict()
+    values["search_size"] = params.search_half
+    values["corr_size"] = params.corr_half
+    return tuple(sorted(values.items()))
+
+
+def _pre_key(params: TrackerParams) -> tuple:
+    """What :func:`preprocess` depends on: the filter, the strength, THRES_PERCENT, and the
+    border margin that keeps a correlation window inside the frame."""
+    return params.blur_sigma, params.strength, params.thres_percent, params.corr_half
+
+
+def _check_frames(frames: Sequence[np.ndarray]) -> list[np.ndarray]:
+    out = [np.ascontiguousarray(f) for f in frames]
+    if len(out) < 2:
+        raise ValueError(f"an experiment needs at least 2 frames (t1 and tf), got {len(out)}")
+    for i, f in enumerate(out):
+        if f.ndim != 2 or f.dtype != np.uint8:
+            raise ValueError(f"frame {i} must be a 2-D uint8 grey image, got {f.dtype} "
+                             f"{f.shape}")
+        if f.shape != out[0].shape:
+            raise ValueError(f"frame {i} is {f.shape[1]}x{f.shape[0]} but frame 0 is "
+                             f"{out[0].shape[1]}x{out[0].shape[0]}")
+    return out
+
+
+def _experiment(frames: Sequence[np.ndarray] | Experiment, repeats: int | None,
+                ground_truth: GroundTruth | None) -> Experiment:
+    if isinstance(frames, Experiment):
+        if ground_truth is not None and ground_truth is not frames.ground_truth:
+            raise ValueError("give ground_truth to the Experiment, not to each call")
+        if repeats is not None and repeats != frames.repeats:
+            raise ValueError(f"repeats={repeats} differs from the Experiment's {frames.repeats}")
+        return frames
+    return Experiment(frames, repeats=DEFAULT_REPEATS if repeats is None else repeats,
+                      ground_truth=ground_truth)
+
+
+def run_point(frames: Sequence[np.ndarray] | Experiment, params: TrackerParams, *,
+              repeats: int | None = None, ground_truth: GroundTruth | None = None) -> Responses:
+    """Responses of one setting over a buffer of frames.
+
+    Parameters
+    ----------
+    frames : (H, W) uint8 grey frames (at least 2), or an :class:`Experiment` to share its
+        cache of runs (references in particular) between calls.
+    params : the setting; its reference run uses SEARCH_SIZE 50, CORR_SIZE 30.
+    repeats : timing passes (default :data:`DEFAULT_REPEATS`); with one point they run back to
+        back.
+    ground_truth : optional :class:`GroundTruth` of the buffer.
+    """
+    return _experiment(frames, repeats, ground_truth).measure([params], phase="point")[0]
+
+
+# ------------------------------------------------------------------------------ the design
+
+
+@dataclass(frozen=True, eq=False)
+class DesignRun:
+    """A design run on a buffer: every point's responses, in standard order.
+
+    Attributes
+    ----------
+    design : the design (with factor names and levels).
+    params : TrackerParams of every run, standard order.
+    order : (runs,) int64, the run order: ``order[k]`` is the standard-order index of the
+        k-th run made (in the first timing pass; later passes reshuffle, see the module notes).
+    responses : Responses of every run, standard order.
+    seed : the seed of the run order.
+    """
+
+    design: Design
+    params: tuple[TrackerParams, ...]
+    order: np.ndarray
+    responses: tuple[Responses, ...]
+    seed: int | None
+
+    def response(self, name: str) -> np.ndarray:
+        """(runs,) float64 values of one response (``"t1"``, ``"tf"``, ..., ``"npi_mean"``)."""
+        values = [r.as_dict().get(name) for r in self.responses]
+        if any(v is None for v in values):
+            raise KeyError(f"no response {name!r}; have {sorted(self.responses[0].as_dict())}")
+        return np.array(values, np.float64)
+
+
+def design_params(design: Design, base: TrackerParams | None = None) -> list[TrackerParams]:
+    """TrackerParams of every run of ``design`` (standard order): its factor names must be
+    TrackerParams fields and it must carry levels, like :func:`.design.paper_design`."""
+    if design.names is None or design.levels is None:
+        raise ValueError("the design needs factor names and levels (see paper_design())")
+    base = base if base is not None else TrackerParams()
+    return [base.replace(**dict(zip(design.names, (float(v) for v in row), strict=True)))
+            for row in design.with_levels()]
+
+
+def run_design(frames: Sequence[np.ndarray] | Experiment, design: Design, seed: int | None, *,
+               progress: Progress | None = None, repeats: int | None = None,
+               ground_truth: GroundTruth | None = None,
+               base: TrackerParams | None = None) -> DesignRun:
+    """Run every point of ``design`` over the frames, in a randomised run order.
+
+    Parameters
+    ----------
+    frames : grey frames or an :class:`Experiment` (see :func:`run_point`).
+    design : a two-level design with names and levels, e.g. ``paper_design()``.
+    seed : seed of the run order (:meth:`Design.randomized_order`); the same seed gives the
+        same order.
+    progress : optional ``progress("design", done, total)``.
+    repeats, ground_truth : see :func:`run_point`.
+    base : values of the parameters the design does not vary (default TrackerParams()).
+
+    Returns
+    -------
+    DesignRun with the responses in standard order and the run order.
+    """
+    exp = _experiment(frames, repeats, ground_truth)
+    points = design_params(design, base)
+    order = design.randomized_order(seed)
+    # later timing passes reshuffle from the same seed: reproducible, and independent of order
+    shuffle = None if seed is None else int(np.random.default_rng(seed).integers(2**31))
+    responses = exp.measure(points, order=order, shuffle_seed=shuffle, progress=progress,
+                            phase="design")
+    order = order.astype(np.int64)
+    order.setflags(write=False)
+    return DesignRun(design, tuple(points), order, tuple(responses), seed)
+
+
+# ------------------------------------------------------------------------------ analysis
+
+
+@dataclass(frozen=True, eq=False)
+class Analysis:
+    """Effects and significance of every response of a design run.
+
+    Attributes
+    ----------
+    method : ``"lenth"`` or ``"anova"``.
+    effects : response -> {term: effect}, terms in the paper's numbers (``"34"``), response
+        units (ms or px) per change from the low to the high level.
+    significant : response -> ``{"99": [...], "95": [...]}`` (Table 3: at 99 %, and at 95 %
+        but not 99 %), paper numbers.
+    results : response -> the LenthResult or AnovaTable behind it, or None when the response
+        could not be tested (e.g. all of its effects are 0).
+    """
+
+    method: str
+    effects: dict[str, dict[str, float]]
+    significant: dict[str, dict[str, list[str]]]
+    results: dict[str, Any]
+
+
+def analyse(run: DesignRun, *, method: str = "lenth",
+            responses: Sequence[str] = RESPONSES) -> Analysis:
+    """Effects of the main effects and two-factor interactions, and the Table 3 map.
+
+    ``method="lenth"`` (default): Lenth's pseudo standard error, individual t tests on m/3
+    degrees of freedom. The 16 unreplicated runs of the 2^(5-1) design leave no degree of
+    freedom for error, and Lenth's method is the standard answer: it estimates the noise from
+    the smallest effects without deciding in advance which ones are noise.
+
+    ``method="anova"``: the classical ANOVA (what the paper reports) with the effects Lenth's
+    method treats as inactive (|effect| < 2.5 * 1.5 * median |effect|) pooled into error. It
+    is more liberal: pooling chosen from the data makes the error too small, so read it as the
+    paper's view rather than as a calibrated test.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method={method!r} is not allowed: use one of {', '.join(METHODS)}")
+    effects: dict[str, dict[str, float]] = {}
+    results: dict[str, Any] = {}
+    for name in responses:
+        y = run.response(name)
+        eff = anova_mod.effects(run.design, y)
+        effects[name] = {number_label(t): float(v) for t, v in eff.items()}
+        try:
+            if method == "lenth":
+                results[name] = anova_mod.lenth(eff)
+            else:
+                results[name] = anova_mod.anova(run.design, y, pool="auto")
+        except ValueError:
+            # half or more of the effects are exactly 0 (e.g. every run equals its reference):
+            # there is no scale to test against, so nothing is declared significant
+            results[name] = None
+    tested = {k: v for k, v in results.items() if v is not None}
+    significant = anova_mod.table3(tested)
+    for name in responses:
+        significant.setdefault(name, {"99": [], "95": []})
+    return Analysis(method, effects, {k: significant[k] for k in responses}, results)
+
+
+def aliases(design: Design) -> dict[str, list[str]]:
+    """Alias chains of the main effects and 2FIs in the paper's numbers: ``{"1": ["2345"]}``."""
+    return {number_label(t): [_signed_number(w) for w in chain]
+            for t, chain in design.aliases(2).items()}
+
+
+def _signed_number(word: str) -> str:
+    return ("-" if word.startswith("-") else "") + number_label(word.lstrip("-"))
+
+
+def levels_of(design: Design) -> Mapping[str, list[float]]:
+    """Factor name -> [low, high] (the design's levels)."""
+    if design.names is None or design.levels is None:
+        raise ValueError("the design has no names or levels")
+    return {n: [float(lo), float(hi)] for n, (lo, hi) in zip(design.names, design.levels,
+                                                             strict=True)}

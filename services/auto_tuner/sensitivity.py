@@ -1,0 +1,358 @@
+"""Sensitivity sweep of SEARCH_SIZE x CORR_SIZE, the optimum, and the whole tuning cycle.
+
+Section 6.1 of the paper sweeps the search window width over 10..20 px and the correlation
+window width over 5..15 px, with the other factors fixed at Table 4's values (MAX_FEAT_NUM 100,
+THRES_PERCENT 2, UNGROUP_SIZE 5), plots t1, ex and ey over the grid (Figures 5 to 7) and picks
+15 and 9 as "ideal" by eye. :func:`optimum` automates that choice: the fastest setting (least
+tf) whose errors ex and ey against the reference windows (50, 30) both stay within a tolerance.
+
+Grid step (default 2)
+    A width w behaves exactly like w + 1 when both have the same ``w // 2``
+    (:mod:`vistrack.common.params`), so on 10..20 x 5..15 the step-2 grid (10, 12, ..., 20) x
+    (5, 7, ..., 15) already holds every distinct window geometry: 6 x 6 = 36 settings. A step
+    of 1 shows the same surfaces with every value twice, at no extra cost (runs are cached by
+    their effective geometry); a step of 4 is the coarse choice for quick checks.
+
+Tolerance (default 0.5 px)
+    Without sub-pixel refinement the SSD search of Eq. (1) matches whole pixels. A setting that
+    loses the motion (a search window too small for it, a correlation window too small to be
+    unique) is a whole pixel or more off the reference from that frame on, while one that
+    differs only in a few features' matches is off by a fraction of a pixel (1/NPI per feature
+    and frame). Half a pixel, half the search's resolution, separates the two. Measured: 0.03 to
+    0.3 px over the whole sweep on the RubberWhale crop and on the built-in sequence (every
+    setting qualifies and the fastest wins); up to 0.8 px on whole RubberWhale frames resized
+    to 256x256, where the 5 px correlation windows and a few 9 px ones fall out.
+
+The whole cycle, :func:`tune`, runs the 2^(5-1) design (:mod:`.experiment`), its analysis
+and the sweep on one buffer and returns a :class:`TuneResult` whose :meth:`TuneResult.to_report`
+is the ``tuner/report`` message (CONTRACT, docs/ARCHITECTURE.md).
+
+Budget (``python -m vistrack.services.auto_tuner.bench``): on a 30-frame 256x256 buffer, one
+core, the defaults (3 timing passes, step 2) took 3.7 to 4.4 s a cycle with the machine's other
+core busy and 5.5 s under a load of 5 on its 2 cores: design 1.5 to 1.9 s (16 settings x 3
+passes and 8 untimed references at (50, 30)), sweep 2.2 to 3.4 s (36 settings and the reference
+x 3 passes). Step 1 costs the same (equal geometries are cached); 2 passes save about a
+quarter but leave the times noisier; a step of 4 (a 4 x 4 grid) cuts the sweep to under half.
+
+Pure numpy (through :mod:`.experiment`): no Zenoh, no msgpack.
+"""
+
+from __future__ import annotations
+
+import secrets
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from vistrack.common.params import FACTORS, TrackerParams
+from vistrack.services.auto_tuner.design import Design, paper_design
+from vistrack.services.auto_tuner.experiment import (
+    METHODS,
+    RESPONSES,
+    Analysis,
+    DesignRun,
+    Experiment,
+    GroundTruth,
+    Progress,
+    Responses,
+    aliases,
+    analyse,
+    levels_of,
+    run_design,
+)
+
+#: The swept ranges of Section 6.1, px (inclusive).
+SEARCH_RANGE = (10, 20)
+CORR_RANGE = (5, 15)
+DEFAULT_STEP = 2
+#: Table 4: values of the factors the sweep holds fixed.
+TABLE4_FIXED: Mapping[str, float] = {"max_features": 100, "thres_percent": 2.0,
+                                     "ungroup_size": 5}
+#: Largest mean |ex|, |ey| against the reference windows an optimum may have, px.
+DEFAULT_TOLERANCE = 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class Sweep:
+    """Responses over the SEARCH_SIZE x CORR_SIZE grid.
+
+    Attributes
+    ----------
+    search_sizes : (S,) the swept SEARCH_SIZE values, px.
+    corr_sizes : (C,) the swept CORR_SIZE values, px.
+    fixed : the values of the three factors held fixed (Table 4 by default).
+    t1, tf : (S, C) float64 ms; ex, ey : (S, C) float64 px; npi : (S, C) mean NPI.
+        Indexed ``[i, j]`` for ``search_sizes[i]``, ``corr_sizes[j]``.
+    reference : the reference windows (50, 30) with the fixed values, timed in the same passes
+        as the grid, so ``reference.tf / tf`` is a fair speed-up.
+    base : the TrackerParams every point was built from.
+    """
+
+    search_sizes: tuple[int, ...]
+    corr_sizes: tuple[int, ...]
+    fixed: dict[str, float]
+    t1: np.ndarray
+    tf: np.ndarray
+    ex: np.ndarray
+    ey: np.ndarray
+    npi: np.ndarray
+    reference: Responses
+    reference_windows: tuple[int, int]
+    base: TrackerParams
+
+    def params(self, i: int, j: int) -> TrackerParams:
+        """The TrackerParams of grid point ``[i, j]``."""
+        return self.base.replace(search_size=self.search_sizes[i], corr_size=self.corr_sizes[j])
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain lists and floats: the ``sweep`` field of ``tuner/report``."""
+        return {
+            "search_size": list(self.search_sizes),
+            "corr_size": list(self.corr_sizes),
+            "fixed": dict(self.fixed),
+            **{name: _grid(getattr(self, name)) for name in (*RESPONSES, "npi")},
+            "reference": {"search_size": self.reference_windows[0],
+                          "corr_size": self.reference_windows[1],
+                          **self.reference.as_dict()},
+        }
+
+
+def _grid(a: np.ndarray) -> list[list[float]]:
+    return [[float(v) for v in row] for row in a]
+
+
+def grid_values(lo: int, hi: int, step: int) -> tuple[int, ...]:
+    """lo, lo + step, ... up to hi inclusive (hi itself always included)."""
+    if isinstance(step, bool) or not isinstance(step, int) or step < 1:
+        raise ValueError(f"step={step!r} must be an int >= 1")
+    if lo > hi:
+        raise ValueError(f"range {lo}..{hi} is empty")
+    values = list(range(lo, hi + 1, step))
+    if values[-1] != hi:
+        values.append(hi)
+    return tuple(values)
+
+
+def sweep(frames: Sequence[np.ndarray] | Experiment, *, step: int = DEFAULT_STEP,
+          search_sizes: Sequence[int] | None = None, corr_sizes: Sequence[int] | None = None,
+          fixed: Mapping[str, float] | None = None, base: TrackerParams | None = None,
+          repeats: int | None = None, seed: int | None = 0,
+          progress: Progress | None = None) -> Sweep:
+    """Measure t1, tf, ex, ey over the SEARCH_SIZE x CORR_SIZE grid (Figures 5 to 7).
+
+    Parameters
+    ----------
+    frames : (H, W) uint8 grey frames, or an :class:`Experiment` to share its runs.
+    step : grid step in px over :data:`SEARCH_RANGE` x :data:`CORR_RANGE` (see the module
+        notes; default 2, every distinct geometry).
+    search_sizes, corr_sizes : explicit grids instead of the ranges and step.
+    fixed : the values of the other factors (default Table 4: 100, 2, 5).
+    base : the non-factor parameters (default TrackerParams()).
+    repeats : timing passes when ``frames`` are not an Experiment.
+    seed : seed of the random order of the grid points in every pass (None: grid order).
+        A sweep made in grid order would meet a slow spell of the machine on a run of
+        neighbouring SEARCH_SIZE rows and fake a trend; in random order it is only noise.
+    progress : optional ``progress("sweep", done, total)``.
+    """
+    exp = frames if isinstance(frames, Experiment) else Experiment(
+        frames, **({} if repeats is None else {"repeats": repeats}))
+    ss = tuple(int(v) for v in (search_sizes if search_sizes is not None
+                                else grid_values(*SEARCH_RANGE, step)))
+    cs = tuple(int(v) for v in (corr_sizes if corr_sizes is not None
+                                else grid_values(*CORR_RANGE, step)))
+    if not ss or not cs:
+        raise ValueError("the sweep needs at least one SEARCH_SIZE and one CORR_SIZE")
+    fixed = dict(TABLE4_FIXED if fixed is None else fixed)
+    allowed = [f for f in FACTORS if f not in ("search_size", "corr_size")]
+    if set(fixed) - set(allowed):
+        raise ValueError(f"fixed may only name {', '.join(allowed)}; got "
+                         f"{', '.join(sorted(fixed))}")
+    base = (base if base is not None else TrackerParams()).replace(**fixed)
+    grid = [base.replace(search_size=s, corr_size=c) for s in ss for c in cs]
+    ref = exp.reference_params(base)
+    # the reference is timed with the grid, in the same passes, for a fair speed-up figure
+    points = [*grid, ref]
+    order = shuffle = None
+    if seed is not None:
+        rng = np.random.default_rng(seed)
+        order = rng.permutation(len(points))
+        shuffle = int(rng.integers(2**31))
+    responses = exp.measure(points, order=order, shuffle_seed=shuffle, progress=progress,
+                            phase="sweep")
+    shape = (len(ss), len(cs))
+
+    def field(name: str) -> np.ndarray:
+        return np.array([getattr(r, name) for r in responses[:-1]], np.float64).reshape(shape)
+
+    return Sweep(ss, cs, fixed, field("t1"), field("tf"), field("ex"), field("ey"),
+                 field("npi_mean"), responses[-1], exp.reference, base)
+
+
+@dataclass(frozen=True)
+class Optimum:
+    """The chosen setting and why.
+
+    Attributes
+    ----------
+    params : the five factors (the fields of ``tuner/params``), TrackerParams-compatible.
+    index : (i, j) of the chosen grid point.
+    t1, tf : its times, ms; ex, ey : its errors, px.
+    within_tolerance : False when no grid point met the tolerance (then the point with the
+        smallest max(ex, ey) was chosen instead).
+    speedup : reference tf / chosen tf.
+    reason : one sentence for ``tuner/params.reason`` and the CLI.
+    """
+
+    params: dict[str, float]
+    index: tuple[int, int]
+    t1: float
+    tf: float
+    ex: float
+    ey: float
+    within_tolerance: bool
+    speedup: float
+    reason: str
+
+
+def optimum(result: Sweep, tolerance: float = DEFAULT_TOLERANCE) -> Optimum:
+    """The fastest setting (least tf) whose ex and ey are both <= ``tolerance`` px.
+
+    When none qualifies, the setting with the smallest max(ex, ey) is returned with
+    ``within_tolerance`` False: the most faithful the swept windows can be.
+    """
+    if not np.isfinite(tolerance) or tolerance < 0:
+        raise ValueError(f"tolerance={tolerance!r} must be a number >= 0 (px)")
+    err = np.maximum(result.ex, result.ey)
+    ok = err <= tolerance
+    if ok.any():
+        flat = int(np.argmin(np.where(ok, result.tf, np.inf)))
+    else:
+        flat = int(np.argmin(err))
+    i, j = (int(v) for v in np.unravel_index(flat, result.tf.shape))
+    p = result.params(i, j)
+    tf = float(result.tf[i, j])
+    speedup = result.reference.tf / tf if tf > 0 else float("inf")
+    ref = f"({result.reference_windows[0]}, {result.reference_windows[1]})"
+    if ok.any():
+        reason = (f"fastest of {int(ok.sum())}/{ok.size} swept windows within {tolerance:g} px "
+                  f"of the reference {ref}: tf {tf:.3f} ms ({speedup:.1f}x faster), "
+                  f"ex {result.ex[i, j]:.2f} px, ey {result.ey[i, j]:.2f} px")
+    else:
+        reason = (f"no swept window within {tolerance:g} px of the reference {ref}; the "
+                  f"closest: ex {result.ex[i, j]:.2f} px, ey {result.ey[i, j]:.2f} px, "
+                  f"tf {tf:.3f} ms")
+    return Optimum(params={k: getattr(p, k) for k in FACTORS}, index=(i, j),
+                   t1=float(result.t1[i, j]), tf=tf, ex=float(result.ex[i, j]),
+                   ey=float(result.ey[i, j]), within_tolerance=bool(ok.any()),
+                   speedup=float(speedup), reason=reason)
+
+
+# ------------------------------------------------------------------------------ the cycle
+
+
+@dataclass(frozen=True, eq=False)
+class TuneResult:
+    """One tuning cycle: the design run, its analysis, the sweep and the optimum.
+
+    ``seconds`` is the wall time of the cycle's parts: ``design`` (with its reference runs and
+    the analysis), ``sweep`` and ``total``.
+    """
+
+    run: DesignRun
+    analysis: Analysis
+    sweep: Sweep
+    optimum: Optimum
+    tolerance: float
+    frames: int
+    size: tuple[int, int]
+    repeats: int
+    seconds: dict[str, float]
+
+    @property
+    def params(self) -> TrackerParams:
+        """The optimum as TrackerParams (the sweep's base with the chosen windows)."""
+        return self.sweep.params(*self.optimum.index)
+
+    def to_report(self) -> dict[str, Any]:
+        """The ``tuner/report`` fields (CONTRACT): plain lists, dicts, floats, ints and str.
+
+        Contract fields: ``design`` (rows of -1/+1, standard order), ``factors`` (names),
+        ``order`` (run order: standard-order indices in the order run), ``responses`` (name ->
+        list, standard order), ``effects`` (response -> paper term -> effect), ``significant``
+        (response -> {"99": [...], "95": [...]}), ``optimum`` (the five parameters), ``sweep``
+        (grid and responses). Extra fields (readers ignore what they do not know): ``method``,
+        ``levels``, ``aliases``, ``seed``, ``tolerance``, ``reason``, ``frames``, ``size``,
+        ``repeats``, ``seconds``.
+        """
+        run = self.run
+        names = run.responses[0].as_dict().keys()
+        return {
+            "design": run.design.matrix.tolist(),
+            "factors": list(run.design.names or run.design.factors),
+            "order": [int(i) for i in run.order],
+            "responses": {n: [float(v) for v in run.response(n)] for n in names},
+            "effects": self.analysis.effects,
+            "significant": self.analysis.significant,
+            "optimum": dict(self.optimum.params),
+            "sweep": self.sweep.as_dict(),
+            "method": self.analysis.method,
+            "levels": dict(levels_of(run.design)),
+            "aliases": aliases(run.design),
+            "seed": run.seed,
+            "tolerance": float(self.tolerance),
+            "reason": self.optimum.reason,
+            "frames": self.frames,
+            "size": list(self.size),
+            "repeats": self.repeats,
+            "seconds": dict(self.seconds),
+        }
+
+
+def new_seed() -> int:
+    """A fresh 31-bit seed for the run order (reported, so the run can be repeated)."""
+    return secrets.randbits(31)
+
+
+def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
+         tolerance: float = DEFAULT_TOLERANCE, step: int = DEFAULT_STEP,
+         repeats: int | None = None, method: str = "lenth", design: Design | None = None,
+         ground_truth: GroundTruth | None = None, base: TrackerParams | None = None,
+         progress: Progress | None = None) -> TuneResult:
+    """The whole tuning cycle on a buffer of frames: design, analysis, sweep, optimum.
+
+    Parameters
+    ----------
+    frames : (H, W) uint8 grey frames, at least 2 (the auto-tuner's buffer holds 30).
+    seed : seed of the design's run order; None draws a fresh one (:func:`new_seed`), which
+        the report records. A fixed default would run every cycle in the same order, and
+        randomisation only protects against drifts (thermal, load) that do not line up with it.
+    tolerance : px, see :func:`optimum`.
+    step : sweep grid step, see :func:`sweep`.
+    repeats : timing passes (default :data:`.experiment.DEFAULT_REPEATS`).
+    method : ``"lenth"`` or ``"anova"``, see :func:`.experiment.analyse`.
+    design : default :func:`.design.paper_design` (2^(5-1), Table 2 levels).
+    ground_truth : optional :class:`GroundTruth`; adds ``gt_*`` responses.
+    base : non-factor parameters (weights, subpixel, ...), default TrackerParams().
+    progress : optional ``progress(phase, done, total)``, phase ``"design"`` then ``"sweep"``.
+    """
+    if not np.isfinite(tolerance) or tolerance < 0:
+        raise ValueError(f"tolerance={tolerance!r} must be a number >= 0 (px)")
+    if method not in METHODS:
+        raise ValueError(f"method={method!r} is not allowed: use one of {', '.join(METHODS)}")
+    exp = Experiment(frames, ground_truth=ground_truth,
+                     **({} if repeats is None else {"repeats": repeats}))
+    start = time.perf_counter()  # after warm_up: a service compiles once, not every cycle
+    seed = new_seed() if seed is None else int(seed)
+    run = run_design(exp, design if design is not None else paper_design(), seed,
+                     progress=progress, base=base)
+    analysis = analyse(run, method=method)
+    mid = time.perf_counter()
+    result = sweep(exp, step=step, base=base, seed=seed, progress=progress)
+    best = optimum(result, tolerance)
+    end = time.perf_counter()
+    seconds = {"design": mid - start, "sweep": end - mid, "total": end - start}
+    return TuneResult(run, analysis, result, best, float(tolerance), len(exp.frames), exp.size,
+                      exp.repeats, seconds)

@@ -1,0 +1,228 @@
+"""``vistrack tune``: the auto-tuner's experiment over recorded frames, offline (no Zenoh).
+
+Runs the paper's 2^(5-1) design (Table 2 levels, E = ABCD, randomised run order) on a buffer of
+frames, analyses it (Table 3: what is significant at 99 % and 95 % for t1, tf, ex, ey), sweeps
+SEARCH_SIZE 10..20 x CORR_SIZE 5..15 with Table 4's other values (Figures 5 to 7, as PNG with
+``--out``) and picks the optimum: the fastest windows whose errors against the reference
+windows (50, 30) stay within ``--tolerance`` px. Exactly the code the auto-tuner service runs.
+
+The buffer is the first ``--max-frames`` frames (default 30, the service's buffer);
+``--bounce`` fills it from a shorter sequence by playing it back and forth. Frames keep their
+size unless ``--resize`` is given (the paper used 256x256; the time grows with the area).
+``--format json`` prints the ``tuner/report`` fields.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import sys
+import time
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from ..common.params import FACTORS, ParamError
+from .auto_tuner.experiment import DEFAULT_REPEATS, METHODS, RESPONSES, bounce
+from .auto_tuner.sensitivity import DEFAULT_STEP, DEFAULT_TOLERANCE, TuneResult, new_seed, tune
+from .camera.sources import SourceError, open_files, parse_size
+
+UNITS = {"t1": "ms", "tf": "ms", "ex": "px", "ey": "px"}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("frames", nargs="*", metavar="FRAMES",
+                        help="a video file, a folder of images (sorted by name), a glob, or "
+                             "image files in order; none (or 'builtin') runs the built-in "
+                             "generated sequence")
+    parser.add_argument("--seed", type=int, default=None, metavar="N",
+                        help="seed of the design's run order (default: a fresh one, printed)")
+    parser.add_argument("--out", metavar="DIR", default=None,
+                        help="write the plots (half-normal, main effects, interactions, sweep "
+                             "heat maps) as PNG into DIR")
+    parser.add_argument("--format", choices=("text", "json"), default="text",
+                        help="text tables, or the tuner/report fields as JSON (default text)")
+    parser.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, metavar="PX",
+                        help="largest mean error ex, ey against the reference windows (50, 30) "
+                             f"the optimum may have, px (default {DEFAULT_TOLERANCE})")
+    parser.add_argument("--resize", metavar="WxH", default=None,
+                        help="resize every frame (default: keep the input size)")
+    parser.add_argument("--max-frames", type=int, default=30, metavar="N",
+                        help="frames in the buffer (default 30, as the service keeps)")
+    parser.add_argument("--bounce", action="store_true",
+                        help="fill the buffer by playing a shorter sequence back and forth")
+    parser.add_argument("--repeats", type=int, default=DEFAULT_REPEATS, metavar="N",
+                        help="timing passes; each frame's least disturbed time is kept "
+                             f"(default {DEFAULT_REPEATS})")
+    parser.add_argument("--step", type=int, default=DEFAULT_STEP, metavar="PX",
+                        help=f"sweep grid step (default {DEFAULT_STEP}: every distinct window)")
+    parser.add_argument("--method", choices=METHODS, default="lenth",
+                        help="significance test: Lenth's PSE, or ANOVA with the inactive "
+                             "effects pooled (default lenth)")
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                        help="progress line on stderr (default: when stderr is a terminal)")
+
+
+def read_buffer(args: argparse.Namespace) -> tuple[list[np.ndarray], str]:
+    """The frames to tune on, per FRAMES, --resize, --max-frames and --bounce."""
+    if not 2 <= args.max_frames <= 1000:
+        raise ValueError(f"--max-frames {args.max_frames} is out of range: allowed 2..1000")
+    size = parse_size(args.resize) if args.resize else None
+    source = open_files(args.frames, size)
+    frames = list(itertools.islice(iter(source), args.max_frames))
+    if not frames:
+        raise SourceError("no frame was read")
+    what = source.description
+    if args.bounce and len(frames) < args.max_frames:
+        if len(frames) < 2:
+            raise SourceError("--bounce needs at least 2 frames")
+        what += f", played back and forth to {args.max_frames} frames"
+        frames = bounce(frames, args.max_frames)
+    if len(frames) < 2:
+        raise SourceError("tuning needs at least 2 frames (t1 and tf)")
+    return frames, what
+
+
+class ProgressLine:
+    """``vistrack tune: design [#####.....] 8/16`` rewritten in place on a stream."""
+
+    def __init__(self, stream: TextIO, width: int = 30) -> None:
+        self.stream = stream
+        self.width = width
+        self.phase = ""
+
+    def __call__(self, phase: str, done: int, total: int) -> None:
+        if phase != self.phase and self.phase:
+            self.stream.write("\n")
+        self.phase = phase
+        filled = self.width * done // max(total, 1)
+        self.stream.write(f"\rvistrack tune: {phase:6s} [{'#' * filled}"
+                          f"{'.' * (self.width - filled)}] {done}/{total}")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.phase:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _fmt(v: float) -> str:
+    return f"{v:9.3f}"
+
+
+def print_text(result: TuneResult, what: str, out: TextIO) -> None:
+    """The human-readable report: design, aliases, effects, Table 3, sweep and optimum."""
+    rep = result.to_report()
+    d = result.run.design
+    w, h = result.size
+    print(f"# vistrack tune: {what}; {result.frames} frames {w}x{h}; seed {rep['seed']}; "
+          f"timing passes {result.repeats}; {result.seconds['total']:.1f} s", file=out)
+
+    gens = ", ".join(f"{k} = {v}" for k, v in d.generators.items())
+    print(f"\n## Design: 2^({d.k}-{len(d.generators)}) fractional factorial, {gens}, "
+          f"I = {' = '.join(d.defining_relation)}, resolution {d.resolution}; in run order",
+          file=out)
+    print("factors: " + ", ".join(f"{i + 1} {n}" for i, n in enumerate(rep["factors"])),
+          file=out)
+    print(" run  std" + "".join(f"{k:>7d}" for k in range(1, d.k + 1))
+          + "".join(f"{n:>9s}" for n in ("t1 ms", "tf ms", "ex px", "ey px", "npi")), file=out)
+    values = d.with_levels()
+    for k, std in enumerate(rep["order"]):
+        measured = "".join(_fmt(rep["responses"][n][std]) for n in (*RESPONSES, "npi_mean"))
+        print(f"{k + 1:4d} {std + 1:4d}" + "".join(f"{v:7g}" for v in values[std]) + measured,
+              file=out)
+
+    print("\n## Alias structure (paper numbers: 1 MAX_FEAT_NUM, 2 THRES_PERCENT, 3 SEARCH_SIZE, "
+          "4 CORR_SIZE, 5 UNGROUP_SIZE)", file=out)
+    chains = rep["aliases"]
+    print("  " + "   ".join(f"{t} = {' = '.join(c)}" for t, c in chains.items()), file=out)
+
+    print(f"\n## Effects (high minus low level; {rep['method']} significance: "
+          "** 99 %, * 95 %)", file=out)
+    print("term" + "".join(f"{n + ' ' + UNITS[n]:>13s}" for n in RESPONSES), file=out)
+    for term in rep["effects"]["tf"]:
+        cells = []
+        for n in RESPONSES:
+            sig = rep["significant"][n]
+            mark = "**" if term in sig["99"] else "*" if term in sig["95"] else ""
+            cells.append(f"{rep['effects'][n][term]:+11.3f}{mark:2s}")
+        print(f"{term:>4s}" + "".join(cells), file=out)
+
+    print(f"\n## Table 3: significant terms ({rep['method']})", file=out)
+    print(f"{'output':8s}{'99 %':24s}{'95 %'}", file=out)
+    for n in RESPONSES:
+        sig = rep["significant"][n]
+        print(f"{n:8s}{', '.join(sig['99']) or '-':24s}{', '.join(sig['95']) or '-'}", file=out)
+
+    sw = result.sweep
+    print(f"\n## Sensitivity sweep: {', '.join(f'{k}={v:g}' for k, v in sw.fixed.items())}; "
+          "rows SEARCH_SIZE, columns CORR_SIZE", file=out)
+    for n in RESPONSES:
+        grid = getattr(sw, n)
+        print(f"{n} ({UNITS[n]})", file=out)
+        print("      " + "".join(f"{c:>8d}" for c in sw.corr_sizes), file=out)
+        for s, row in zip(sw.search_sizes, grid, strict=True):
+            print(f"{s:6d}" + "".join(f"{v:8.3f}" for v in row), file=out)
+    ref = sw.reference
+    print(f"reference ({sw.reference_windows[0]}, {sw.reference_windows[1]}): "
+          f"t1 {ref.t1:.3f} ms, tf {ref.tf:.3f} ms", file=out)
+
+    opt = result.optimum
+    print("\n## Optimum", file=out)
+    print("  " + " ".join(f"{k}={opt.params[k]:g}" for k in FACTORS), file=out)
+    print(f"  t1 {opt.t1:.3f} ms, tf {opt.tf:.3f} ms ({opt.speedup:.1f}x faster than "
+          f"the reference), ex {opt.ex:.3f} px, ey {opt.ey:.3f} px", file=out)
+    print(f"  {opt.reason}", file=out)
+
+
+def run(args: argparse.Namespace, out: TextIO = sys.stdout, err: TextIO = sys.stderr) -> int:
+    if not np.isfinite(args.tolerance) or args.tolerance < 0:
+        raise ValueError(f"--tolerance {args.tolerance} must be a number >= 0 (px)")
+    if args.repeats < 1 or args.repeats > 20:
+        raise ValueError(f"--repeats {args.repeats} is out of range: allowed 1..20")
+    if args.step < 1:
+        raise ValueError(f"--step {args.step} must be >= 1")
+    if args.out:
+        try:  # fail now rather than after the experiment
+            Path(args.out).mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ValueError(f"--out {args.out}: {e.strerror or e}") from None
+    frames, what = read_buffer(args)
+    seed = new_seed() if args.seed is None else args.seed
+    show = err.isatty() if args.progress is None else args.progress
+    progress = ProgressLine(err) if show else None
+    start = time.perf_counter()
+    try:
+        result = tune(frames, seed, tolerance=args.tolerance, step=args.step,
+                      repeats=args.repeats, method=args.method, progress=progress)
+    finally:
+        if progress is not None:
+            progress.close()
+    report = result.to_report()
+    if args.out:
+        from .auto_tuner.plots import write_plots  # matplotlib only when plots are asked for
+
+        try:
+            write_plots(report, args.out)
+        except OSError as e:
+            raise ValueError(f"--out {args.out}: {e.strerror or e}") from None
+    if args.format == "json":
+        print(json.dumps(report, allow_nan=False), file=out)
+    else:
+        print_text(result, what, out)
+        if args.out:
+            print(f"\n# plots in {args.out} ({time.perf_counter() - start:.1f} s in all)",
+                  file=out)
+    return 0
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        return run(args)
+    except (SourceError, ParamError, ValueError) as e:
+        print(f"vistrack tune: error: {e}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:  # `vistrack tune ... | head`
+        return 0

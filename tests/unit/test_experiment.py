@@ -1,0 +1,418 @@
+"""The auto-tuner's experiment, analysis, sweep and optimum (paper Section 6.1, Table 3).
+
+Expected values come from the setting itself (a run equals its own reference; a generated
+sequence moves by a known amount; planted effects), from an independent computation (least
+squares on the sweep, the design's own projections), or from physics (more features or larger
+windows cost more time) -- never from an earlier output of this code.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from vistrack.common import groundtruth, synthetic
+from vistrack.common.params import FACTORS, TrackerParams
+from vistrack.common.vision import to_gray, track_frames
+from vistrack.services.auto_tuner import experiment as ex_mod
+from vistrack.services.auto_tuner.design import number_label, paper_design
+from vistrack.services.auto_tuner.experiment import (
+    DesignRun,
+    Experiment,
+    GroundTruth,
+    Responses,
+    analyse,
+    bounce,
+    design_params,
+    run_design,
+    run_point,
+)
+from vistrack.services.auto_tuner.sensitivity import (
+    CORR_RANGE,
+    SEARCH_RANGE,
+    Sweep,
+    grid_values,
+    optimum,
+    tune,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+STEP = synthetic.Motion(dx=2.0, dy=-1.0)
+
+
+@pytest.fixture(scope="module")
+def small_frames() -> list[np.ndarray]:
+    """6 generated 96x96 frames moving by (2, -1) px per frame: fast runs."""
+    return synthetic.sequence(6, size=(96, 96), motion=STEP, seed=3)
+
+
+@pytest.fixture
+def count_trackers(monkeypatch):
+    """Record the parameters of every Tracker the experiment builds, in order."""
+    made: list[TrackerParams] = []
+    real = ex_mod.Tracker
+
+    def spy(params):
+        made.append(params)
+        return real(params)
+
+    monkeypatch.setattr(ex_mod, "Tracker", spy)
+    return made
+
+
+# ------------------------------------------------------------------------------ run_point
+
+
+def test_reference_settings_score_zero(small_frames):
+    exp = Experiment(small_frames, repeats=1)
+    ref = run_point(exp, TrackerParams(search_size=50, corr_size=30))
+    assert ref.ex == 0.0 and ref.ey == 0.0
+    # 51 x 31 is the same window geometry (widths // 2), so it is the reference too
+    same = run_point(exp, TrackerParams(search_size=51, corr_size=31))
+    assert same.ex == 0.0 and same.ey == 0.0
+    assert ref.t1 > 0 and ref.tf > 0 and ref.npi_mean > 0
+
+
+def test_a_search_too_small_for_the_motion_scores_an_error():
+    """3 px per frame with a search half-width of 1 px: the first step cannot be found."""
+    frames = synthetic.sequence(5, size=(96, 96), motion=synthetic.Motion(dx=3.0), seed=4)
+    r = run_point(frames, TrackerParams(search_size=2, corr_size=9), repeats=1)
+    assert r.ex > 0.5
+
+
+def test_ground_truth_motion_of_a_generated_sequence(small_frames):
+    truth = GroundTruth.from_steps([STEP] * (len(small_frames) - 1))
+    assert np.allclose(truth.motion[-1], [2.0 * 5, -1.0 * 5])
+    r = run_point(small_frames, TrackerParams(), repeats=1, ground_truth=truth)
+    assert r.gt_ex is not None and r.gt_ex <= 0.05 and r.gt_ey <= 0.05
+    wrong = GroundTruth(motion=truth.motion * 2)
+    r2 = run_point(small_frames, TrackerParams(), repeats=1, ground_truth=wrong)
+    assert r2.gt_ex >= 1.0  # the scoring can tell a wrong motion apart
+    assert r.gt_epe is None and "gt_epe" not in r.as_dict()
+    with pytest.raises(ValueError, match="scale"):
+        GroundTruth.from_steps([synthetic.Motion(scale=1.01)])
+
+
+@pytest.mark.data
+def test_middlebury_flow_scores_the_median_endpoint_error():
+    folder = groundtruth.middlebury("RubberWhale")
+    if folder is None:
+        pytest.skip("Middlebury RubberWhale not found: set VISTRACK_DATA or put the shared "
+                    "data at ../shared/data")
+    crop = (slice(60, 316), slice(160, 416))
+    a, b = (np.ascontiguousarray(to_gray(cv2.imread(str(folder / f"frame{i}.png")))[crop])
+            for i in (10, 11))
+    flow = groundtruth.read_flo(folder / "flow10.flo")[crop]
+    params = TrackerParams(subpixel=True)
+    good = run_point([a, b], params, repeats=1, ground_truth=GroundTruth(flow=flow))
+    # the tracker's own accuracy on this pair (tests/unit/test_tracker.py) is <= 0.5 px
+    assert good.gt_epe is not None and good.gt_epe <= 0.5
+    off = flow.copy()
+    off[..., 0] += 1.0
+    bad = run_point([a, b], params, repeats=1, ground_truth=GroundTruth(flow=off))
+    assert bad.gt_epe > 0.5
+
+
+def test_equal_window_geometries_share_one_run(small_frames, count_trackers):
+    # the premise: widths w and w + 1 with one w // 2 track identically
+    a = track_frames(small_frames, TrackerParams(search_size=14, corr_size=9))
+    b = track_frames(small_frames, TrackerParams(search_size=15, corr_size=8))
+    assert [(e.dx, e.dy, e.npi) for e in a] == [(e.dx, e.dy, e.npi) for e in b]
+    count_trackers.clear()
+    exp = Experiment(small_frames, repeats=2)
+    r14 = run_point(exp, TrackerParams(search_size=14, corr_size=9))
+    r15 = run_point(exp, TrackerParams(search_size=15, corr_size=8))
+    assert r14 == r15
+    points = [p for p in count_trackers if p.search_size != 50]
+    assert len(points) == 2  # two timing passes of the first; none of the second
+    assert len(count_trackers) - len(points) == 1  # one shared reference, untimed
+
+
+def test_experiment_rejects_bad_buffers(small_frames):
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        Experiment(small_frames[:1])
+    with pytest.raises(ValueError, match="frame 1 is"):
+        Experiment([small_frames[0], small_frames[1][:50]])
+    with pytest.raises(ValueError, match="uint8"):
+        Experiment([f.astype(np.float32) for f in small_frames])
+    with pytest.raises(ValueError, match="repeats"):
+        Experiment(small_frames, repeats=0)
+    with pytest.raises(ValueError, match="rows"):
+        Experiment(small_frames, ground_truth=GroundTruth(motion=np.zeros((2, 2))))
+
+
+def test_bounce_plays_back_and_forth():
+    frames = [np.full((4, 4), i, np.uint8) for i in range(4)]
+    out = bounce(frames, 11)
+    assert [int(f[0, 0]) for f in out] == [0, 1, 2, 3, 2, 1, 0, 1, 2, 3, 2]
+    with pytest.raises(ValueError):
+        bounce(frames[:1], 5)
+
+
+# ------------------------------------------------------------------------------ the design
+
+
+def test_design_runs_each_point_per_pass_and_each_reference_once(small_frames,
+                                                                count_trackers):
+    design = paper_design()
+    run = run_design(small_frames, design, seed=11, repeats=2)
+    refs = [p for p in count_trackers if (p.search_size, p.corr_size) == (50, 30)]
+    points = [p for p in count_trackers if (p.search_size, p.corr_size) != (50, 30)]
+    # one reference per distinct setting of the factors it keeps: MAX_FEAT_NUM, THRES_PERCENT,
+    # UNGROUP_SIZE (columns A, B, E), counted from the design itself
+    distinct = {tuple(row) for row in design.matrix[:, [0, 1, 4]].tolist()}
+    assert len(refs) == len(distinct) == 8
+    assert len(points) == 2 * design.n_runs
+    # the first pass ran the points in the run order; the second all of them again, reshuffled
+    expect = design_params(design)
+    assert points[:16] == [expect[i] for i in run.order]
+    assert sorted(map(repr, points[16:])) == sorted(map(repr, points[:16]))
+    assert len(run.responses) == 16 and all(r.tf > 0 for r in run.responses)
+
+
+def test_run_order_is_a_reproducible_permutation(small_frames):
+    exp = Experiment(small_frames, repeats=1)
+    design = paper_design()
+    a = run_design(exp, design, seed=5)
+    b = run_design(exp, design, seed=5)
+    c = run_design(exp, design, seed=6)
+    assert sorted(a.order.tolist()) == list(range(16))
+    assert a.order.tolist() == b.order.tolist()
+    assert a.order.tolist() != c.order.tolist()
+    # responses stay in standard order whatever the run order
+    assert [r.npi_mean for r in a.responses] == [r.npi_mean for r in c.responses]
+
+
+def test_every_timing_pass_is_reproducible_from_the_seed(small_frames, count_trackers):
+    run_design(small_frames, paper_design(), seed=9, repeats=3)
+    first = list(count_trackers)
+    count_trackers.clear()
+    run_design(small_frames, paper_design(), seed=9, repeats=3)
+    assert count_trackers == first and len(first) == 3 * 16 + 8
+
+
+def _planted_run(noise: float = 0.005, seed: int = 0) -> tuple[DesignRun, dict[str, dict]]:
+    """A DesignRun whose responses are known functions of the coded factors plus noise."""
+    design = paper_design()
+    rng = np.random.default_rng(seed)
+    cols = {t: design.columns(t)[:, 0] for t in ("A", "B", "C", "D", "E", "AB", "CD", "DE")}
+    # coefficients: an effect is twice its coefficient (mean at +1 minus mean at -1)
+    planted = {"t1": {"A": 0.5, "B": 0.3, "AB": 0.2},
+               "tf": {"C": 0.5, "D": 0.4, "CD": 0.3},
+               "ex": {"D": -0.4, "E": 0.3, "DE": 0.25}}
+    y = {name: 2.0 + sum(c * cols[t] for t, c in terms.items()) + rng.normal(0, noise, 16)
+         for name, terms in planted.items()}
+    y["ey"] = np.zeros(16)  # e.g. every run equal to its reference: nothing to test
+    responses = tuple(Responses(t1=y["t1"][i], tf=y["tf"][i], ex=y["ex"][i], ey=y["ey"][i],
+                                npi_mean=10.0) for i in range(16))
+    run = DesignRun(design, tuple(design_params(design)), design.randomized_order(0),
+                    responses, 0)
+    return run, planted
+
+
+@pytest.mark.parametrize("method", ["lenth", "anova"])
+def test_analysis_finds_planted_effects_in_paper_numbers(method):
+    run, planted = _planted_run()
+    result = analyse(run, method=method)
+    for name, terms in planted.items():
+        expect = sorted((number_label(t) for t in terms), key=lambda s: (len(s), s))
+        assert result.significant[name]["99"] == expect, name
+        for t, coef in terms.items():
+            assert result.effects[name][number_label(t)] == pytest.approx(2 * coef, abs=0.02)
+    assert result.significant["ey"] == {"99": [], "95": []}
+    assert result.results["ey"] is None
+    assert set(result.effects["tf"]) == {number_label(t) for t in run.design.terms(2)}
+    with pytest.raises(ValueError, match="method"):
+        analyse(run, method="bonferroni")
+
+
+# ------------------------------------------------------------------------------ optimum
+
+
+def _sweep(tf, ex, ey, ref_tf=10.0) -> Sweep:
+    tf, ex, ey = (np.asarray(a, float) for a in (tf, ex, ey))
+    ss, cs = (10, 12, 14)[:tf.shape[0]], (5, 7, 9)[:tf.shape[1]]
+    ref = Responses(t1=1.0, tf=ref_tf, ex=0.0, ey=0.0, npi_mean=100.0)
+    return Sweep(ss, cs, {"max_features": 100, "thres_percent": 2.0, "ungroup_size": 5},
+                 np.ones_like(tf), tf, ex, ey, np.full_like(tf, 100.0), ref, (50, 30),
+                 TrackerParams())
+
+
+def test_optimum_is_the_fastest_setting_within_tolerance():
+    tf = [[1.0, 2.0, 3.0], [1.5, 2.5, 3.5]]
+    ex = [[0.9, 0.2, 0.1], [0.4, 0.1, 0.0]]
+    ey = [[0.1, 0.6, 0.1], [0.3, 0.1, 0.0]]
+    best = optimum(_sweep(tf, ex, ey), tolerance=0.5)
+    # (10, 5) is fastest but ex 0.9; (10, 7) has ey 0.6; (12, 5) is the fastest that fits
+    assert best.params == {"max_features": 100, "thres_percent": 2.0, "search_size": 12,
+                           "corr_size": 5, "ungroup_size": 5}
+    assert best.within_tolerance and best.tf == 1.5 and best.speedup == pytest.approx(10 / 1.5)
+    assert set(best.params) == set(FACTORS)
+    TrackerParams(**best.params)  # TrackerParams-compatible
+    # a looser tolerance admits the fastest; a tighter one only the exact match
+    assert optimum(_sweep(tf, ex, ey), tolerance=1.0).index == (0, 0)
+    assert optimum(_sweep(tf, ex, ey), tolerance=0.0).index == (1, 2)
+
+
+def test_optimum_falls_back_to_the_most_faithful_setting():
+    best = optimum(_sweep([[1.0, 2.0]], [[2.0, 0.8]], [[0.1, 0.9]]), tolerance=0.5)
+    assert not best.within_tolerance and best.index == (0, 1)
+    assert "no swept window" in best.reason
+    with pytest.raises(ValueError, match="tolerance"):
+        optimum(_sweep([[1.0]], [[0.0]], [[0.0]]), tolerance=-1)
+
+
+def test_grid_values_cover_the_ranges():
+    assert grid_values(*SEARCH_RANGE, 2) == (10, 12, 14, 16, 18, 20)
+    assert grid_values(*CORR_RANGE, 2) == (5, 7, 9, 11, 13, 15)
+    assert grid_values(*CORR_RANGE, 4) == (5, 9, 13, 15)
+    assert len(grid_values(*SEARCH_RANGE, 1)) == 11
+    with pytest.raises(ValueError):
+        grid_values(10, 20, 0)
+
+
+# ------------------------------------------------------------------------------ the report
+
+
+def _walk_plain(value, path="report"):
+    """Every leaf is a JSON/msgpack scalar and every container a dict (str keys) or list."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            assert isinstance(k, str), f"{path}: key {k!r}"
+            _walk_plain(v, f"{path}.{k}")
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            _walk_plain(v, f"{path}[{i}]")
+    else:
+        assert value is None or type(value) in (int, float, str, bool), f"{path}: {value!r}"
+        if isinstance(value, float):
+            assert math.isfinite(value), path
+
+
+def check_report(rep: dict) -> None:
+    """The tuner/report CONTRACT fields and their shapes (shared with the CLI test)."""
+    for k in ("design", "factors", "order", "responses", "effects", "significant", "optimum",
+              "sweep"):
+        assert k in rep, k
+    _walk_plain(rep)
+    assert rep["factors"] == list(FACTORS)
+    assert len(rep["design"]) == 16 and all(len(r) == 5 and set(r) <= {-1, 1}
+                                            for r in rep["design"])
+    assert sorted(rep["order"]) == list(range(16))
+    for name in ("t1", "tf", "ex", "ey"):
+        assert len(rep["responses"][name]) == 16
+        assert len(rep["effects"][name]) == 15
+        assert set(rep["significant"][name]) == {"99", "95"}
+        for term in rep["significant"][name]["99"] + rep["significant"][name]["95"]:
+            assert term in rep["effects"][name]
+    assert set(rep["optimum"]) == set(FACTORS)
+    TrackerParams(**rep["optimum"])
+    sw = rep["sweep"]
+    for name in ("t1", "tf", "ex", "ey"):
+        assert np.asarray(sw[name]).shape == (len(sw["search_size"]), len(sw["corr_size"]))
+    assert rep["optimum"]["search_size"] in sw["search_size"]
+    assert rep["optimum"]["corr_size"] in sw["corr_size"]
+    assert json.loads(json.dumps(rep, allow_nan=False)) == rep
+
+
+def test_report_has_the_contract_fields_as_plain_types(small_frames):
+    result = tune(small_frames, seed=3, step=5, repeats=1)
+    rep = result.to_report()
+    check_report(rep)
+    assert rep["order"] == paper_design().randomized_order(3).tolist()
+    assert rep["seed"] == 3 and rep["frames"] == 6 and rep["size"] == [96, 96]
+    assert rep["sweep"]["search_size"] == [10, 15, 20] and rep["sweep"]["corr_size"] == [5, 10, 15]
+    assert result.params.search_size == rep["optimum"]["search_size"]
+
+
+def test_algorithm_modules_import_neither_zenoh_nor_msgpack():
+    for name in ("experiment", "sensitivity", "plots", "bench"):
+        tree = ast.parse((ROOT / "services" / "auto_tuner" / f"{name}.py").read_text())
+        for node in ast.walk(tree):
+            mods = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                    [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            assert not any(m.split(".")[0] in ("zenoh", "msgpack") for m in mods), name
+
+
+# ------------------------------------------------------------------------------ real frames
+
+
+@pytest.fixture(scope="module")
+def rubberwhale_cycle():
+    """One tuning cycle on RubberWhale 07-14 (256x256 crop) played back and forth to 30."""
+    folder = groundtruth.middlebury("RubberWhale")
+    if folder is None:
+        pytest.skip("Middlebury RubberWhale not found: set VISTRACK_DATA or put the shared "
+                    "data at ../shared/data")
+    frames = [np.ascontiguousarray(to_gray(cv2.imread(str(folder / f"frame{i:02d}.png")))
+                                   [60:316, 160:416]) for i in range(7, 15)]
+    return tune(bounce(frames, 30), seed=2024)
+
+
+@pytest.mark.data
+def test_real_frames_more_features_cost_more_time(rubberwhale_cycle):
+    """THRES_PERCENT 0.1 -> 5 % multiplies the candidates by 50 and so the features, each of
+    which is searched for every frame: its effect on tf is positive and significant (at 99 %
+    on a quiet machine; 95 % is asked so that a neighbour's load cannot fail the test)."""
+    r = rubberwhale_cycle
+    assert r.analysis.effects["tf"]["2"] > 0
+    sig = r.analysis.significant["tf"]
+    assert "2" in sig["99"] + sig["95"]
+    npi_effect = float(np.mean(r.run.response("npi_mean")[r.run.design.matrix[:, 1] > 0])
+                       - np.mean(r.run.response("npi_mean")[r.run.design.matrix[:, 1] < 0]))
+    assert npi_effect > 0
+    # a larger search window means more displacements to score
+    assert r.analysis.effects["tf"]["3"] > 0
+
+
+@pytest.mark.data
+def test_real_frames_window_sizes_drive_tf_at_fixed_features(rubberwhale_cycle):
+    """With the feature count held (Table 4), tf grows with SEARCH_SIZE and CORR_SIZE: the
+    paper's reason to sweep them. Least squares tf ~ a + b S + c C + d S C over the grid, t
+    tests on the coefficients (t > 3: one-sided p < 0.005 on 32 degrees of freedom; on a quiet
+    machine both exceed 20)."""
+    sw = rubberwhale_cycle.sweep
+    s, c = np.meshgrid(sw.search_sizes, sw.corr_sizes, indexing="ij")
+    s, c = s.ravel().astype(float), c.ravel().astype(float)
+    x = np.column_stack([np.ones_like(s), s - s.mean(), c - c.mean(),
+                         (s - s.mean()) * (c - c.mean())])
+    y = sw.tf.ravel()
+    coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+    resid = y - x @ coef
+    sigma2 = resid @ resid / (len(y) - x.shape[1])
+    se = np.sqrt(np.diag(sigma2 * np.linalg.inv(x.T @ x)))
+    t = coef / se
+    assert coef[1] > 0 and t[1] > 3, (coef, t)
+    assert coef[2] > 0 and t[2] > 3, (coef, t)
+
+
+@pytest.mark.data
+@pytest.mark.xfail(strict=True, reason=(
+    "paper Table 3 has tf significant at 99 % for 3, 4 and 34; our SSD search is exact but "
+    "pruned (successive elimination), so its cost barely grows with CORR_SIZE, while the "
+    "feature count (factors 1, 2) sets most of tf: 4 and 34 do not reach significance"))
+def test_real_frames_paper_table3_tf_row(rubberwhale_cycle):
+    assert {"3", "4", "34"} <= set(rubberwhale_cycle.analysis.significant["tf"]["99"])
+
+
+@pytest.mark.data
+def test_real_frames_optimum_is_inside_the_sweep_and_within_tolerance(rubberwhale_cycle):
+    r = rubberwhale_cycle
+    opt, sw = r.optimum, r.sweep
+    assert SEARCH_RANGE[0] <= opt.params["search_size"] <= SEARCH_RANGE[1]
+    assert CORR_RANGE[0] <= opt.params["corr_size"] <= CORR_RANGE[1]
+    assert opt.within_tolerance
+    assert opt.ex <= r.tolerance and opt.ey <= r.tolerance
+    # no setting within tolerance is faster
+    ok = np.maximum(sw.ex, sw.ey) <= r.tolerance
+    assert opt.tf == sw.tf[ok].min()
+    # the reference windows do several times the SSD work: smaller windows are faster
+    assert opt.speedup > 1.5
+    assert sw.reference.ex == 0.0 and sw.reference.ey == 0.0
+    check_report(r.to_report())

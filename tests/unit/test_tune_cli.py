@@ -1,0 +1,102 @@
+"""``vistrack tune``: the CLI contract (json fields, text sections, plots, bad input -> exit 2).
+
+A small buffer (the built-in sequence resized to 96x96, 6 frames, a coarse sweep, one timing
+pass) keeps each run to a few seconds; the numbers are checked in test_experiment.py.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+from test_experiment import check_report
+
+from vistrack.services import cli
+from vistrack.services.auto_tuner.design import paper_design
+
+FAST = ["--resize", "96x96", "--max-frames", "6", "--step", "5", "--repeats", "1"]
+PNGS = {"halfnormal.png", "main_effects.png", "interactions.png", "sweep_t1.png",
+        "sweep_tf.png", "sweep_ex.png", "sweep_ey.png"}
+
+
+def vistrack(*args, check=False):
+    return subprocess.run([sys.executable, "-m", "vistrack.services.cli", *args],
+                          capture_output=True, text=True, timeout=180, check=check)
+
+
+def test_json_prints_the_report_fields():
+    res = vistrack("tune", "builtin", *FAST, "--seed", "7", "--format", "json", check=True)
+    rep = json.loads(res.stdout)
+    check_report(rep)
+    assert rep["order"] == paper_design().randomized_order(7).tolist()
+    assert rep["seed"] == 7 and rep["frames"] == 6 and rep["size"] == [96, 96]
+    assert rep["tolerance"] == 0.5 and rep["method"] == "lenth"
+    assert res.stderr == ""  # no progress line when stderr is not a terminal
+
+
+def test_text_sections_progress_and_plots(tmp_path):
+    out = tmp_path / "plots"
+    res = vistrack("tune", *FAST, "--seed", "3", "--out", str(out), "--progress",
+                   "--tolerance", "0.75", "--method", "anova", check=True)
+    text = res.stdout
+    for section in ("## Design", "## Alias structure", "## Effects", "## Table 3",
+                    "## Sensitivity sweep", "## Optimum"):
+        assert section in text, section
+    table3 = text.split("## Table 3")[1].split("##")[0].splitlines()
+    assert [line.split()[0] for line in table3[2:6]] == ["t1", "tf", "ex", "ey"]
+    assert "1 = 2345" in text and "34 = 125" in text  # I = ABCDE
+    design = text.split("## Design")[1].split("##")[0].splitlines()
+    assert sum(1 for line in design if line[:4].strip().isdigit()) == 16
+    assert "within 0.75 px" in text or "no swept window within 0.75 px" in text
+    assert "vistrack tune: design [" in res.stderr and "vistrack tune: sweep" in res.stderr
+    written = {p.name for p in out.iterdir()}
+    assert written == PNGS
+    for p in out.iterdir():
+        assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 5000
+
+
+@pytest.mark.parametrize("args,message", [
+    (["/no/such/file.png"], "no such file"),
+    (["--tolerance", "-1"], "--tolerance"),
+    (["--resize", "huge"], "WIDTHxHEIGHT"),
+    (["--max-frames", "1"], "--max-frames"),
+    (["--repeats", "0"], "--repeats"),
+    (["--step", "0"], "--step"),
+    (["--seed", "x"], "invalid int"),
+    (["--format", "xml"], "invalid choice"),
+])
+def test_bad_input_is_one_line_and_exit_2(args, message, capsys):
+    code = _main(["tune", *args])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.startswith("vistrack tune: error: ") and message in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_out_that_is_a_file_is_an_error_before_any_work(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    code = _main(["tune", *FAST, "--out", str(blocker / "plots")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("vistrack tune: error: --out ")
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_a_single_frame_is_not_enough(tmp_path, capsys):
+    import cv2
+    import numpy as np
+
+    path = tmp_path / "one.png"
+    cv2.imwrite(str(path), np.zeros((32, 32), np.uint8))
+    assert _main(["tune", str(path)]) == 2
+    assert "at least 2 frames" in capsys.readouterr().err
+
+
+def _main(argv: list[str]) -> int:
+    """The CLI in-process: argparse errors exit (code 2) through SystemExit."""
+    try:
+        return cli.main(argv)
+    except SystemExit as e:
+        return int(e.code)

@@ -621,11 +621,19 @@ def install_signal_handlers(stop: threading.Event) -> Callable[[], None]:
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
 
+    requested = False
+
     def handler(signum: int, frame: FrameType | None) -> None:
-        # no logging here: the handler may interrupt the main thread inside the logging module
+        # No logging and no lock here: the handler runs on the main thread between bytecodes,
+        # possibly inside Event.wait() or inside an earlier run of itself (a burst of
+        # parent-death SIGTERMs, one per exiting launcher thread), and Event.set() takes the
+        # lock that code may hold: a deadlock. A helper thread sets the event instead.
+        nonlocal requested
         if signum == signal.SIGINT and stop.is_set():
             raise KeyboardInterrupt
-        stop.set()
+        if not requested:
+            requested = True
+            threading.Thread(target=stop.set, name="stop-request", daemon=True).start()
 
     previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
 

@@ -1,0 +1,408 @@
+"""`vistrack up` and `vistrack router`: real processes, real Zenoh on free loopback ports.
+
+Every wait is for a condition (a line of output, a status reply, an estimate, a process gone)
+with a deadline, never a fixed sleep. Each launch uses its own port and robot id, with
+multicast scouting off, so tests cannot see each other's services.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import cv2
+import pytest
+import zenoh
+
+from vistrack.common import synthetic
+from vistrack.common.bus import query_status
+from vistrack.common.keys import SERVICES, Keys
+from vistrack.common.messages import Estimate
+from vistrack.services import cli
+from vistrack.services.launcher import (
+    DEFAULT_LAUNCH,
+    DEFAULT_LAUNCH_PATH,
+    Backoff,
+    LaunchError,
+    default_launch,
+    load_launch,
+)
+
+pytestmark = pytest.mark.integration
+
+# Five Python processes importing numpy/numba/OpenCV on a small CI machine: be generous.
+READY_S = 60.0
+STOP_S = 5.0
+
+
+class Proc:
+    """A ``vistrack`` subcommand as a child process; its merged output collected line by line."""
+
+    def __init__(self, *argv: str) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "vistrack.services.cli", *argv],
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     stdin=subprocess.DEVNULL, text=True, bufsize=1)
+        self.lines: list[str] = []
+        self._cond = threading.Condition()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            with self._cond:
+                self.lines.append(line.rstrip("\n"))
+                self._cond.notify_all()
+        with self._cond:
+            self._cond.notify_all()
+
+    def wait_line(self, pattern: str, timeout: float) -> re.Match[str]:
+        """The first output line matching ``pattern``; fail after ``timeout`` s or at exit."""
+        regex = re.compile(pattern)
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                for line in self.lines:
+                    if m := regex.search(line):
+                        return m
+                left = deadline - time.monotonic()
+                if left <= 0 or (self.proc.poll() is not None and not self._reader.is_alive()):
+                    raise AssertionError(f"no line matching {pattern!r} within {timeout} s "
+                                         f"(exit {self.proc.poll()}); output:\n" + self.output)
+                self._cond.wait(min(left, 0.1))
+
+    @property
+    def output(self) -> str:
+        with self._cond:
+            return "\n".join(self.lines)
+
+    def wait_exit(self, timeout: float) -> int:
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(f"still running after {timeout} s; output:\n"
+                                 + self.output) from None
+
+    def close(self) -> None:
+        """Stop it if a test failed half-way (SIGINT, then SIGKILL)."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(STOP_S + 2)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._reader.join(5)
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
+
+
+@pytest.fixture
+def procs():
+    """Collects the Procs a test starts and stops whatever is left at the end."""
+    started: list[Proc] = []
+    yield started
+    for p in started:
+        p.close()
+
+
+def wait_for(condition, timeout: float, what: str):
+    """Poll ``condition`` until it returns something truthy; fail after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.05)
+
+
+def child_pids(pid: int) -> set[int]:
+    """Direct children of ``pid`` (Linux /proc)."""
+    pids: set[int] = set()
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            pids.update(int(p) for p in (task / "children").read_text().split())
+        except OSError:
+            pass  # the thread ended meanwhile
+    return pids
+
+
+def alive(pid: int) -> bool:
+    """Whether ``pid`` exists and is not a zombie."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def processes_in_groups(pgids: set[int]) -> set[int]:
+    """Live processes whose process group is one of ``pgids`` (a child's children too)."""
+    found = set()
+    for stat_path in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat_path.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if fields[0] != "Z" and int(fields[2]) in pgids:
+            found.add(int(stat_path.parent.name))
+    return found
+
+
+def client_session(port: int) -> zenoh.Session:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(conf)
+
+
+def status_pids(session: zenoh.Session, keys: Keys) -> dict[str, int] | None:
+    """Service -> pid from the status queryables, once every service answers."""
+    pids = {s["service"]: s["pid"] for s in query_status(session, keys, timeout=1.0)}
+    return pids if pids.keys() == set(SERVICES) else None
+
+
+def write_launch(path: Path, text: str) -> Path:
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+FIVE = """\
+    robot: unused   # --robot on the command line wins
+    ready_timeout: 60
+    services:
+      camera:
+        flags: {--source: builtin, --fps: 20, --loop: true}
+        restart: never
+      preprocessing:
+        restart: on-failure
+      motion-estimation:
+        restart: on-failure
+        backoff: {initial: 0.2, max: 2, reset_after: 5}
+      auto-tuner:
+        restart: on-failure
+      fuzzy-controller:
+        restart: on-failure
+"""
+
+
+def start_up(procs, tmp_path, port, robot):
+    up = Proc("up", str(write_launch(tmp_path / "five.yaml", FIVE)),
+              "-l", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting", "--robot", robot)
+    procs.append(up)
+    up.wait_line(r"^vistrack up: ready \(5 services\)$", READY_S)
+    return up
+
+
+# -- supervision -----------------------------------------------------------------------------
+
+def test_killed_service_is_restarted_alone_and_estimates_again(procs, tmp_path, free_port):
+    robot = f"t{uuid.uuid4().hex[:8]}"
+    keys = Keys(robot)
+    up = start_up(procs, tmp_path, free_port, robot)
+    with client_session(free_port) as session:
+        before = wait_for(lambda: status_pids(session, keys), 10,
+                          "a status reply from every service")
+        assert set(before.values()) == child_pids(up.proc.pid)
+
+        estimates: list[float] = []
+        sub = session.declare_subscriber(keys.estimate,
+                                         lambda sample: estimates.append(time.monotonic()))
+        wait_for(lambda: estimates, 20, "an estimate before the kill")
+
+        os.kill(before["motion_estimation"], signal.SIGKILL)
+        up.wait_line(r"^\[launcher\] motion-estimation exited with -9, restarting in 0\.2 s$",
+                     10)
+
+        def restarted() -> bool:
+            pids = status_pids(session, keys)
+            return pids is not None and pids["motion_estimation"] != before["motion_estimation"]
+
+        wait_for(restarted, 30, "the restarted motion-estimation's status")
+        restarted_at = time.monotonic()
+        wait_for(lambda: any(t > restarted_at for t in estimates), 30,
+                 "an estimate from the restarted motion-estimation")
+        sub.undeclare()
+
+        after = wait_for(lambda: status_pids(session, keys), 10,
+                         "a status reply from every service")
+    for service in set(SERVICES) - {"motion_estimation"}:
+        assert after[service] == before[service], f"{service} was restarted"
+    assert set(after.values()) == child_pids(up.proc.pid)
+    assert up.output.count("restarting in") == 1
+
+
+def test_sigint_stops_everything_within_5_s(procs, tmp_path, free_port):
+    up = start_up(procs, tmp_path, free_port, f"t{uuid.uuid4().hex[:8]}")
+    children = child_pids(up.proc.pid)
+    assert len(children) == 5
+
+    t0 = time.monotonic()
+    up.proc.send_signal(signal.SIGINT)
+    code = up.wait_exit(STOP_S)
+    elapsed = time.monotonic() - t0
+
+    assert code == 0, up.output
+    assert elapsed < STOP_S
+    assert not [pid for pid in children if alive(pid)]
+    # each child led its own process group: nothing it might have spawned is left either
+    assert not processes_in_groups(children)
+    assert "vistrack up: stopped (exit 0)" in up.output
+
+
+def test_children_exit_when_the_launcher_is_killed(procs, tmp_path, free_port):
+    launch = write_launch(tmp_path / "two.yaml", """\
+        services: {motion-estimation: , fuzzy-controller: }
+    """)
+    up = Proc("up", str(launch), "-l", f"tcp/127.0.0.1:{free_port}", "--no-multicast-scouting",
+              "--robot", f"t{uuid.uuid4().hex[:8]}")
+    procs.append(up)
+    up.wait_line(r"^vistrack up: ready \(2 services\)$", READY_S)
+    children = child_pids(up.proc.pid)
+    assert len(children) == 2
+
+    # no chance to clean up: PR_SET_PDEATHSIG makes the kernel send SIGTERM to the children,
+    # which close their sessions (slowly on a loaded machine: nobody escalates to SIGKILL)
+    up.proc.kill()
+    up.wait_exit(STOP_S)
+    wait_for(lambda: not any(alive(pid) for pid in children), 30,
+             "the children of a SIGKILLed launcher to exit")
+
+
+def test_file_camera_ends_the_run_through_an_external_router(procs, tmp_path, free_port):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i, image in enumerate(synthetic.builtin_sequence(6)):
+        cv2.imwrite(str(frames / f"{i:03d}.png"), image)
+    router = Proc("router", "-l", f"tcp/127.0.0.1:{free_port}", "--no-multicast-scouting")
+    procs.append(router)
+    router.wait_line(rf"^vistrack router: ready, listening on tcp/127\.0\.0\.1:{free_port}", 20)
+    # --camera replaces the launch file's looping source and drops its --loop
+    launch = write_launch(tmp_path / "three.yaml", """\
+        services:
+          - name: camera
+            flags: [--source, builtin, --loop]
+            restart: on-failure
+          - {name: preprocessing}
+          - {name: motion-estimation}
+    """)
+    robot = f"t{uuid.uuid4().hex[:8]}"
+    with client_session(free_port) as session:
+        estimates: list[Estimate] = []
+        session.declare_subscriber(Keys(robot).estimate, lambda sample: estimates.append(
+            Estimate.decode(sample.payload.to_bytes())))
+        up = Proc("up", str(launch), "-e", f"tcp/127.0.0.1:{free_port}", "--robot", robot,
+                  "--camera", f"file:{frames}")
+        procs.append(up)
+        assert up.wait_exit(READY_S) == 0, up.output
+
+    # the camera started once its consumers had subscribed: not one frame was lost
+    assert [e.seq for e in estimates] == list(range(6))
+    assert estimates[0].first
+    assert "[launcher] camera finished (exit 0): ending the run" in up.output
+    assert "end of file:" in up.output  # the camera's own last line, prefixed
+    assert router.proc.poll() is None, "vistrack up closed a router it did not start"
+
+    router.proc.send_signal(signal.SIGINT)
+    assert router.wait_exit(STOP_S) == 0
+    router.wait_line(r"^vistrack router: stopped$", 1)
+
+
+# -- launch files ----------------------------------------------------------------------------
+
+BAD_LAUNCH_FILES = {
+    "malformed YAML": ("services:\n  camera: {flags: [--loop\n", r"line 3, column \d+: "
+                       r"malformed YAML"),
+    "unknown key": ("services:\n  camera:\n    restrat: never\n",
+                    r"line 3: services\.camera\.restrat: unknown key; allowed: flags, restart, "
+                    r"backoff"),
+    "bad policy": ("robot: r1\nservices:\n  camera:\n    restart: sometimes\n",
+                   r"line 4: services\.camera\.restart: unknown restart policy 'sometimes'; "
+                   r"allowed: never, on-failure, always"),
+    "unknown service": ("services:\n  camera:\n  tracker:\n",
+                        r"line 3: services: unknown service 'tracker'; allowed: camera, "
+                        r"preprocessing, motion-estimation, auto-tuner, fuzzy-controller"),
+    "wrong type": ("ready_timeout: soon\nservices: {camera: }\n",
+                   r"line 1: ready_timeout: expected a number of seconds, got 'soon'"),
+    "unknown flag": ("services:\n  camera:\n    flags: [--fps, '10', --sorce, x]\n",
+                     r"line 3: services\.camera\.flags: unrecognized arguments: --sorce x"),
+    "reserved flag": ("services:\n  preprocessing:\n    flags: {--robot: r2}\n",
+                      r"line 3: services\.preprocessing\.flags: --robot is set by the launcher"),
+    "bad backoff": ("services:\n  camera:\n    backoff: {initial: -1}\n",
+                    r"line 3: services\.camera\.backoff\.initial: -1 is out of range"),
+    "bad endpoint": ("router: {listen: [localhost]}\nservices: {camera: }\n",
+                     r"line 1: router\.listen: 'localhost' is not a Zenoh endpoint"),
+}
+
+
+@pytest.mark.parametrize("text, expected", BAD_LAUNCH_FILES.values(), ids=BAD_LAUNCH_FILES)
+def test_bad_launch_file_is_a_one_line_error_with_its_line(text, expected, tmp_path, capsys):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    assert cli.main(["up", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert re.fullmatch(rf"vistrack up: error: {re.escape(str(path))}, {expected}.*\n", err), err
+
+
+def test_bad_launch_file_from_the_real_command_line(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("services:\n  camera:\n    restart: [never\n")
+    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "up", str(path)],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2
+    assert run.stdout == ""
+    assert re.fullmatch(r"vistrack up: error: .*bad\.yaml, line 4, column 1: malformed YAML: "
+                        r".*\n", run.stderr), run.stderr
+
+
+def test_listen_and_connect_together_is_a_usage_error(capsys):
+    assert cli.main(["up", "-l", "tcp/127.0.0.1:1", "-e", "tcp/127.0.0.1:2"]) == 2
+    assert "give one of them" in capsys.readouterr().err
+
+
+def test_deploy_local_yaml_is_the_built_in_default_and_valid():
+    assert DEFAULT_LAUNCH_PATH.read_text() == DEFAULT_LAUNCH
+    from_file, built_in = default_launch(), load_launch(DEFAULT_LAUNCH)
+    assert from_file.services == built_in.services
+    assert {s.name for s in built_in.services} == set(SERVICES)
+    assert {s.name: s.restart for s in built_in.services} == {
+        "camera": "never", "preprocessing": "on-failure", "motion_estimation": "on-failure",
+        "auto_tuner": "on-failure", "fuzzy_controller": "on-failure"}
+    assert built_in.listen == ("tcp/127.0.0.1:7447",)
+
+
+def test_flag_list_and_mapping_forms_and_camera_overrides():
+    spec = load_launch(textwrap.dedent("""\
+        services:
+          camera:
+            flags: {--source: builtin, fps: 30, --loop: true, --size: null}
+          motion-estimation:
+            flags: [--search-size, 21, --corr-size, '11']
+    """))
+    assert spec.service("camera").flags == ("--source", "builtin", "--fps", "30", "--loop")
+    assert spec.service("motion-estimation").flags == ("--search-size", "21",
+                                                       "--corr-size", "11")
+    moved = spec.with_camera(source="file:clip.mp4", fps=12.5, size="128x128")
+    assert moved.service("camera").flags == ("--source", "builtin", "--fps", "30",
+                                             "--source", "file:clip.mp4", "--fps", "12.5",
+                                             "--size", "128x128")
+    assert spec.with_camera() is spec
+    with pytest.raises(LaunchError, match="starts no camera"):
+        load_launch("services: {preprocessing: }\n").with_camera(source="builtin")
+
+
+def test_backoff_doubles_up_to_its_max():
+    assert [Backoff(0.5, 3.0).delay(i) for i in range(5)] == [0.5, 1.0, 2.0, 3.0, 3.0]

@@ -202,9 +202,16 @@ def _tuner(out=sys.stdout) -> dict[str, float]:
     return bench_tuner(out=out)
 
 
+def _controller(out=sys.stdout) -> dict[str, float]:
+    from .fuzzy_controller.compare import bench_controller
+
+    return bench_controller(out=out)
+
+
 BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": bench_tracker,
                                                        "pipeline": _pipeline,
-                                                       "tuner": _tuner}
+                                                       "tuner": _tuner,
+                                                       "controller": _controller}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

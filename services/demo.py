@@ -5,7 +5,8 @@ Starts an embedded Zenoh router and the five services with the robot simulator a
 shows a live status line, stops after ``--duration`` (default: the scenario's length) and writes
 to ``--out``:
 
-* ``summary.json``: frames, fps, latency_ms_p50/p99 (capture to estimate), rms_center_error_px
+* ``summary.json``: frames, fps, latency_ms_p50/p99 (capture to estimate), cmd_latency_ms_p50/p99
+  (capture to velocity command), rms_center_error_px
   and rms_scale_error (against the simulator's ground truth), retunes, and more;
 * ``strip.png``: frames through the run with the tracked features and their centroid;
 * ``errors.png``, ``trajectories.png``, ``commands.png``: image and distance error over time,
@@ -81,7 +82,7 @@ class Recorder:
         self._t0 = time.monotonic()
         self.subs = [session.declare_subscriber(keys.estimate, self._on_estimate),
                      session.declare_subscriber(keys.pose, self._on(self.poses)),
-                     session.declare_subscriber(keys.cmd_vel, self._on(self.cmds)),
+                     session.declare_subscriber(keys.cmd_vel, self._on_cmd),
                      session.declare_subscriber(keys.params, self._on_params),
                      session.declare_subscriber(keys.frame, self._on_frame)]
 
@@ -91,6 +92,13 @@ class Recorder:
             with self.lock:
                 store.append(m)
         return on
+
+    def _on_cmd(self, sample: zenoh.Sample) -> None:
+        t = time.time_ns()
+        m = msgpack.unpackb(sample.payload.to_bytes())
+        m["_arrival_ns"] = t  # camera-to-command latency = arrival - stamp_ns (capture)
+        with self.lock:
+            self.cmds.append(m)
 
     def _on_params(self, sample: zenoh.Sample) -> None:
         m = msgpack.unpackb(sample.payload.to_bytes())
@@ -148,11 +156,15 @@ def summarise(rec: Recorder, scenario: Any, wall_s: float) -> dict[str, Any]:
         if poses else np.full((1, 2), np.nan)
     u, scale = truth[:, 0], truth[:, 1]
     effort = [math.hypot(c["vx"], c["vy"]) for c in cmds if not c["stale"]]
+    cmd_lat = np.array([(c["_arrival_ns"] - c["stamp_ns"]) * 1e-6 for c in cmds
+                        if not c["stale"]]) if cmds else np.array([np.nan])
     return {
         "scenario": scenario.name, "frames": len(est), "wall_s": round(wall_s, 3),
         "fps": len(est) / wall_s if wall_s > 0 else 0.0,
         "latency_ms_p50": float(np.nanmedian(lat)), "latency_ms_p99": float(np.nanpercentile(
             lat, 99)),
+        "cmd_latency_ms_p50": float(np.nanmedian(cmd_lat)),
+        "cmd_latency_ms_p99": float(np.nanpercentile(cmd_lat, 99)),
         "rms_center_error_px": float(np.sqrt(np.nanmean((u - u[0]) ** 2))),
         "rms_scale_error": float(np.sqrt(np.nanmean((scale / scale[0] - 1) ** 2))),
         "retunes": max(0, len(rec.params_ids) - 1),
@@ -280,7 +292,8 @@ def main(args: argparse.Namespace) -> int:
     summary = summarise(rec, scenario, wall)
     written = write_outputs(out, rec, scenario, summary)
     print(json.dumps({k: summary[k] for k in ("frames", "fps", "latency_ms_p50",
-                                                "latency_ms_p99", "rms_center_error_px",
+                                                "latency_ms_p99", "cmd_latency_ms_p99",
+                                                "rms_center_error_px",
                                                 "rms_scale_error", "retunes")}, indent=2))
     print(f"vistrack demo: wrote {', '.join(written)} to {out}/", file=sys.stderr)
     return 0 if summary["frames"] > 0 else 1

@@ -208,7 +208,14 @@ def _controller(out=sys.stdout) -> dict[str, float]:
     return bench_controller(out=out)
 
 
+def _net(out=sys.stdout) -> dict[str, float]:
+    from .bench_net import bench_net  # makes network namespaces when root
+
+    return bench_net(out)
+
+
 BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": bench_tracker,
+                                                       "net": _net,
                                                        "pipeline": _pipeline,
                                                        "tuner": _tuner,
                                                        "controller": _controller}

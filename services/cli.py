@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("replay", "publish a recording again at its timing"),
     "up": ("launcher", "start and supervise the five services (and a Zenoh router)"),
     "router": ("router", "run a Zenoh router for the services and tools to connect to"),
+    "certs": ("certs", "a CA and host certificates for Zenoh's mutual TLS (no Zenoh)"),
 }
 
 

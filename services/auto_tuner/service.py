@@ -1,96 +1,337 @@
-"""auto-tuner: keep a rolling buffer of recent frames and publish the parameters in force.
+"""auto-tuner: tune the tracker on a rolling buffer of recent frames, off the hot path.
 
 Reads   ``vistrack/<robot>/camera/frame``     (latest only, into the rolling buffer)
         ``vistrack/<robot>/motion/estimate``  (latest only: scene and distance watch)
         ``vistrack/<robot>/tuner/params``     (reliable: what users set, to keep params_id rising)
 Writes  ``vistrack/<robot>/tuner/params``     (reliable)
         ``vistrack/<robot>/tuner/report``     (reliable)
+
+The last ``--buffer`` frames (default 30) are kept. A tuning cycle (the 2^(5-1) design, its
+analysis, the SEARCH_SIZE x CORR_SIZE sweep and the optimum: :func:`.sensitivity.tune`) runs
+once the buffer is full, then again on a scene change or a distance change (:mod:`.triggers`:
+thresholds, hysteresis, at least ``--min-interval`` s between cycles). It runs in a separate
+worker process at lower priority (``os.nice(10)``) while this loop keeps receiving frames and
+estimates. After every cycle the full ``tuner/report`` is published, with extra fields
+``trigger`` (why it ran: "initial tuning", "scene change", "distance change"), ``changed``,
+``params_id`` (in force after it) and ``cycle_s`` (its wall time here); ``tuner/params``
+(source "tuner", reason = the trigger, ``params_id`` one above the largest seen) only when the
+optimum differs from the parameters in force. A user's set is in force until a later cycle
+finds a different optimum; one that arrives while a cycle runs wins over that cycle's result.
+
+The parameters in force are published again every second (same ``params_id``) for late
+joiners. ``--no-tune`` keeps only the buffer and that reminder. Status ``extra``: buffered,
+tunings, last_reason, tuning, last_cycle_s, pending, scene_distance, scale_ratio.
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import itertools
 import logging
+import math
+import multiprocessing
+import os
+import signal
+import sys
 import time
+from typing import Any
 
 import numpy as np
 
 from ...common.bus import Node
-from ...common.messages import Frame, MessageError, Params
+from ...common.messages import Estimate, Frame, MessageError, Params, Report, pack
 from ..runtime import ParamsInForce, add_service_args, ready, serve
+from . import triggers as tr
+from .sensitivity import DEFAULT_STEP, DEFAULT_TOLERANCE
 
 log = logging.getLogger("vistrack.auto_tuner")
 
 # The parameters in force are published again this often (same params_id), so a service that
 # starts or reconnects after the last change still learns them.
 REMIND_S = 1.0
+WORKER_NICE = 10  # the experiments yield the CPU to the pipeline's processes
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--buffer", type=int, default=30, metavar="N",
-                        help="frames kept for the experiments (default 30)")
+                        help="frames kept for the experiments, 2..1000 (default 30)")
+    parser.add_argument("--no-tune", action="store_true",
+                        help="never tune: keep the buffer and remind the parameters in force")
+    parser.add_argument("--tune-sweep-step", type=int, default=DEFAULT_STEP, metavar="PX",
+                        help=f"sweep grid step, 1..10 (default {DEFAULT_STEP})")
+    parser.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, metavar="PX",
+                        help="largest ex, ey against the reference windows the optimum may "
+                             f"have, 0..100 px (default {DEFAULT_TOLERANCE})")
+    parser.add_argument("--min-interval", type=float, default=tr.DEFAULT_MIN_INTERVAL_S,
+                        metavar="S", help="least time between two tunings, 0..86400 s "
+                                          f"(default {tr.DEFAULT_MIN_INTERVAL_S:g})")
+    parser.add_argument("--scale-band", type=float, nargs=2, default=tr.DEFAULT_SCALE_BAND,
+                        metavar=("LO", "HI"), help="re-tune when the scale since the last "
+                        "tuning leaves [LO, HI], 0 < LO < 1 < HI (default 0.8 1.25)")
+    parser.add_argument("--scene-threshold", type=float, default=tr.DEFAULT_SCENE_THRESHOLD,
+                        metavar="X", help="scene distance (0 same view, ~1 another scene) "
+                        f"that re-tunes, 0.01..2 (default {tr.DEFAULT_SCENE_THRESHOLD})")
     add_service_args(parser, tracker_params=True)
 
 
-def announce(node: Node, state: ParamsInForce, seq: int, reason: str | None = None) -> None:
-    """Publish the parameters in force: as a new ``params_id`` from the tuner when ``reason``
-    is given, else again as they are (a reminder for late joiners)."""
-    if reason is not None:
-        state.params_id += 1
-        state.source, state.reason = "tuner", reason
-        state.publish_status(node)
-        log.info("publishing params_id %d (%s): %s", state.params_id, reason,
-                 state.params.factors())
-    msg = Params.from_tracker_params(state.params, seq=seq, stamp_ns=time.time_ns(),
-                                     params_id=state.params_id, source=state.source
-                                     if state.source in ("tuner", "user") else "tuner",
-                                     reason=state.reason)
-    node.publish(node.keys.params, msg.encode(), reliable=True)
+def check_flags(args: argparse.Namespace) -> tr.TriggerConfig:
+    """The trigger configuration; ValueError names the flag, its value and the range."""
+    for flag, value, lo, hi in (("--buffer", args.buffer, 2, 1000),
+                                ("--tune-sweep-step", args.tune_sweep_step, 1, 10),
+                                ("--tolerance", args.tolerance, 0, 100),
+                                ("--min-interval", args.min_interval, 0, 86400),
+                                ("--scene-threshold", args.scene_threshold, 0.01, 2)):
+        if not lo <= value <= hi:  # also false for NaN
+            raise ValueError(f"{flag} {value:g} is out of range: allowed {lo:g}..{hi:g}")
+    lo, hi = args.scale_band
+    if not (0 < lo < 1 < hi and math.isfinite(hi)):
+        raise ValueError(f"--scale-band {lo:g} {hi:g} is out of range: allowed 0 < LO < 1 < HI")
+    return tr.TriggerConfig(buffer=args.buffer, min_interval_s=args.min_interval,
+                            scale_band=(lo, hi), scene_threshold=args.scene_threshold)
+
+
+def _work(conn: Any) -> None:
+    """The worker process: lower priority, compiled kernels, then one cycle per job."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the group: the service stops us
+    os.nice(WORKER_NICE)
+    from ...common.vision import warm_up
+    from .sensitivity import tune
+
+    warm_up()  # numba's compile or cache load, before the first job rather than inside it
+    try:
+        conn.send(("ready",))
+        while True:
+            job = conn.recv()
+            try:
+                result = tune(job["frames"], None, tolerance=job["tolerance"], step=job["step"],
+                              base=job["base"])
+                conn.send(("ok", result.to_report(), dict(result.optimum.params)))
+            except Exception as e:  # noqa: BLE001 - a failed cycle is reported, the worker lives
+                conn.send(("error", f"{type(e).__name__}: {e}"))
+    except (EOFError, BrokenPipeError):
+        return  # the service is gone or closed the pipe
+
+
+class Worker:
+    """The tuning cycles in a separate process at lower priority.
+
+    A process, not a thread: a cycle is seconds of Python and numba work holding the GIL, which
+    would stall the service loop. Started with 'spawn': a fork of a process with a live Zenoh
+    session would copy the locks of its threads in whatever state they were.
+    """
+
+    def __init__(self) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_work, args=(child,), name="auto-tuner-worker",
+                                 daemon=True)
+        self._proc.start()
+        child.close()
+        self.ready = False  # a job sent before would block the loop on a full pipe
+
+    def submit(self, job: dict[str, Any]) -> None:
+        self._conn.send(job)
+
+    def poll(self) -> tuple | None:
+        """The worker's next result, or None; raises EOFError when the worker died."""
+        while self._conn.poll():
+            msg = self._conn.recv()
+            if msg[0] != "ready":
+                return msg
+            self.ready = True
+            log.info("tuning worker ready (pid %d, nice +%d)", self._proc.pid, WORKER_NICE)
+        return None
+
+    def close(self) -> None:
+        self._conn.close()
+        self._proc.terminate()  # a cycle in progress is of no use any more
+        self._proc.join(2.0)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join()
+
+
+class AutoTuner:
+    """The service between messages: the buffer, the parameters in force, the triggers."""
+
+    def __init__(self, node: Node, args: argparse.Namespace, config: tr.TriggerConfig) -> None:
+        self.node, self.args = node, args
+        self.state = ParamsInForce.from_args(args)
+        self.frames: collections.deque[tuple[np.ndarray, int]] = collections.deque(
+            maxlen=args.buffer)
+        self.triggers = tr.Triggers(config)
+        self.worker: Worker | None = None
+        self.params_seq, self.report_seq = itertools.count(), itertools.count()  # per key
+        self.seen_id = 0  # largest params_id seen in estimates (a restarted tuner lags)
+        self.started = 0.0
+        self.reason = ""
+        self.id_at_start = 0
+        self.stamp_ns = 0
+        node.status.extra.update(buffered=0, tunings=0, last_reason="", tuning=False,
+                                 last_cycle_s=None)
+
+    def announce(self, reason: str | None = None) -> None:
+        """Publish the parameters in force: a new ``params_id`` from the tuner when ``reason``
+        is given, else again as they are (a reminder for late joiners)."""
+        st = self.state
+        if reason is not None:
+            st.params_id = max(st.params_id, self.seen_id) + 1
+            st.source, st.reason = "tuner", reason
+            st.publish_status(self.node)
+            log.info("publishing params_id %d (%s): %s", st.params_id, reason,
+                     st.params.factors())
+        source = st.source if st.source in ("tuner", "user") else "tuner"
+        msg = Params.from_tracker_params(st.params, seq=next(self.params_seq),
+                                         stamp_ns=time.time_ns(), params_id=st.params_id,
+                                         source=source, reason=st.reason)
+        self.node.publish(self.node.keys.params, msg.encode(), reliable=True)
+
+    def _decode(self, cls: type, payload: bytes) -> Any:
+        try:
+            return cls.decode(payload)
+        except MessageError as e:
+            self.node.status.reject(e)
+            log.error("rejected %s: %s", cls.KEY, e)
+            return None
+
+    def on_params(self, payload: bytes) -> None:
+        msg = self._decode(Params, payload)
+        if msg is not None and msg.source != "tuner":  # a user's set: in force now
+            self.state.apply(payload, self.node, log)
+
+    def on_frame(self, payload: bytes) -> None:
+        t0 = time.perf_counter()
+        msg = self._decode(Frame, payload)
+        if msg is None:
+            return
+        pixels = np.array(msg.data)  # own the pixels: the payload is reused
+        if self.frames and self.frames[-1][0].shape != pixels.shape:
+            self.frames.clear()  # another camera: one tuning runs on one frame size
+        self.frames.append((pixels, msg.stamp_ns))
+        extra = self.node.status.extra
+        extra["buffered"] = len(self.frames)
+        if self.worker is not None:
+            self._changed(self.triggers.frame(pixels))
+            extra["scene_distance"] = round(self.triggers.distance, 3)
+        self.node.status.observe_ms((time.perf_counter() - t0) * 1e3)
+
+    def on_estimate(self, payload: bytes) -> None:
+        msg = self._decode(Estimate, payload)
+        if msg is None or self.worker is None:
+            return
+        self.seen_id = max(self.seen_id, msg.params_id)
+        self._changed(self.triggers.estimate(first=msg.first, npi=msg.npi, scale=msg.scale,
+                                             ids={f[0] for f in msg.features}))
+        self.node.status.extra["scale_ratio"] = round(self.triggers.ratio, 4)
+
+    def _changed(self, reason: str | None) -> None:
+        if reason is not None:
+            log.info("%s seen (scene distance %.2f, scale ratio %.3f); tuning pending: %s",
+                     reason, self.triggers.distance, self.triggers.ratio, self.triggers.pending)
+        self.node.status.extra["pending"] = self.triggers.pending
+
+    def tick(self, now: float) -> None:
+        """Collect a finished cycle, start one when due (only between messages: cheap)."""
+        if self.worker is None:
+            return
+        try:
+            result = self.worker.poll()
+        except (EOFError, OSError) as e:
+            self.node.status.error(f"tuning worker died: {e!r}")
+            self.worker.close()
+            if not self.worker.ready:  # it cannot even start: retrying would only spin
+                log.error("tuning worker died at start-up (%r): tuning disabled", e)
+                self.worker = None
+                return
+            log.error("tuning worker died (%r): starting another", e)
+            self.worker = Worker()
+            result = ("error", "worker died") if self.triggers.running else None
+        if result is not None:
+            self._finish(result, now)
+        reason = self.triggers.due(now)
+        if reason is not None and self.worker.ready and len(self.frames) >= 2:
+            self.triggers.started()
+            self.started, self.reason, self.id_at_start = now, reason, self.state.params_id
+            self.stamp_ns = self.frames[-1][1]
+            self.worker.submit({"frames": [f for f, _ in self.frames], "base": self.state.params,
+                                "tolerance": self.args.tolerance,
+                                "step": self.args.tune_sweep_step})
+            self.node.status.extra.update(tuning=True, pending=None)
+            log.info("tuning (%s) on %d frames", reason, len(self.frames))
+
+    def _finish(self, result: tuple, now: float) -> None:
+        extra = self.node.status.extra
+        cycle = now - self.started
+        extra.update(tuning=False, last_cycle_s=round(cycle, 3))
+        if result[0] != "ok":
+            self.triggers.finished(now, ok=False)
+            self.node.status.error(f"tuning failed: {result[1]}")
+            log.error("tuning (%s) failed: %s", self.reason, result[1])
+            return
+        self.triggers.finished(now)
+        _, report, optimum = result
+        st = self.state
+        new = st.params.replace(**optimum)
+        user_meanwhile = st.params_id != self.id_at_start
+        changed = new != st.params and not user_meanwhile
+        if changed:
+            st.params = new
+            self.announce(self.reason)
+        extra.update(tunings=extra["tunings"] + 1, last_reason=self.reason)
+        log.info("tuning (%s) done in %.1f s: optimum %s%s", self.reason, cycle, optimum,
+                 "" if changed else " (a user's set arrived meanwhile: kept)" if user_meanwhile
+                 else " (already in force)")
+        self._publish_report(report, trigger=self.reason, changed=changed, cycle_s=cycle)
+
+    def _publish_report(self, report: dict[str, Any], **extra: Any) -> None:
+        """The whole report (contract fields and the extras readers may ignore), checked to
+        decode within the readers' limits before it goes out."""
+        seq = next(self.report_seq)
+        fields = {f: report[f] for f in ("design", "factors", "order", "responses", "effects",
+                                         "significant", "optimum", "sweep")}
+        try:
+            Report(seq=seq, stamp_ns=self.stamp_ns, **fields)
+            payload = pack({"seq": seq, "stamp_ns": self.stamp_ns, **report, **extra,
+                            "params_id": self.state.params_id})
+            Report.decode(payload)
+        except MessageError as e:
+            self.node.status.error(e)
+            log.error("tuner/report not published: %s", e)
+            return
+        self.node.publish(self.node.keys.report, payload, reliable=True)
 
 
 def loop(node: Node, args: argparse.Namespace) -> None:
-    if not 2 <= args.buffer <= 1000:
-        raise SystemExit(f"vistrack auto-tuner: error: --buffer {args.buffer} is out of range: "
-                         "allowed 2..1000")
-    state = ParamsInForce.from_args(args)
-    frames: collections.deque[np.ndarray] = collections.deque(maxlen=args.buffer)
+    tuner = AutoTuner(node, args, check_flags(args))
     node.subscribe(node.keys.params, latest=False)
     node.subscribe(node.keys.frame, latest=True)
     node.subscribe(node.keys.estimate, latest=True)
-    ready(node)
-    seq = 0
-    announce(node, state, seq, "initial")
-    seq += 1
-    last_announce = time.monotonic()
-    while not node.stop.is_set():
-        if time.monotonic() - last_announce >= REMIND_S:
-            announce(node, state, seq)
-            seq += 1
-            last_announce = time.monotonic()
-        item = node.recv(timeout=0.1)
-        if item is None:
-            continue
-        key, payload = item
-        if key == node.keys.params:
-            try:
-                msg = Params.decode(payload)
-            except MessageError as e:
-                node.status.reject(e)
-                log.error("rejected tuner/params: %s", e)
-                continue
-            if msg.source != "tuner":  # a user's set: it is what is in force now
-                state.apply(payload, node, log)
-        elif key == node.keys.frame:
-            try:
-                frame = Frame.decode(payload)
-            except MessageError as e:
-                node.status.reject(e)
-                log.error("rejected camera/frame: %s", e)
-                continue
-            frames.append(np.array(frame.data))  # own the pixels: the payload is reused
-            node.status.extra["buffered"] = len(frames)
+    handlers = {node.keys.params: tuner.on_params, node.keys.frame: tuner.on_frame,
+                node.keys.estimate: tuner.on_estimate}
+    tuner.worker = None if args.no_tune else Worker()  # warms up while the loop runs
+    try:
+        ready(node)
+        tuner.announce("start-up (flags)")
+        last_announce = time.monotonic()
+        while not node.stop.is_set():
+            now = time.monotonic()
+            if now - last_announce >= REMIND_S:
+                tuner.announce()
+                last_announce = now
+            tuner.tick(now)
+            item = node.recv(timeout=0.1)
+            if item is not None:
+                handlers[item[0]](item[1])
+    finally:
+        if tuner.worker is not None:
+            tuner.worker.close()
 
 
 def main(args: argparse.Namespace) -> int:
+    try:
+        check_flags(args)  # before Zenoh: bad flags fail fast
+    except ValueError as e:
+        print(f"vistrack auto-tuner: error: {e}", file=sys.stderr)
+        return 2
     return serve("auto_tuner", args, loop)

@@ -1,0 +1,166 @@
+"""The auto-tuner live: it tunes once its buffer is full, re-tunes on a scene change, and the
+pipeline applies the new parameters without pausing while the experiments run.
+
+Real processes and real Zenoh on a free loopback port. The camera plays a folder of generated
+frames at 15 fps: 45 frames of one textured scene panning slowly, then 75 of another scene
+(another seed). The tracker services start with windows (31, 15), outside the swept range
+10..20 x 5..15, so the initial tuning must change them whatever the optimum is; the re-tune is
+checked by its report and trigger, since its optimum may equal what is in force.
+"""
+
+from __future__ import annotations
+
+import itertools
+import subprocess
+import sys
+import threading
+import time
+
+import cv2
+import msgpack
+import pytest
+import zenoh
+
+from vistrack.common.messages import Report
+from vistrack.common.synthetic import Motion, sequence
+
+from procs import Collector, router, service, services, zenoh_config
+
+pytestmark = pytest.mark.integration
+
+ROOT = "vistrack/robot"
+FPS = 15
+SCENE_A, SCENE_B = 45, 75
+WINDOWS = ["--search-size", "31", "--corr-size", "15"]  # not a point of the sweep
+TUNER = [*WINDOWS, "--buffer", "15", "--tune-sweep-step", "5", "--min-interval", "1"]
+MAX_GAP_S = 1.0
+
+
+class TimedCollector(Collector):
+    """A Collector that also keeps each sample's arrival time (time.monotonic)."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self.times: list[float] = []
+        self._times_lock = threading.Lock()
+        super().__init__(session, key)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        with self._times_lock:
+            self.times.append(time.monotonic())
+            super()._on(sample)
+
+    def timed(self) -> list[tuple[float, dict]]:
+        with self._times_lock:
+            pairs = list(zip(self.times, self.items, strict=True))
+        return [(t, msgpack.unpackb(p)) for t, (_, p) in pairs]
+
+
+@pytest.fixture(scope="module")
+def frames_dir(tmp_path_factory: pytest.TempPathFactory):
+    folder = tmp_path_factory.mktemp("two-scenes")
+    frames = (sequence(SCENE_A, motion=Motion(dx=1.0, dy=0.5), seed=1)
+              + sequence(SCENE_B, motion=Motion(dx=-1.0), seed=5))
+    for i, f in enumerate(frames):
+        assert cv2.imwrite(str(folder / f"frame_{i:03d}.png"), f)
+    return folder
+
+
+def status_of(session: zenoh.Session, service_name: str) -> dict:
+    for reply in session.get(f"{ROOT}/{service_name}/status", timeout=2.0):
+        if reply.ok is not None:
+            return msgpack.unpackb(reply.ok.payload.to_bytes())
+    raise AssertionError(f"{service_name} did not answer its status query")
+
+
+def largest_gap(times: list[float], start: float, end: float) -> float:
+    """The longest time without an estimate within [start, end] (clipped to the stream)."""
+    start, end = max(start, times[0]), min(end, times[-1])
+    inside = [start, *(t for t in times if start < t < end), end]
+    return max(b - a for a, b in itertools.pairwise(inside))
+
+
+def test_tunes_retunes_on_a_scene_change_and_never_stalls_the_estimates(frames_dir, free_port):
+    extra = {"preprocessing": WINDOWS, "motion-estimation": WINDOWS, "auto-tuner": TUNER}
+    with router(free_port) as ep, zenoh.open(zenoh_config(ep)) as session, \
+            services(ep, names=("preprocessing", "motion-estimation", "auto-tuner"),
+                     extra=extra) as procs:
+        est = TimedCollector(session, f"{ROOT}/motion/estimate")
+        reports = TimedCollector(session, f"{ROOT}/tuner/report")
+        params = Collector(session, f"{ROOT}/tuner/params")
+        # the buffer must not fill before the worker can take it: the cut would be in it
+        procs["auto-tuner"].wait_for("tuning worker ready", timeout=60)
+        t0 = time.monotonic()
+        # looping, so frames keep coming however long the cycles take on a loaded machine
+        cam = service("camera", ep, "--source", f"file:{frames_dir}", "--fps", str(FPS),
+                      "--loop")
+        try:
+            reports.wait(lambda items: len(items) >= 2, timeout=90)
+            got = reports.timed()[:2]
+            last_id = got[1][1]["params_id"]
+            est.wait(lambda items: bool(items)
+                     and msgpack.unpackb(items[-1][1])["params_id"] >= last_id,
+                     timeout=10)
+            tuner_status = status_of(session, "auto_tuner")
+        finally:
+            cam.stop()
+    first, second = got[0][1], got[1][1]
+    estimates = est.timed()
+    times = [t for t, _ in estimates]
+
+    # the initial tuning: a full report, and new parameters (the flags' windows are not swept)
+    assert first["trigger"] == "initial tuning" and first["changed"] is True
+    for _, p in reports.items:
+        Report.decode(p)  # every contract field, within the readers' limits
+        assert len(p) < 64 * 1024
+    opt = first["optimum"]
+    assert 10 <= opt["search_size"] <= 20 and 5 <= opt["corr_size"] <= 15
+    published = [msgpack.unpackb(p) for _, p in params.items]
+    tuned = [m for m in published if m["reason"] == "initial tuning"]
+    assert tuned and tuned[0]["source"] == "tuner" and tuned[0]["params_id"] == first["params_id"]
+    assert {k: tuned[0][k] for k in opt} == opt
+    # motion-estimation applied them: its estimates say so
+    ids = [m["params_id"] for _, m in estimates]
+    assert ids == sorted(ids) and first["params_id"] in ids
+
+    # the re-tune after the cut to the other scene: new parameters only if the optimum moved
+    assert second["trigger"] == "scene change"
+    assert second["changed"] == (second["params_id"] > first["params_id"])
+    assert second["changed"] == (second["optimum"] != first["optimum"])
+    assert second["params_id"] in ids
+
+    # the hot path never waited for the experiments
+    windows = [(t - m["cycle_s"], t) for t, m in got]
+    gaps = [largest_gap(times, a, b) for a, b in windows]
+    during = sum(1 for t in times if any(a <= t <= b for a, b in windows))
+    span = sum(b - a for a, b in windows)
+    outside = (len(times) - during) / (times[-1] - times[0] - span)
+    print(f"\ncycles {[round(m['cycle_s'], 2) for _, m in got]} s (worker "
+          f"{[round(m['seconds']['total'], 2) for _, m in got]} s); estimates "
+          f"{during / span:.1f}/s during tuning, {outside:.1f}/s outside; largest gaps "
+          f"{[round(g, 3) for g in gaps]} s; reports {[len(p) for _, p in reports.items]} B; "
+          f"camera ran {time.monotonic() - t0:.1f} s")
+    assert max(gaps) < MAX_GAP_S, gaps
+    assert during / span > 0.7 * outside
+
+    # what `vistrack params get` shows: the tuner's parameters, params_id, source, reason
+    p = tuner_status["params"]
+    assert p["params_id"] >= second["params_id"] and p["source"] == "tuner"
+    assert p["reason"] in ("initial tuning", "scene change", "distance change")
+    extra = tuner_status["extra"]
+    assert extra["tunings"] >= 2 and extra["buffered"] == 15 and extra["last_cycle_s"] > 0
+
+
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--min-interval", "-1"], "--min-interval -1 is out of range: allowed 0..86400"),
+    (["--scale-band", "1.1", "1.5"], "--scale-band 1.1 1.5 is out of range"),
+    (["--scene-threshold", "nan"], "--scene-threshold nan is out of range: allowed 0.01..2"),
+    (["--tune-sweep-step", "0"], "--tune-sweep-step 0 is out of range: allowed 1..10"),
+    (["--tolerance", "-0.5"], "--tolerance -0.5 is out of range: allowed 0..100"),
+    (["--buffer", "1"], "--buffer 1 is out of range: allowed 2..1000"),
+])
+def test_bad_flags_are_one_line_and_exit_2(flags, message):
+    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "auto-tuner", *flags],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2
+    assert run.stderr.startswith("vistrack auto-tuner: error: ") and message in run.stderr
+    assert run.stderr.count("\n") == 1, run.stderr

@@ -72,7 +72,9 @@ def session(endpoint: str) -> Iterator[zenoh.Session]:
 @pytest.fixture(scope="module")
 def pipeline(endpoint: str) -> Iterator[dict[str, Proc]]:
     """The five services, ready, with estimates flowing."""
-    with services(endpoint, names=ALL, extra={"camera": CAMERA, "auto-tuner": ["--no-tune"]}) as procs:
+    # the tuner's own re-tunes would race the params set tests
+    no_tune = {"camera": CAMERA, "auto-tuner": ["--no-tune"]}
+    with services(endpoint, names=ALL, extra=no_tune) as procs:
         with zenoh.open(zenoh_config(endpoint)) as s:
             Collector(s, f"{ROOT}/motion/estimate").wait(lambda items: len(items) >= 3)
         yield procs

@@ -226,6 +226,14 @@ def test_hz_reports_rate_jitter_and_gaps(pipeline, endpoint):
 def test_status_lists_every_service_and_a_silent_one(pipeline, endpoint, session):
     ghost = session.liveliness().declare_token(f"{ROOT}/alive/ghost")  # alive, never answers
     try:
+        # the token takes a moment to reach the router: wait until a fresh session (as the
+        # tool opens) sees it, so the tool's answer is what is tested, not the propagation
+        with zenoh.open(zenoh_config(endpoint)) as other:
+            deadline = time.monotonic() + 10
+            while not any(r.ok is not None for r in
+                          other.liveliness().get(f"{ROOT}/alive/ghost", timeout=0.5)):
+                assert time.monotonic() < deadline, "ghost token never reached the router"
+                time.sleep(0.05)
         run = tool(endpoint, "status", "--json")
         table = tool(endpoint, "status")
     finally:

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import cv2
 import numba as nb
 import numpy as np
+from numba.cpython.unsafe.numbers import trailing_zeros
 
 from ..params import TrackerParams
 
@@ -83,33 +84,94 @@ def gradient_magnitude(filtered: np.ndarray) -> np.ndarray:
 
 
 @nb.njit(cache=True, nogil=True)
-def _min_eigen(gx, gy):  # pragma: no cover - numba
-    h, w = gx.shape
-    out = np.zeros((h, w), np.float32)
-    # column sums of the three gradient products over 3 rows, then 3-wide row sums: the 3x3
-    # box of the structure tensor in one pass, without temporary images
-    cxx = np.empty(w, np.float32)
-    cxy = np.empty(w, np.float32)
-    cyy = np.empty(w, np.float32)
-    for y in range(1, h - 1):
+def _min_eigen(img, out):  # pragma: no cover - numba
+    """Smaller eigenvalue of the 3x3 structure tensor of the 3x3 Sobel gradient of ``img``
+    (uint8), into ``out`` (float32, border ring 0).
+
+    Bit for bit the values of the former float32 pipeline (``cv2.Sobel`` to float32, products
+    and 3x3 sums in float32, the eigenvalue in float64): the gradient and the tensor sums are
+    integers below 2^24, so they are computed exactly in int32 here and converted where that
+    pipeline first rounded (the sum sxx + syy, which may exceed 2^24, and sxy * sxy in
+    float32). One pass down the rows with a ring of 3 rows of gradient products, every loop a
+    long contiguous one that vectorises; the float64 square root (~0.5 ns a pixel) bounds the
+    speed.
+    """
+    h, w = img.shape
+    if h < 3 or w < 3:
+        out[:, :] = 0
+        return
+    out[0, :] = 0  # the other rows are written whole below
+    out[h - 1, :] = 0
+    vs = np.empty(w + 2, np.int32)  # vertical [1 2 1] and [-1 0 1] of a row, border-replicated
+    vd = np.empty(w + 2, np.int32)
+    # ring of 3 rows of gx^2, gx gy, gy^2 at 1..w, 0 in the pad columns
+    prod = np.zeros((3, 3, w + 2), np.int32)
+    col = np.empty((3, w + 2), np.int32)  # their sums over 3 rows
+    for r in range(h + 1):
+        if r < h:
+            # gradient products of row r into ring slot r % 3 (Sobel, border replicated)
+            up = img[max(r - 1, 0)]
+            mid = img[r]
+            dn = img[min(r + 1, h - 1)]
+            vsm = vs[1:w + 1]
+            vdm = vd[1:w + 1]
+            for x in range(w):
+                a = np.int32(up[x])
+                b = np.int32(mid[x])
+                c = np.int32(dn[x])
+                vsm[x] = a + 2 * b + c
+                vdm[x] = c - a
+            vs[0] = vs[1]
+            vs[w + 1] = vs[w]
+            vd[0] = vd[1]
+            vd[w + 1] = vd[w]
+            pxx = prod[r % 3, 0, 1:w + 1]
+            pxy = prod[r % 3, 1, 1:w + 1]
+            pyy = prod[r % 3, 2, 1:w + 1]
+            s_left = vs[0:w]
+            s_right = vs[2:w + 2]
+            d_left = vd[0:w]
+            d_mid = vd[1:w + 1]
+            d_right = vd[2:w + 2]
+            for x in range(w):
+                gx = np.int32(s_right[x] - s_left[x])
+                gy = np.int32(d_left[x] + 2 * d_mid[x] + d_right[x])
+                pxx[x] = np.int32(gx * gx)
+                pxy[x] = np.int32(gx * gy)
+                pyy[x] = np.int32(gy * gy)
+        y = r - 1  # the output row whose 3 product rows are now complete
+        if y < 1 or y > h - 2:
+            continue
+        # sums of the products over the 3 rows, then over 3 columns with the eigenvalue, over
+        # the whole row (border pixels included and zeroed after): loops of exactly w leave no
+        # scalar remainder
+        for c in range(3):
+            p0 = prod[(y - 1) % 3, c]
+            p1 = prod[y % 3, c]
+            p2 = prod[(y + 1) % 3, c]
+            dst = col[c]
+            for x in range(w + 2):
+                dst[x] = np.int32(p0[x] + p1[x] + p2[x])
+        xx0 = col[0, 0:w]
+        xx1 = col[0, 1:w + 1]
+        xx2 = col[0, 2:w + 2]
+        xy0 = col[1, 0:w]
+        xy1 = col[1, 1:w + 1]
+        xy2 = col[1, 2:w + 2]
+        yy0 = col[2, 0:w]
+        yy1 = col[2, 1:w + 1]
+        yy2 = col[2, 2:w + 2]
+        dst = out[y]
         for x in range(w):
-            a0 = gx[y - 1, x]
-            a1 = gx[y, x]
-            a2 = gx[y + 1, x]
-            b0 = gy[y - 1, x]
-            b1 = gy[y, x]
-            b2 = gy[y + 1, x]
-            cxx[x] = a0 * a0 + a1 * a1 + a2 * a2
-            cxy[x] = a0 * b0 + a1 * b1 + a2 * b2
-            cyy[x] = b0 * b0 + b1 * b1 + b2 * b2
-        for x in range(1, w - 1):
-            sxx = cxx[x - 1] + cxx[x] + cxx[x + 1]
-            sxy = cxy[x - 1] + cxy[x] + cxy[x + 1]
-            syy = cyy[x - 1] + cyy[x] + cyy[x + 1]
-            half_tr = 0.5 * (sxx + syy)
-            d = 0.5 * (sxx - syy)
-            out[y, x] = half_tr - np.sqrt(d * d + sxy * sxy)
-    return out
+            # np.int32: the sums fit (< 2^25), and LLVM then converts 16 lanes at a time
+            sxx = np.int32(xx0[x] + xx1[x] + xx2[x])
+            sxy = np.float32(np.int32(xy0[x] + xy1[x] + xy2[x]))
+            syy = np.int32(yy0[x] + yy1[x] + yy2[x])
+            half_tr = 0.5 * np.float64(np.float32(np.int32(sxx + syy)))
+            d = 0.5 * np.float64(np.int32(sxx - syy))
+            dst[x] = half_tr - np.sqrt(d * d + np.float64(sxy * sxy))
+        dst[0] = 0
+        dst[w - 1] = 0
 
 
 def min_eigen_strength(filtered: np.ndarray) -> np.ndarray:
@@ -119,54 +181,188 @@ def min_eigen_strength(filtered: np.ndarray) -> np.ndarray:
     the "good features to track" measure of Shi and Tomasi (1994) cited by the paper. The
     border pixel ring is 0.
     """
-    gx, gy = _sobel(filtered)
-    return _min_eigen(gx, gy)
+    out = np.empty(filtered.shape, np.float32)
+    _min_eigen(np.ascontiguousarray(filtered, np.uint8), out)
+    return out
 
 
 STRENGTHS = {"gradient": gradient_magnitude, "min_eigen": min_eigen_strength}
 
 
 @nb.njit(cache=True, nogil=True)
+def _monotonic_keys(vals, keys):  # pragma: no cover - numba
+    """uint32 keys ordered like the float32 ``vals``: the bits with the sign flipped for
+    values >= 0 and all flipped for values < 0; -0.0 is first made 0.0, its equal."""
+    canon = np.empty(vals.shape[0], np.float32)
+    for i in range(vals.shape[0]):
+        canon[i] = vals[i] + np.float32(0.0)
+    bits = canon.view(np.uint32)
+    for i in range(vals.shape[0]):
+        b = bits[i]
+        keys[i] = ~b if b >> 31 else b | np.uint32(0x80000000)
+
+
+@nb.njit(cache=True, nogil=True)
+def _sort_desc(keys):  # pragma: no cover - numba
+    """Indices that sort uint32 ``keys`` descending, stable (equal keys keep their order): LSD
+    radix sort of the complemented keys, 11 bits a pass.
+
+    The keys travel with their indices (sequential access) and the three digit histograms are
+    counted in one pass; a pass whose digit is the same for every key is skipped.
+    """
+    n = keys.shape[0]
+    ks = np.empty((2, n), np.uint32)  # keys and indices, current and next by pass parity
+    ix = np.empty((2, n), np.int64)
+    hist = np.zeros((3, 2048), np.int64)
+    for i in range(n):
+        key = ~keys[i]
+        ks[0, i] = key
+        ix[0, i] = i
+        hist[0, key & 2047] += 1
+        hist[1, (key >> 11) & 2047] += 1
+        hist[2, key >> 22] += 1
+    cur = 0
+    for p in range(3):
+        count = hist[p]
+        if count.max() == n:
+            continue  # one digit for all: this pass would not move anything
+        acc = 0
+        for d in range(2048):
+            c = count[d]
+            count[d] = acc
+            acc += c
+        shift = 11 * p
+        src_k = ks[cur]
+        src_i = ix[cur]
+        dst_k = ks[1 - cur]
+        dst_i = ix[1 - cur]
+        for i in range(n):
+            key = src_k[i]
+            d = (key >> shift) & 2047
+            at = count[d]
+            dst_k[at] = key
+            dst_i[at] = src_i[i]
+            count[d] = at + 1
+        cur = 1 - cur
+    return ix[cur]
+
+
+@nb.njit(cache=True, nogil=True)
 def _top_k(grad, k, margin):  # pragma: no cover - numba
-    """Indices (y, x) of the k largest values inside the margin, found with a histogram pass
-    and a sort of the top bins only: O(H W + k log k), where a full argpartition of the frame
-    cost 5x more at 256x256."""
+    """The k largest values inside the margin, largest first, ties in row-major order.
+
+    Returns (candidates (k, 2) int16 x, y; values (k,) float32); fewer than k where fewer
+    values are not NaN.
+
+    A threshold T at most the k-th largest value is estimated from a 1-in-16 sample, the
+    pixels >= T (a few more than k) are collected in row-major order and stably sorted by a
+    radix sort: a few linear passes. (A histogram of the whole frame followed by a comparison
+    sort, the previous method, cost several times more.)
+    """
     h, w = grad.shape
-    vmax = 0.0
-    for y in range(margin, h - margin):
-        for x in range(margin, w - margin):
-            if grad[y, x] > vmax:
-                vmax = grad[y, x]
-    nbins = 4096
-    hist = np.zeros(nbins + 1, np.int64)
-    scale = nbins / vmax if vmax > 0 else 0.0
-    for y in range(margin, h - margin):
-        for x in range(margin, w - margin):
-            hist[int(grad[y, x] * scale)] += 1
-    # the lowest bin that, with every bin above it, holds at least k pixels
-    total = 0
-    lo_bin = nbins
-    while lo_bin > 0:
-        total += hist[lo_bin]
-        if total >= k:
-            break
-        lo_bin -= 1
-    if lo_bin == 0:
-        total = (h - 2 * margin) * (w - 2 * margin)
-    ys = np.empty(total, np.int64)
-    xs = np.empty(total, np.int64)
-    vals = np.empty(total, np.float32)
+    x0 = margin
+    x1 = w - margin
+    y0 = margin
+    y1 = h - margin
+    inner = (y1 - y0) * (x1 - x0)
+    # 1. T: the value of rank ~1.3 k among the pixels, estimated as that rank among every 4th
+    # row and column: a histogram of the samples' top 12 key bits finds its bin, a sort of the
+    # bin's few samples the value
+    n_s = ((y1 - y0 + 3) // 4) * ((x1 - x0 + 3) // 4)
+    sample = np.empty(n_s, np.float32)
     c = 0
-    for y in range(margin, h - margin):
-        for x in range(margin, w - margin):
-            if int(grad[y, x] * scale) >= lo_bin and c < total:
-                ys[c] = y
-                xs[c] = x
-                vals[c] = grad[y, x]
-                c += 1
-    # strongest first; the stable sort keeps row-major order among equal strengths
-    order = np.argsort(-vals[:c], kind="mergesort")[:k]
-    return xs[order], ys[order], vals[order]
+    for y in range(y0, y1, 4):
+        for x in range(x0, x1, 4):
+            sample[c] = grad[y, x]
+            c += 1
+    skeys = np.empty(n_s, np.uint32)
+    _monotonic_keys(sample, skeys)
+    hist = np.zeros(4097, np.int64)
+    for i in range(n_s):
+        if not np.isnan(sample[i]):
+            hist[skeys[i] >> 20] += 1
+    rank = int(k * n_s / inner * 1.3) + 16
+    flat = grad.ravel()
+    lo = y0 * w
+    hi = y1 * w
+    rows = flat[lo:hi]
+    n_words = (hi - lo + 31) // 32 * 4
+    mask = np.empty(n_words * 8, np.uint8)
+    mask[hi - lo:] = 0
+    words = mask.view(np.uint64)
+    # room for the pixels >= T: ~1.3 k expected; a frame that holds more starts again with
+    # room for all
+    cap = min(inner, 4 * k + 1024)
+    xs = np.empty(cap, np.int16)
+    ys = np.empty(cap, np.int16)
+    vals = np.empty(cap, np.float32)
+    while True:
+        # the sample of that rank, found in its bin; -inf when the rank exceeds the samples
+        above = 0
+        top_bin = 4096
+        while top_bin >= 0 and above + hist[top_bin] < rank:
+            above += hist[top_bin]
+            top_bin -= 1
+        thr = np.float32(-np.inf)
+        if top_bin >= 0:
+            in_bin = np.empty(hist[top_bin], np.float32)
+            c = 0
+            for i in range(n_s):
+                if skeys[i] >> 20 == top_bin:
+                    in_bin[c] = sample[i]
+                    c += 1
+            thr = np.sort(in_bin)[hist[top_bin] - (rank - above)]
+        # 2. mark the pixels >= T: one vectorised pass over whole rows
+        for q in range(hi - lo):
+            mask[q] = rows[q] >= thr
+        # 3. collect those inside the margin in row-major order, 32 mask bytes at a time
+        # (most are all zero)
+        total = 0
+        y = 0
+        row_end = w
+        for i in range(0, n_words, 4):
+            if words[i] | words[i + 1] | words[i + 2] | words[i + 3] == 0:
+                continue
+            for u in range(i, i + 4):
+                word = words[u]
+                while word:
+                    # each marked byte holds one set bit: the lowest is the next pixel
+                    q = u * 8 + (trailing_zeros(word) >> 3)
+                    word &= word - np.uint64(1)
+                    while q >= row_end:
+                        y += 1
+                        row_end += w
+                    x = q - (row_end - w)
+                    if x0 <= x < x1:
+                        if total == cap:
+                            break
+                        xs[total] = x
+                        ys[total] = y + y0
+                        vals[total] = rows[q]
+                        total += 1
+        if total == cap and cap < inner:
+            cap = inner
+            xs = np.empty(cap, np.int16)
+            ys = np.empty(cap, np.int16)
+            vals = np.empty(cap, np.float32)
+            continue  # collect again, with room for every pixel
+        if total >= k or top_bin < 0:
+            break
+        rank = 2 * rank + 16  # the sample misled us: take a lower threshold
+    vals = vals[:total]
+    # 4. sort by value, descending; the radix sort is stable, so ties stay in row-major order
+    keys = np.empty(total, np.uint32)
+    _monotonic_keys(vals, keys)
+    order = _sort_desc(keys)
+    kk = min(k, total)
+    cands = np.empty((kk, 2), np.int16)
+    out = np.empty(kk, np.float32)
+    for i in range(kk):
+        j = order[i]
+        cands[i, 0] = xs[j]
+        cands[i, 1] = ys[j]
+        out[i] = vals[j]
+    return cands, out
 
 
 def threshold_candidates(grad: np.ndarray, thres_percent: float,
@@ -190,8 +386,7 @@ def threshold_candidates(grad: np.ndarray, thres_percent: float,
         return np.empty((0, 2), np.int16), np.empty(0, np.float32)
     inner = (h - 2 * margin) * (w - 2 * margin)
     k = min(max(int(round(grad.size * thres_percent / 100.0)), 1), inner)
-    xs, ys, vals = _top_k(np.ascontiguousarray(grad, np.float32), k, int(margin))
-    return np.stack([xs, ys], axis=1).astype(np.int16), vals
+    return _top_k(np.ascontiguousarray(grad, np.float32), k, int(margin))
 
 
 def preprocess(gray: np.ndarray, params: TrackerParams) -> Preprocessed:

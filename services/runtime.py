@@ -11,6 +11,7 @@ import logging
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 from ..common.bus import (
     BusError,
@@ -62,6 +63,21 @@ def serve(service: str, args: argparse.Namespace,
             restore()
     logger.info("stopped")
     return int(rc or 0)
+
+
+M = TypeVar("M")
+
+
+def decode_or_reject(cls: type[M], payload: bytes, node: Node, logger: logging.Logger
+                     ) -> M | None:
+    """Decode a contract message; a bad one is counted in the status, logged with what was
+    wrong, and None is returned so the loop goes on to the next input."""
+    try:
+        return cls.decode(payload)  # type: ignore[attr-defined, no-any-return]
+    except MessageError as e:
+        node.status.reject(e)
+        logger.error("rejected %s: %s", getattr(cls, "KEY", cls.__name__), e)
+        return None
 
 
 def ready(node: Node) -> None:

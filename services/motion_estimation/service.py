@@ -19,9 +19,9 @@ import time
 import numpy as np
 
 from ...common.bus import Node
-from ...common.messages import Estimate, MessageError, PreFrame
+from ...common.messages import Estimate, PreFrame
 from ...common.vision import Preprocessed, Tracker, warm_up
-from ..runtime import ParamsInForce, add_service_args, ready, serve
+from ..runtime import ParamsInForce, add_service_args, decode_or_reject, ready, serve
 
 log = logging.getLogger("vistrack.motion_estimation")
 
@@ -56,11 +56,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                 tracker.set_params(state.params)
             continue
         t0 = time.perf_counter()
-        try:
-            msg = PreFrame.decode(payload)
-        except MessageError as e:
-            node.status.reject(e)
-            log.error("rejected preprocessing/frame: %s", e)
+        msg = decode_or_reject(PreFrame, payload, node, log)
+        if msg is None:
             continue
         # decoded arrays are read-only views of the payload; numba would compile (and cache)
         # a second specialisation of every kernel for read-only inputs, 40 ms on frame one

@@ -15,9 +15,9 @@ import logging
 import time
 
 from ...common.bus import Node
-from ...common.messages import Frame, MessageError, PreFrame
+from ...common.messages import Frame, PreFrame
 from ...common.vision import preprocess, warm_up
-from ..runtime import ParamsInForce, add_service_args, ready, serve
+from ..runtime import ParamsInForce, add_service_args, decode_or_reject, ready, serve
 
 log = logging.getLogger("vistrack.preprocessing")
 
@@ -42,11 +42,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             state.apply(payload, node, log)
             continue
         t0 = time.perf_counter()
-        try:
-            frame = Frame.decode(payload)
-        except MessageError as e:
-            node.status.reject(e)
-            log.error("rejected camera/frame: %s", e)
+        frame = decode_or_reject(Frame, payload, node, log)
+        if frame is None:
             continue
         pre = preprocess(frame.data, state.params)
         out = PreFrame(seq=frame.seq, stamp_ns=frame.stamp_ns, width=frame.width,

@@ -37,7 +37,7 @@ import zenoh
 from ..common.bus import add_zenoh_args
 from .camera.scenarios import ScenarioError, load_scenario
 from .camera.sim import Camera, image_truth
-from .launcher import Launcher, LaunchError, LaunchSpec, default_launch
+from .launcher import Launcher, LaunchError, LaunchSpec, compile_kernels, default_launch
 
 TRACKER_FLAGS = ("--subpixel",)  # closed loop needs sub-pixel motion (see README)
 STRIP_FRAMES = 8
@@ -266,6 +266,9 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     tty = sys.stderr.isatty()
+    print("vistrack demo: loading the tracker's kernels (the first run compiles them, "
+          "~30 s)...", file=sys.stderr, flush=True)
+    compile_kernels()
     with open(out / "services.log", "w") as log, \
             Launcher(launch, connect=args.connect, out=log) as launcher:
         print(f"vistrack demo: starting the five services (scenario {scenario.name}, "

@@ -100,7 +100,7 @@ def services(endpoint: str, names=SERVICE_CLI, extra: dict[str, list[str]] | Non
     procs = {n: service(n, endpoint, *(extra or {}).get(n, [])) for n in names}
     try:
         for p in procs.values():
-            p.wait_for("ready")
+            p.wait_for("ready", timeout=90.0)
         yield procs
     finally:
         for p in procs.values():

@@ -164,7 +164,10 @@ def distributed(session: zenoh.Session, endpoint: str, keys: Keys, *, fps: float
     """Run camera + four services for ``seconds``; latency and rate figures."""
     with ExitStack() as stack:
         for name in SERVICES:
-            stack.enter_context(_process(_vistrack(name, endpoint)))
+            # the tuner buffers every frame but runs no experiment: its worker would take the
+            # CPU the pipeline is being measured on
+            extra = ("--no-tune",) if name == "auto-tuner" else ()
+            stack.enter_context(_process(_vistrack(name, endpoint, *extra)))
         _wait_alive(session, keys, {"preprocessing", "motion_estimation", "auto_tuner",
                                     "fuzzy_controller"}, 60)
         stack.enter_context(_process(_vistrack("camera", endpoint, "--source", "builtin",

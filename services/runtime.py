@@ -51,9 +51,11 @@ def serve(service: str, args: argparse.Namespace,
     setup_logging(args.log_level)
     logger = logging.getLogger(f"vistrack.{service}")
     try:
+        if hasattr(args, "max_features"):  # the tracker parameter flags: check before Zenoh
+            params_from_args(args)
         conf = config_from_args(args)
-    except BusError as e:
-        print(f"vistrack {service}: error: {e}", file=sys.stderr)
+    except (BusError, ParamError) as e:
+        print(f"vistrack {service.replace('_', '-')}: error: {e}", file=sys.stderr)
         return 2
     with ZenohNode(service, conf, args.robot) as node:
         restore = install_signal_handlers(node.stop)

@@ -114,3 +114,14 @@ def test_bad_files_are_one_line_and_exit_2(tmp_path):
         assert r.returncode == 2, args
         lines = r.stderr.strip().splitlines()
         assert len(lines) == 1 and needle in lines[0], r.stderr
+
+
+@pytest.mark.parametrize("service", ["preprocessing", "motion-estimation", "auto-tuner"])
+def test_services_refuse_bad_parameter_flags_before_starting(service):
+    """A service given an out-of-range parameter says so in one line and exits 2, before it
+    opens a Zenoh session (no traceback, no half-started process)."""
+    r = vistrack(service, "--search-size", "500", "--no-multicast-scouting")
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert lines == [f"vistrack {service}: error: --search-size 500 is out of range: "
+                     "allowed 2..128"]

@@ -11,6 +11,7 @@ import argparse
 import csv
 import json
 import sys
+from collections.abc import Callable
 from typing import TextIO
 
 from ..common.params import BOUNDS, ParamError, TrackerParams
@@ -111,11 +112,18 @@ def run(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     return 0
 
 
-def main(args: argparse.Namespace) -> int:
+def offline_main(name: str, run: Callable[[argparse.Namespace], int],
+                 args: argparse.Namespace) -> int:
+    """Run an offline command: bad input is one line ``vistrack NAME: error: ...`` and exit
+    code 2; a closed pipe (``vistrack NAME ... | head``) is a normal end."""
     try:
         return run(args)
     except (SourceError, ParamError, ValueError) as e:
-        print(f"vistrack track: error: {e}", file=sys.stderr)
+        print(f"vistrack {name}: error: {e}", file=sys.stderr)
         return 2
-    except BrokenPipeError:  # `vistrack track ... | head`
+    except BrokenPipeError:
         return 0
+
+
+def main(args: argparse.Namespace) -> int:
+    return offline_main("track", run, args)

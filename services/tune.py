@@ -24,10 +24,11 @@ from typing import TextIO
 
 import numpy as np
 
-from ..common.params import FACTORS, ParamError
+from ..common.params import FACTORS
 from .auto_tuner.experiment import DEFAULT_REPEATS, METHODS, RESPONSES, bounce
 from .auto_tuner.sensitivity import DEFAULT_STEP, DEFAULT_TOLERANCE, TuneResult, new_seed, tune
 from .camera.sources import SourceError, open_files, parse_size
+from .track import offline_main
 
 UNITS = {"t1": "ms", "tf": "ms", "ex": "px", "ey": "px"}
 
@@ -219,10 +220,4 @@ def run(args: argparse.Namespace, out: TextIO = sys.stdout, err: TextIO = sys.st
 
 
 def main(args: argparse.Namespace) -> int:
-    try:
-        return run(args)
-    except (SourceError, ParamError, ValueError) as e:
-        print(f"vistrack tune: error: {e}", file=sys.stderr)
-        return 2
-    except BrokenPipeError:  # `vistrack tune ... | head`
-        return 0
+    return offline_main("tune", run, args)

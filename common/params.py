@@ -29,6 +29,8 @@ from typing import Any
 
 WEIGHT_KINDS = ("uniform", "gaussian")
 STRENGTH_KINDS = ("min_eigen", "gradient")
+#: How the SSD search of Eq. (1) finds its argmin: the same positions, different costs.
+SEARCH_KINDS = ("pruned", "exhaustive")
 
 
 class ParamError(ValueError):
@@ -77,7 +79,13 @@ class TrackerParams:
     strength : how candidates are ranked: ``"min_eigen"`` (smaller eigenvalue of the gradient
         structure tensor, default) or ``"gradient"`` (Sobel magnitude, the paper's literal
         measure); see :mod:`vistrack.common.vision.preprocess`.
-    subpixel : refine each SSD minimum with a parabola through its neighbours.
+    subpixel : refine each SSD minimum to sub-pixel precision (Gauss-Newton on Eq. (1), a
+        parabola through the minimum and its neighbours where that cannot run).
+    search : how the SSD search of Eq. (1) finds its argmin, see
+        :func:`vistrack.common.vision.ssd.track_ssd`: ``"pruned"`` (default: exact, skips the
+        displacements a bound rules out, so its cost barely grows with CORR_SIZE) or
+        ``"exhaustive"`` (the paper's plain Eq. (1): every displacement scored in full, cost
+        proportional to SEARCH_SIZE^2 x CORR_SIZE^2). Both give the same positions.
     max_residual : loss bound: a feature is lost when the RMS grey-level difference over its
         correlation window at the best match exceeds this.
     redetect_fraction : re-detect features when fewer than this fraction of ``max_features``
@@ -96,6 +104,7 @@ class TrackerParams:
     weights: str = "uniform"
     strength: str = "min_eigen"
     subpixel: bool = False
+    search: str = "pruned"
     max_residual: float = 40.0
     redetect_fraction: float = 0.5
 
@@ -112,6 +121,11 @@ class TrackerParams:
                 if value not in STRENGTH_KINDS:
                     raise ParamError(f"strength={value!r} is not allowed: use one of "
                                      f"{', '.join(STRENGTH_KINDS)}")
+                continue
+            if name == "search":
+                if value not in SEARCH_KINDS:
+                    raise ParamError(f"search={value!r} is not allowed: use one of "
+                                     f"{', '.join(SEARCH_KINDS)}")
                 continue
             if name == "subpixel":
                 if not isinstance(value, bool):

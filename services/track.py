@@ -14,7 +14,7 @@ import sys
 from collections.abc import Callable
 from typing import TextIO
 
-from ..common.params import BOUNDS, ParamError, TrackerParams
+from ..common.params import BOUNDS, SEARCH_KINDS, ParamError, TrackerParams
 from ..common.vision import Estimate, Tracker, timing, warm_up
 from .camera.sources import SourceError, open_files, parse_size
 
@@ -39,6 +39,16 @@ def add_param_flags(parser: argparse.ArgumentParser) -> None:
                             help=f"{text} ({lo:g}..{hi:g}, default {getattr(defaults, name)})")
     parser.add_argument("--subpixel", action="store_true",
                         help="refine each match to sub-pixel precision")
+    add_search_flag(parser)
+
+
+def add_search_flag(parser: argparse.ArgumentParser) -> None:
+    """``--search pruned|exhaustive``: how the SSD search of Eq. (1) finds its argmin."""
+    parser.add_argument("--search", choices=SEARCH_KINDS, default=None,
+                        help="SSD search: 'pruned' skips the displacements a bound rules out "
+                             "(default, fast), 'exhaustive' scores every displacement in full "
+                             "as the paper does (cost grows with both window sizes); both "
+                             "give the same positions")
 
 
 def params_from_args(args: argparse.Namespace, base: TrackerParams | None = None
@@ -48,6 +58,8 @@ def params_from_args(args: argparse.Namespace, base: TrackerParams | None = None
                if getattr(args, name, None) is not None}
     if getattr(args, "subpixel", False):
         changes["subpixel"] = True
+    if getattr(args, "search", None) is not None:
+        changes["search"] = args.search
     try:
         return (base or TrackerParams()).replace(**changes)
     except ParamError as e:
@@ -75,7 +87,8 @@ def _table_row(e: Estimate) -> str:
             f"{e.dx:8.2f} {e.dy:8.2f} {e.scale:7.4f} {e.t_ms:8.3f}")
 
 
-def run(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
+def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
+    out = sys.stdout if out is None else out  # the stream of the moment, not of import time
     params = params_from_args(args)
     size = parse_size(args.resize) if args.resize else None
     source = open_files(args.frames, size)
@@ -87,7 +100,7 @@ def run(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
         print(f"# {source.description}; max_features={params.max_features} "
               f"thres_percent={params.thres_percent:g} search_size={params.search_size} "
               f"corr_size={params.corr_size} ungroup_size={params.ungroup_size} "
-              f"subpixel={params.subpixel}", file=out)
+              f"subpixel={params.subpixel} search={params.search}", file=out)
         print("#   seq  NPI       xc       yc        xe        ye       dx       dy   scale"
               "     t_ms", file=out)
     elif args.format == "csv":

@@ -6,16 +6,30 @@ For each feature at c in frame t, every displacement d whose centre c + d lies i
 window (half-width SEARCH_SIZE // 2, centred at the predicted position) is scored, and the new
 position is the argmin. n = CORR_SIZE // 2.
 
-The search is exact (it returns the same argmin as scoring every displacement, ties going to the
-first in row-major order like ``cv2.minMaxLoc``) but scores only a handful of displacements:
+Two searches return the same argmin (ties going to the first in row-major order, like
+``cv2.minMaxLoc``), and so the same positions, S and losses (``track_ssd(..., search=...)``,
+``TrackerParams.search``):
 
-* multilevel successive elimination (Gao et al. 2000): a lower bound of S for every
-  displacement from the row sums of the windows, computed with vector instructions
-  (:func:`_bounds`; the row sums of frame t+1 once per frame, :func:`_row_sums`);
-* the position nearest the prediction and its 8 neighbours are scored first: the minimum is
-  among them for ~97 % of features, and the bounds then rule out all other displacements;
-* a displacement's sum is abandoned as soon as its partial sum exceeds the best so far (the terms
-  are non-negative, so it can no longer win); all arithmetic is in integers.
+``"exhaustive"``, the paper's plain Eq. (1) (:func:`_search_full`)
+    scores every displacement in full: (2s+1)^2 (2n+1)^2 terms per feature, so its cost grows
+    with both SEARCH_SIZE and CORR_SIZE and with their product, as the paper's Table 3 and
+    sensitivity analysis assume. Vectorised over the displacements, integer arithmetic.
+
+``"pruned"`` (default, :func:`_search`)
+    is exact too but scores only a handful of displacements, so its cost barely grows with
+    CORR_SIZE:
+
+    * multilevel successive elimination (Gao et al. 2000): a lower bound of S for every
+      displacement from the row sums of the windows, computed with vector instructions
+      (:func:`_bounds`; the row sums of frame t+1 once per frame, :func:`_row_sums`);
+    * the position nearest the prediction and its 8 neighbours are scored first: the minimum
+      is among them for ~97 % of features, and the bounds then rule out all other
+      displacements;
+    * a displacement's sum is abandoned as soon as its partial sum exceeds the best so far (the
+      terms are non-negative, so it can no longer win); all arithmetic is in integers.
+
+On ~100 features of a 256x256 real frame (one core): (15, 9) ~80 us pruned, ~150 us
+exhaustive; the reference windows (50, 30) ~0.6 ms pruned, ~10 ms exhaustive.
 
 Performance notes (numba compiles with LLVM's loop vectoriser only, no SLP vectoriser): the hot
 loops are long, contiguous and indexed from 0 by the loop variable (offsets go into slices: a
@@ -34,6 +48,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros
+
+from ..params import SEARCH_KINDS
 
 WEIGHT_SCALE = 64  # Gaussian weights are integers with this peak, so sums stay exact
 
@@ -63,6 +79,9 @@ VEC = 128
 LANES = 16
 # pixels summed per block in _row_sums: small enough that its buffers stay in the L1 cache
 ROW_BLOCK = 4096
+# the sums of an exhaustive search are padded to a multiple of this many: an int32 vector loop
+# takes 4 x 16 lanes a trip, and padding to VEC cost small searches up to 20 % more
+FULL_VEC = 64
 # above any S of Eq. (1) with int32 weights (65^2 px * 255^2 * 2^31 < 2^62)
 BIG = 1 << 62
 
@@ -152,12 +171,7 @@ def _bounds(rs, w, trs, wmin, uniform, lo_x, lo_y, nrow, ncol, width, n, blk,
     where it cannot overflow) sets the vector width. Returns the number of lanes computed.
     """
     m = 2 * n + 1
-    for rr in range(nrow + m - 1):
-        s0 = (lo_y - n + rr) * w + lo_x - n
-        src = rs[s0:s0 + width]
-        dst = blk[rr * width:(rr + 1) * width]
-        for k in range(width):
-            dst[k] = src[k]
+    _copy_block(rs, w, lo_x - n, lo_y - n, nrow + m - 1, width, blk)
     total = (nrow * width + VEC - 1) // VEC * VEC
     # three window rows a pass: a third of the loads and stores of bnd
     for q in range(total):
@@ -171,22 +185,42 @@ def _bounds(rs, w, trs, wmin, uniform, lo_x, lo_y, nrow, ncol, width, n, blk,
         r0 = blk[j * width:j * width + total]
         r1 = blk[j1 * width:j1 * width + total]
         r2 = blk[j2 * width:j2 * width + total]
-        if uniform and j + 2 < m:
-            for q in range(total):
-                d0 = t0 - np.int32(r0[q])
-                d1 = t1 - np.int32(r1[q])
-                d2 = t2 - np.int32(r2[q])
-                bnd[q] += d0 * d0 + d1 * d1 + d2 * d2
-        else:
-            w0 = wmin[j]
-            w1 = wmin[j1] if j + 1 < m else 0  # rows past the window count with weight 0
-            w2 = wmin[j2] if j + 2 < m else 0
-            for q in range(total):
-                d0 = t0 - np.int32(r0[q])
-                d1 = t1 - np.int32(r1[q])
-                d2 = t2 - np.int32(r2[q])
-                bnd[q] += w0 * (d0 * d0) + w1 * (d1 * d1) + w2 * (d2 * d2)
+        # rows past the window count with weight 0
+        _add_squares(bnd, total, t0, t1, t2, r0, r1, r2, wmin[j], wmin[j1] if j + 1 < m else 0,
+                     wmin[j2] if j + 2 < m else 0, uniform and j + 2 < m)
     return total
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _copy_block(src, w, x0, y0, rows, cols, dst):  # pragma: no cover - numba
+    """Copy ``rows`` rows of ``cols`` entries from ``src`` (flat, rows ``w`` long), starting at
+    (x0, y0), into ``dst`` with rows ``cols`` long: one contiguous block for the long loops."""
+    for rr in range(rows):
+        s0 = (y0 + rr) * w + x0
+        row = src[s0:s0 + cols]
+        out = dst[rr * cols:(rr + 1) * cols]
+        for k in range(cols):
+            out[k] = row[k]
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _add_squares(acc, total, t0, t1, t2, r0, r1, r2, w0, w1, w2,
+                 unit):  # pragma: no cover - numba
+    """``acc[q] += w0 (t0 - r0[q])^2 + w1 (t1 - r1[q])^2 + w2 (t2 - r2[q])^2`` for q < total:
+    three terms a pass, so that ``acc`` is loaded and stored a third as often, in one long
+    vectorised loop; with ``unit`` the weights are all 1 and the multiplications skipped."""
+    if unit:
+        for q in range(total):
+            d0 = t0 - np.int32(r0[q])
+            d1 = t1 - np.int32(r1[q])
+            d2 = t2 - np.int32(r2[q])
+            acc[q] += d0 * d0 + d1 * d1 + d2 * d2
+    else:
+        for q in range(total):
+            d0 = t0 - np.int32(r0[q])
+            d1 = t1 - np.int32(r1[q])
+            d2 = t2 - np.int32(r2[q])
+            acc[q] += w0 * (d0 * d0) + w1 * (d1 * d1) + w2 * (d2 * d2)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -287,6 +321,59 @@ def _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol, width, total, n, 
                 best_k = rank
                 lim = best * mscale
     return best, best_k
+
+
+@nb.njit(cache=True, nogil=True)
+def _search_full(prev, curr, ax, ay, lo_x, lo_y, nrow, ncol, n, wts, uniform, reg,
+                 acc):  # pragma: no cover - numba
+    """The first (row-major) minimum of S over the search, every displacement scored in full:
+    the paper's plain Eq. (1), (2s+1)^2 (2n+1)^2 terms per feature whatever the images.
+
+    Returns (S, rank) with rank = r * ncol + k for the window centred at (lo_x + k, lo_y + r),
+    as :func:`_search` does (ties go to the lower rank), so both return the same position.
+
+    The sums of all displacements are built together, one pass per three pixels (j, i) of the
+    correlation window, each pass adding ``W(i, j) (I_t(c + (i, j)) - I_t+1(q + (i, j)))^2`` to
+    the sum of every displacement q: frame t+1 around the search is first copied into ``reg``
+    with rows ``stride = ncol + 2n`` long, and ``acc`` holds displacement (r, k) at
+    ``r * stride + k``, so that a pass is one long contiguous loop over ``nrow * stride`` sums
+    (padded to a multiple of FULL_VEC), which LLVM vectorises. The 2n sums past ``ncol`` in each row
+    and the padding are junk (their frame t+1 reads run on into the next row) and are never
+    read. Three window pixels a pass (:func:`_add_squares`) cut the loads and stores of ``acc``
+    by three. ``acc``'s dtype (int32 where S cannot overflow) sets the vector width.
+    """
+    m = 2 * n + 1
+    stride = ncol + m - 1
+    _copy_block(curr.ravel(), curr.shape[1], lo_x - n, lo_y - n, nrow + m - 1, stride, reg)
+    total = (nrow * stride + FULL_VEC - 1) // FULL_VEC * FULL_VEC
+    for q in range(total):
+        acc[q] = 0
+    for j in range(m):
+        trow = prev[ay - n + j, ax - n:ax + n + 1]
+        base = j * stride
+        for i in range(0, m, 3):
+            i1 = min(i + 1, m - 1)
+            i2 = min(i + 2, m - 1)
+            t0 = np.int32(trow[i])
+            t1 = np.int32(trow[i1])
+            t2 = np.int32(trow[i2])
+            r0 = reg[base + i:base + i + total]
+            r1 = reg[base + i1:base + i1 + total]
+            r2 = reg[base + i2:base + i2 + total]
+            # pixels past the window weigh 0
+            _add_squares(acc, total, t0, t1, t2, r0, r1, r2, np.int64(wts[j, i]),
+                         np.int64(wts[j, i1]) if i + 1 < m else np.int64(0),
+                         np.int64(wts[j, i2]) if i + 2 < m else np.int64(0),
+                         uniform and i + 2 < m)
+    best = acc[0]
+    best_k = 0
+    for r in range(nrow):
+        row = acc[r * stride:r * stride + ncol]
+        for k in range(ncol):
+            if row[k] < best:  # strict: the first minimum in row-major order
+                best = row[k]
+                best_k = r * ncol + k
+    return np.int64(best), best_k
 
 
 @nb.njit(cache=True, nogil=True)
@@ -443,9 +530,11 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, acc):  # pragma
 
 
 @nb.njit(cache=True, nogil=True)
-def _track(prev, curr, anchors, centers, n, s, wts, subpixel,
+def _track(prev, curr, anchors, centers, n, s, wts, subpixel, exhaustive,
            out_pos, out_ssd, out_ok):  # pragma: no cover - numba
-    """The searches of :func:`track_ssd`, results into ``out_pos``, ``out_ssd``, ``out_ok``."""
+    """The searches of :func:`track_ssd`, results into ``out_pos``, ``out_ssd``, ``out_ok``:
+    pruned (:func:`_search`) or, with ``exhaustive``, every displacement in full
+    (:func:`_search_full`)."""
     h, w = prev.shape
     m = 2 * n + 1
     n_feat = anchors.shape[0]
@@ -476,20 +565,35 @@ def _track(prev, curr, anchors, centers, n, s, wts, subpixel,
         mscale = 0
     pf = prev.ravel()
     cf = curr.ravel()
-    rs = np.empty(h * w + w + VEC, np.int16)
-    bufs = np.empty((2, ROW_BLOCK + w + 2 * m), np.int16)
-    _row_sums(curr, n, s, centers, rs, bufs)
     side = 2 * s + 1
+    # the pruned search's buffers (empty for the exhaustive one, which needs no bounds)
+    prune = 0 if exhaustive else 1
+    rs = np.empty(prune * (h * w + w + VEC), np.int16)
+    bufs = np.empty((2, prune * (ROW_BLOCK + w + 2 * m)), np.int16)
+    if not exhaustive:
+        _row_sums(curr, n, s, centers, rs, bufs)
     width_max = (side + LANES - 1) // LANES * LANES
-    size = (side * width_max + VEC - 1) // VEC * VEC
+    size = prune * ((side * width_max + VEC - 1) // VEC * VEC)
     # int32 bounds (twice the vector width) unless they could overflow: large weighted windows
     top = m * 255
     use32 = float(wmin.sum()) * top * top < 2.0**31
     bnd32 = np.empty(size if use32 else 0, np.int32)
     bnd64 = np.empty(0 if use32 else size, np.int64)
-    blk = np.empty((side + m - 1) * width_max + VEC, np.int16)
+    blk = np.empty(prune * ((side + m - 1) * width_max + VEC), np.int16)
     lanes = np.zeros(size, np.uint8)
     mask = np.empty(size, np.uint8)
+    # the exhaustive search's buffers: frame t+1 around a search in rows of ``stride``, and
+    # the sums of every displacement, in int32 where no S can overflow (|W| * 255^2 per pixel)
+    stride = side + m - 1
+    full = (1 - prune) * ((side * stride + FULL_VEC - 1) // FULL_VEC * FULL_VEC)
+    reg = np.empty((1 - prune) * ((side + m) * stride + m) + full, np.uint8)
+    wsum = 0.0
+    for j in range(m):
+        for i in range(m):
+            wsum += abs(float(wts[j, i]))
+    full32 = wsum * 65025.0 < 2.0**31
+    acc32 = np.empty(full if full32 else 0, np.int32)
+    acc64 = np.empty(0 if full32 else full, np.int64)
     lanes_nrow = lanes_ncol = -1
     trs = np.empty(m, np.int32)
     for f in range(n_feat):
@@ -508,6 +612,16 @@ def _track(prev, curr, anchors, centers, n, s, wts, subpixel,
             continue
         ncol = hi_x - lo_x + 1
         nrow = hi_y - lo_y + 1
+        if exhaustive:
+            if full32:
+                best, best_k = _search_full(prev, curr, ax, ay, lo_x, lo_y, nrow, ncol, n, wts,
+                                            uniform, reg, acc32)
+            else:
+                best, best_k = _search_full(prev, curr, ax, ay, lo_x, lo_y, nrow, ncol, n, wts,
+                                            uniform, reg, acc64)
+            _store(out_pos, out_ssd, out_ok, f, best, best_k, lo_x, lo_y, hi_x, hi_y, ncol,
+                   cx, cy, s)
+            continue
         width = (ncol + LANES - 1) // LANES * LANES
         for j in range(m):
             trow = prev[ay - n + j, ax - n:ax + n + 1]
@@ -532,21 +646,30 @@ def _track(prev, curr, anchors, centers, n, s, wts, subpixel,
                             bnd64)
             best, best_k = _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol, width,
                                    total, n, wts, uniform, bnd64, mscale, lanes, mask)
-        qx = lo_x + best_k % ncol
-        qy = lo_y + best_k // ncol
-        # a minimum on an edge that the image cut short may be a piece of a minimum outside the
-        # image: the feature is leaving the image, so it is lost rather than pinned to the edge
-        if ((qx == lo_x and lo_x > cx - s) or (qx == hi_x and hi_x < cx + s)
-                or (qy == lo_y and lo_y > cy - s) or (qy == hi_y and hi_y < cy + s)):
-            continue
-        out_pos[f, 0] = qx
-        out_pos[f, 1] = qy
-        out_ssd[f] = best
-        out_ok[f] = True
+        _store(out_pos, out_ssd, out_ok, f, best, best_k, lo_x, lo_y, hi_x, hi_y, ncol, cx, cy,
+               s)
     if subpixel:
         # a pass of its own after all the searches: interleaved with them it ran ~1.5x slower
         # (caches and branch predictors shared with the search code)
         _subpixel(prev, curr, anchors, centers, n, s, wts, uniform, out_pos, out_ssd, out_ok)
+
+
+@nb.njit(cache=True, nogil=True)
+def _store(out_pos, out_ssd, out_ok, f, best, best_k, lo_x, lo_y, hi_x, hi_y, ncol, cx, cy,
+           s):  # pragma: no cover - numba
+    """Record feature ``f``'s minimum (S ``best`` at ``rank`` best_k of the search), unless it
+    sits on an edge of the search that the image cut short."""
+    qx = lo_x + best_k % ncol
+    qy = lo_y + best_k // ncol
+    # a minimum on an edge that the image cut short may be a piece of a minimum outside the
+    # image: the feature is leaving the image, so it is lost rather than pinned to the edge
+    if ((qx == lo_x and lo_x > cx - s) or (qx == hi_x and hi_x < cx + s)
+            or (qy == lo_y and lo_y > cy - s) or (qy == hi_y and hi_y < cy + s)):
+        return
+    out_pos[f, 0] = qx
+    out_pos[f, 1] = qy
+    out_ssd[f] = best
+    out_ok[f] = True
 
 
 @nb.njit(cache=True, nogil=True)
@@ -615,7 +738,8 @@ def _subpixel(prev, curr, anchors, centers, n, s, wts, uniform, out_pos, out_ssd
 
 def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: np.ndarray, *,
               corr_half: int, search_half: int, weights: np.ndarray,
-              subpixel: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              subpixel: bool = False, search: str = "pruned"
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Find each feature of frame t in frame t+1 by the SSD of Eq. (1).
 
     Parameters
@@ -629,6 +753,10 @@ def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: 
     subpixel : refine the integer minimum to a continuous one: Gauss-Newton on Eq. (1) with
         bilinear sampling, falling back to a parabola per axis through the minimum and its
         neighbours where Gauss-Newton cannot run (window at the border, no texture).
+    search : how the argmin is found; both give the same positions, S and ``ok``:
+        ``"pruned"`` (default) visits only the displacements the bounds cannot rule out (see
+        the module notes), ``"exhaustive"`` scores every displacement in full, the paper's
+        plain Eq. (1), whose cost is proportional to (2s+1)^2 (2n+1)^2 per feature.
 
     Returns
     -------
@@ -637,6 +765,9 @@ def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: 
     ok : (N,) bool, False where the template leaves ``prev`` or no search position fits
     ``curr``.
     """
+    if search not in SEARCH_KINDS:
+        raise ValueError(f"search={search!r} is not allowed: use one of "
+                         f"{', '.join(SEARCH_KINDS)}")
     prev = np.ascontiguousarray(prev, np.uint8)
     curr = np.ascontiguousarray(curr, np.uint8)
     if prev.shape != curr.shape or prev.ndim != 2:
@@ -652,7 +783,7 @@ def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: 
     ssd = np.empty(n_feat, np.float64)
     ok = np.empty(n_feat, np.bool_)
     _track(prev, curr, anchors, centers, int(corr_half), int(search_half), wts, bool(subpixel),
-           pos, ssd, ok)
+           search == "exhaustive", pos, ssd, ok)
     return pos, ssd, ok
 
 

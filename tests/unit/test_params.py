@@ -30,7 +30,8 @@ def test_out_of_range_names_field_value_and_range(field):
                                          ("corr_size", True), ("thres_percent", "x"),
                                          ("thres_percent", float("nan")),
                                          ("weights", "box"), ("subpixel", 1),
-                                         ("strength", "harris")])
+                                         ("strength", "harris"), ("search", "full"),
+                                         ("search", None)])
 def test_wrong_types_are_rejected(field, value):
     with pytest.raises(ParamError, match=field):
         TrackerParams(**{field: value})
@@ -49,3 +50,11 @@ def test_geometry():
     p = TrackerParams(search_size=15, corr_size=8)
     assert p.corr_half == 4 and p.search_half == 7
     assert TrackerParams(max_features=100).effective_cell_cap == 13
+
+
+def test_search_is_pruned_by_default_and_names_the_choices():
+    assert TrackerParams().search == "pruned"
+    assert TrackerParams(search="exhaustive").replace(search_size=21).search == "exhaustive"
+    with pytest.raises(ParamError) as err:
+        TrackerParams(search="brute")
+    assert str(err.value) == "search='brute' is not allowed: use one of pruned, exhaustive"

@@ -147,3 +147,148 @@ def test_weights():
     assert g[3, 3] == g.max() and g.min() >= 1 and (g == g.T).all() and (g == g[::-1]).all()
     with pytest.raises(ValueError, match="weights='box'"):
         window_weights("box", 3)
+
+
+# ------------------------------------------------------------------ the two searches of Eq. (1)
+
+
+def border_features(rng, shape, count, margin, spread):
+    """(anchors, centers): half anywhere, half within ``margin`` px of a border (at and beyond
+    the limits where the windows fit); centers within ``spread`` px of the anchors."""
+    h, w = shape
+    anywhere = np.stack([rng.integers(0, w, count // 2), rng.integers(0, h, count // 2)],
+                        axis=1)
+    near = np.stack([rng.integers(0, w, count - count // 2),
+                     rng.integers(0, h, count - count // 2)], axis=1)
+    for k, p in enumerate(near):
+        axis = k % 2
+        size = (w, h)[axis]
+        off = int(rng.integers(0, margin + 1))
+        p[axis] = off if k % 4 < 2 else size - 1 - off
+    anchors = np.concatenate([anywhere, near])
+    centers = np.clip(anchors + rng.integers(-spread, spread + 1, anchors.shape), 0,
+                      [w - 1, h - 1])
+    return anchors, centers
+
+
+def check_bruteforce(prev, curr, anchors, centers, n, s, wts, result, subpixel):
+    """Every result against Eq. (1) written out (:func:`brute_ssd`); returns how many were
+    found. A feature is found exactly when its template fits frame t, some displacement fits
+    frame t+1 and the first minimum is not on an edge of the search that the image cut short
+    (a neighbour inside the search whose window leaves the image)."""
+    pos, ssd, ok = result
+    found = 0
+    for (ax, ay), (cx, cy), p, v, good in zip(anchors, centers, pos, ssd, ok, strict=True):
+        surf = brute_ssd(prev, curr, (ax, ay), (cx, cy), n, s, wts)
+        if not np.isfinite(surf).any():
+            assert not good and np.isnan(p).all() and v == np.inf
+            continue
+        dx, dy = first_argmin(surf)
+        iy, ix = dy + s, dx + s
+        side = 2 * s + 1
+        around = [surf[y, x] for y, x in ((iy, ix - 1), (iy, ix + 1), (iy - 1, ix), (iy + 1, ix))
+                  if 0 <= y < side and 0 <= x < side]
+        cut = any(np.isinf(a) for a in around)
+        assert good == (not cut), (ax, ay, cx, cy)
+        if not good:
+            assert np.isnan(p).all() and v == np.inf
+            continue
+        assert v == surf.min()
+        if subpixel:  # refined within a pixel of the integer minimum
+            assert abs(p[0] - (cx + dx)) <= 1.0 and abs(p[1] - (cy + dy)) <= 1.0
+        else:
+            assert (p[0], p[1]) == (cx + dx, cy + dy)
+        found += 1
+    return found
+
+
+def both_searches(prev, curr, anchors, centers, n, s, wts, subpixel):
+    """The results of the pruned and the exhaustive search, asserted identical; the pruned."""
+    kw = dict(corr_half=n, search_half=s, weights=wts, subpixel=subpixel)
+    pruned = track_ssd(prev, curr, anchors, centers, search="pruned", **kw)
+    full = track_ssd(prev, curr, anchors, centers, search="exhaustive", **kw)
+    for a, b in zip(pruned, full, strict=True):
+        np.testing.assert_array_equal(a, b)  # NaN where both lost it
+    return pruned
+
+
+def weights_of(kind, n):
+    if kind == "heavy":  # sums past int32: the searches' 64-bit paths
+        return window_weights("gaussian", n) * 4000
+    return window_weights(kind, n)
+
+
+# (corr_size, search_size): odd and even widths (8 behaves like 9, 10 like 11)
+@pytest.mark.parametrize("corr_size,search_size", [(5, 10), (8, 15), (9, 11), (15, 10)])
+@pytest.mark.parametrize("kind", ["uniform", "gaussian"])
+@pytest.mark.parametrize("subpixel", [False, True])
+def test_exhaustive_and_pruned_equal_bruteforce_on_random_frames(corr_size, search_size, kind,
+                                                                 subpixel):
+    n, s = corr_size // 2, search_size // 2
+    wts = weights_of(kind, n)
+    found = 0
+    for seed in range(3):
+        a, b = random_pair(seed)
+        anchors, centers = border_features(np.random.default_rng(50 + seed), a.shape, 24,
+                                           n + s, 4)
+        result = both_searches(a, b, anchors, centers, n, s, wts, subpixel)
+        found += check_bruteforce(a, b, anchors, centers, n, s, wts, result, subpixel)
+    assert found >= 20
+
+
+@pytest.mark.parametrize("corr_size,search_size", [(9, 15), (8, 10), (15, 30), (30, 50)])
+@pytest.mark.parametrize("kind", ["uniform", "gaussian", "heavy"])
+@pytest.mark.parametrize("subpixel", [False, True])
+def test_exhaustive_and_pruned_equal_bruteforce_on_real_frames(real_image, corr_size,
+                                                               search_size, kind, subpixel):
+    n, s = corr_size // 2, search_size // 2
+    wts = weights_of(kind, n)
+    nxt = cv2.warpAffine(real_image, np.float32([[1, 0, 1.6], [0, 1, -2.3]]),
+                         real_image.shape[::-1], borderMode=cv2.BORDER_REFLECT)
+    count = 12 if s > 20 else 30  # the brute force visits (2s+1)^2 windows each
+    anchors, centers = border_features(np.random.default_rng(corr_size * search_size),
+                                       real_image.shape, count, n + s, 3)
+    result = both_searches(real_image, nxt, anchors, centers, n, s, wts, subpixel)
+    found = check_bruteforce(real_image, nxt, anchors, centers, n, s, wts, result, subpixel)
+    assert found >= count // 3
+
+
+def test_searches_agree_on_many_features_of_real_frames(real_image):
+    """Many more features than the brute force can afford: the two searches agree exactly."""
+    nxt = np.roll(real_image, (-1, 2), axis=(0, 1))
+    rng = np.random.default_rng(3)
+    for corr_size, search_size in ((5, 10), (9, 15), (15, 20), (30, 50)):
+        n, s = corr_size // 2, search_size // 2
+        anchors, centers = border_features(rng, real_image.shape, 400, n + s, 4)
+        pos, _, ok = both_searches(real_image, nxt, anchors, centers, n, s,
+                                   window_weights("uniform", n), False)
+        assert ok.sum() > 200
+
+
+def test_search_kind_is_checked():
+    a, b = random_pair(0)
+    with pytest.raises(ValueError, match="search='full' is not allowed: use one of pruned, "
+                                         "exhaustive"):
+        track_ssd(a, b, [[30, 30]], [[30, 30]], corr_half=2, search_half=3,
+                  weights=window_weights("uniform", 2), search="full")
+
+
+@pytest.mark.parametrize("search", ["pruned", "exhaustive"])
+def test_ties_go_to_the_first_displacement_in_row_major_order(search):
+    """A flat frame scores S = 0 everywhere: the top-left displacement of the search wins.
+    Flat patches of a blocky frame tie too: both searches still equal the brute force."""
+    flat = np.full((48, 48), 100, np.uint8)
+    n, s = 2, 4
+    wts = window_weights("uniform", n)
+    centers = np.array([[24, 24], [20, 30]])
+    pos, ssd, ok = track_ssd(flat, flat, centers, centers, corr_half=n, search_half=s,
+                             weights=wts, search=search)
+    assert ok.all() and (ssd == 0).all()
+    np.testing.assert_array_equal(pos, centers - s)
+    rng = np.random.default_rng(9)
+    blocks = np.kron(rng.integers(0, 2, (8, 8)) * 200, np.ones((8, 8))).astype(np.uint8)
+    shifted = np.roll(blocks, (1, 3), axis=(0, 1))
+    anchors, near = border_features(rng, blocks.shape, 40, n + s, 2)
+    result = track_ssd(blocks, shifted, anchors, near, corr_half=n, search_half=s, weights=wts,
+                       search=search)
+    assert check_bruteforce(blocks, shifted, anchors, near, n, s, wts, result, False) >= 10

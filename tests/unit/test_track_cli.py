@@ -68,6 +68,19 @@ def test_table_and_csv_formats(rubberwhale, tmp_path):
     assert strip == strip_b and len(strip) == 3
 
 
+def test_search_flag_changes_the_cost_not_the_estimates(rubberwhale):
+    files = [str(rubberwhale / f"frame{i:02d}.png") for i in (10, 11, 12, 13)]
+    runs = {}
+    for search in ("pruned", "exhaustive"):
+        out = vistrack("track", *files, "--format", "jsonl", "--search", search,
+                       "--search-size", "31", "--corr-size", "15", check=True).stdout
+        runs[search] = [{k: v for k, v in json.loads(x).items() if k != "t_ms"}
+                        for x in out.splitlines()]
+    assert runs["pruned"] == runs["exhaustive"] and len(runs["pruned"]) == 4
+    header = vistrack("track", *files[:2], "--search", "exhaustive", check=True).stdout
+    assert "search=exhaustive" in header.splitlines()[0]
+
+
 def test_video_file_and_builtin(tmp_path):
     from vistrack.common import synthetic
 
@@ -91,6 +104,7 @@ def test_video_file_and_builtin(tmp_path):
     (["--format", "xml"], "invalid choice"),
     (["--resize", "big"], "WIDTHxHEIGHT"),
     (["--max-features", "many"], "invalid int value"),
+    (["--search", "full"], "invalid choice"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, needle):
     r = vistrack("track", *args)
@@ -114,6 +128,14 @@ def test_bad_files_are_one_line_and_exit_2(tmp_path):
         assert r.returncode == 2, args
         lines = r.stderr.strip().splitlines()
         assert len(lines) == 1 and needle in lines[0], r.stderr
+
+
+@pytest.mark.parametrize("service", ["preprocessing", "motion-estimation", "auto-tuner"])
+def test_services_take_the_search_flag_and_refuse_a_bad_one(service):
+    r = vistrack(service, "--help", check=True)
+    assert "--search {pruned,exhaustive}" in r.stdout
+    r = vistrack(service, "--search", "full", "--no-multicast-scouting")
+    assert r.returncode == 2 and "invalid choice: 'full'" in r.stderr
 
 
 @pytest.mark.parametrize("service", ["preprocessing", "motion-estimation", "auto-tuner"])

@@ -95,9 +95,10 @@ def _is_bool(value: Any) -> bool:
 
 def _int(lo: int | None = 0, hi: int | None = None) -> _Check:
     def check(where: str, name: str, value: Any) -> int:
-        if _is_bool(value) or not isinstance(value, numbers.Integral):
-            raise _error(where, name, "must be an integer", value)
-        value = int(value)
+        if type(value) is not int:  # exact int (what msgpack gives) skips the abc checks
+            if _is_bool(value) or not isinstance(value, numbers.Integral):
+                raise _error(where, name, "must be an integer", value)
+            value = int(value)
         if (lo is not None and value < lo) or (hi is not None and value > hi):
             allowed = f">= {lo}" if hi is None else f"in {lo}..{hi}"
             raise _error(where, name, f"must be {allowed}", value)
@@ -107,12 +108,13 @@ def _int(lo: int | None = 0, hi: int | None = None) -> _Check:
 
 def _float(lo: float | None = None, *, positive: bool = False) -> _Check:
     def check(where: str, name: str, value: Any) -> float:
-        if _is_bool(value) or not isinstance(value, numbers.Real):
-            raise _error(where, name, "must be a number", value)
-        try:
-            value = float(value)
-        except OverflowError:
-            raise _error(where, name, "is too large for a float", value) from None
+        if type(value) is not float:  # exact float (what msgpack gives) skips the abc checks
+            if _is_bool(value) or not isinstance(value, numbers.Real):
+                raise _error(where, name, "must be a number", value)
+            try:
+                value = float(value)
+            except OverflowError:
+                raise _error(where, name, "is too large for a float", value) from None
         if not math.isfinite(value):
             raise _error(where, name, "must be finite", value)
         if positive and value <= 0:
@@ -175,20 +177,27 @@ def _features(where: str, name: str, value: Any) -> list[list]:
         value = value.tolist()
     if not isinstance(value, (list, tuple)):
         raise _error(where, name, "must be a list of [id, x, y]", value)
+    isfinite = math.isfinite
+    for item in value:  # fast path: exactly what msgpack and Estimate.features() produce
+        if type(item) is not list or len(item) != 3:
+            break
+        fid, x, y = item
+        if not (type(fid) is int and fid >= 0 and type(x) is float and type(y) is float
+                and isfinite(x) and isfinite(y)):
+            break
+    else:
+        return value if type(value) is list else list(value)
     out = []
     for i, item in enumerate(value):
         if not isinstance(item, (list, tuple)) or len(item) != 3:
             raise _error(where, name, f"item {i} must be [id, x, y]", item)
-        fid, x, y = item
-        # fast path for what msgpack produces; numpy scalars from producers take the slow one
-        if not (type(fid) is int and type(x) is float and type(y) is float
-                and math.isfinite(x) and math.isfinite(y)):
-            if _is_bool(fid) or not isinstance(fid, numbers.Integral):
-                raise _error(where, name, f"item {i}: id must be an integer", fid)
-            fid = int(fid)
-            x, y = _finite_float(x), _finite_float(y)
-            if x is None or y is None:
-                raise _error(where, name, f"item {i}: x, y must be finite numbers", item)
+        fid, x, y = item  # the slow path: numpy scalars or tuples, or an error to name
+        if _is_bool(fid) or not isinstance(fid, numbers.Integral):
+            raise _error(where, name, f"item {i}: id must be an integer", fid)
+        fid = int(fid)
+        x, y = _finite_float(x), _finite_float(y)
+        if x is None or y is None:
+            raise _error(where, name, f"item {i}: x, y must be finite numbers", item)
         if fid < 0:
             raise _error(where, name, f"item {i}: id must be >= 0", fid)
         out.append([fid, x, y])
@@ -241,8 +250,17 @@ def unpack(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
 def peek_seq(payload: bytes | bytearray | memoryview) -> int | None:
     """The ``seq`` field of a payload without decoding the rest, or None if there is none.
 
-    Cheap for our own messages, which put ``v`` and ``seq`` first: only the first bytes are
-    parsed; other key orders fall back to skipping values one by one. Never raises.
+    Cheap for our own messages, which put ``v``, ``seq`` and ``stamp_ns`` first: only the first
+    bytes are parsed; other key orders fall back to skipping values one by one. Never raises.
+    """
+    return peek_int(payload, "seq")
+
+
+def peek_int(payload: bytes | bytearray | memoryview, name: str) -> int | None:
+    """The non-negative integer field ``name`` of a payload map, without decoding the rest.
+
+    Returns None if the payload is not a map, has no such field, or it is not an int >= 0.
+    Never raises. See :func:`peek_seq`.
     """
     view = memoryview(payload)
     for chunk in (view[:64], view):
@@ -250,9 +268,9 @@ def peek_seq(payload: bytes | bytearray | memoryview) -> int | None:
         try:
             unpacker.feed(chunk)
             for _ in range(unpacker.read_map_header()):
-                if unpacker.unpack() == "seq":
-                    seq = unpacker.unpack()
-                    return seq if type(seq) is int and seq >= 0 else None
+                if unpacker.unpack() == name:
+                    value = unpacker.unpack()
+                    return value if type(value) is int and value >= 0 else None
                 unpacker.skip()
             return None
         except msgpack.OutOfData:

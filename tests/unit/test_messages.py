@@ -23,6 +23,7 @@ from vistrack.common.messages import (
     Report,
     decode_any,
     pack,
+    peek_int,
     peek_seq,
     to_jsonable,
     unpack,
@@ -511,6 +512,16 @@ def test_peek_seq():
         result = peek_seq(rng.integers(0, 256, int(rng.integers(0, 80)),
                                        dtype=np.uint8).tobytes())
         assert result is None or (isinstance(result, int) and result >= 0)
+
+
+def test_peek_int_reads_stamp_ns_of_every_message():
+    for cls in ALL:
+        msg = make(cls)
+        assert peek_int(msg.encode(), "stamp_ns") == msg.stamp_ns
+    late = msgpack.packb({"v": 1, "data": b"\x00" * 100_000, "stamp_ns": 2**62}, use_bin_type=True)
+    assert peek_int(late, "stamp_ns") == 2**62
+    assert peek_int(msgpack.packb({"v": 1, "seq": 3}), "stamp_ns") is None
+    assert peek_int(msgpack.packb({"stamp_ns": 1.5}), "stamp_ns") is None
 
 
 def test_error_is_a_value_error():

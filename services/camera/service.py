@@ -1,6 +1,7 @@
 """camera: publish 8-bit grey frames from a file camera, a device, or the built-in sequence.
 
 Reads   ``vistrack/<robot>/motion/estimate``  (pacing to the pipeline, and end of file)
+        ``vistrack/<robot>/preprocessing/frame`` (pacing with ``--fps 0 --in-flight`` > 1)
         ``vistrack/<robot>/control/cmd_vel``  (simulator only: it moves the robot)
 Writes  ``vistrack/<robot>/camera/frame``, ``vistrack/<robot>/sim/pose`` (simulator only)
 
@@ -8,14 +9,18 @@ Sources: ``file:PATH`` (video, image folder or glob), ``device:N``, ``builtin`` 
 textured scene), ``sim[:SCENARIO]`` (the robot simulator, see :mod:`.simcam`).
 
 ``--fps F`` paces frames at F per second. ``--fps 0`` (the default for files) runs "as fast as
-consumers allow": each frame is sent once the estimate of the previous one is back (or after
-``--ack-timeout`` s), so a file camera loses no frame however slow the pipeline. A file camera
-without ``--loop`` exits 0 after its last frame has been processed.
+consumers allow" and loses no frame however slow the pipeline: frame n is sent once
+pre-processing has published frame n-1 (it is free again, so nothing overwrites a frame waiting
+at its latest-only input) and motion-estimation has published frame n - ``--in-flight`` (default
+2: pre-processing works on frame n while motion-estimation tracks frame n-1), or after
+``--ack-timeout`` s. A file camera without ``--loop`` exits 0 after its last frame has been
+processed.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import itertools
 import logging
 import sys
@@ -25,7 +30,7 @@ from collections.abc import Iterable, Iterator
 import numpy as np
 
 from ...common.bus import Node
-from ...common.messages import Estimate, Frame, MessageError
+from ...common.messages import Frame, peek_int
 from ..runtime import add_service_args, ready, serve
 from .simcam import make_simulator, run_sim
 from .sources import BUILTIN, SourceError, open_device, open_files, parse_size
@@ -47,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loop", action="store_true", help="replay a file source forever")
     parser.add_argument("--size", metavar="WxH", default=None,
                         help="resize frames (default: native size)")
+    parser.add_argument("--in-flight", type=int, default=2, metavar="N",
+                        help="with --fps 0, most frames sent and not yet estimated, 1..16 "
+                             "(default 2: pre-processing and tracking overlap)")
     parser.add_argument("--ack-timeout", type=float, default=1.0, metavar="S",
                         help="with --fps 0, longest wait for a frame's estimate (default 1 s)")
     sim = parser.add_argument_group("simulator source")
@@ -87,18 +95,35 @@ def open_source(spec: str, size: tuple[int, int] | None, loop: bool) -> Iterator
     return itertools.chain.from_iterable(itertools.repeat(cached))
 
 
-def _wait_for_estimate(node: Node, stamp_ns: int, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while not node.stop.is_set():
-        item = node.recv(timeout=max(0.0, deadline - time.monotonic()))
-        if item is None:
-            return False
-        try:
-            if Estimate.decode(item[1]).stamp_ns >= stamp_ns:
-                return True
-        except MessageError as e:
-            node.status.reject(e)
-    return False
+class _Acks:
+    """How far the pipeline has got: the newest ``stamp_ns`` seen on each watched key.
+
+    A pre-processed frame or an estimate of frame k acknowledges every frame up to k (a frame
+    overwritten at a latest-only input never gets one of its own). Only ``stamp_ns`` is read
+    (:func:`peek_int`); a payload without one is counted as rejected.
+    """
+
+    def __init__(self, node: Node, keys: tuple[str, ...]) -> None:
+        self.node = node
+        self.newest = dict.fromkeys(keys, -1)
+        for key in keys:
+            node.subscribe(key, latest=True)
+
+    def wait(self, need: dict[str, int], timeout: float) -> bool:
+        """Consume acknowledgements until ``newest[key] >= stamp`` for every ``key: stamp`` of
+        ``need``; False after ``timeout`` s (or on stop). ``timeout`` 0 only consumes what is
+        pending."""
+        deadline = time.monotonic() + timeout
+        while any(self.newest[k] < v for k, v in need.items()) and not self.node.stop.is_set():
+            item = self.node.recv(timeout=max(0.0, deadline - time.monotonic()))
+            if item is None:
+                return False
+            stamp = peek_int(item[1], "stamp_ns")
+            if stamp is None:
+                self.node.status.reject(f"{item[0]}: no valid stamp_ns")
+            else:
+                self.newest[item[0]] = max(self.newest[item[0]], stamp)
+        return all(self.newest[k] >= v for k, v in need.items())
 
 
 def loop(node: Node, args: argparse.Namespace) -> int:
@@ -106,52 +131,68 @@ def loop(node: Node, args: argparse.Namespace) -> int:
     if args.source.split(":", 1)[0] == "sim":
         return run_sim(node, args, make_simulator(args, size))
     frames = open_source(args.source, size, args.loop)
-    paced = args.fps > 0
-    # estimates tell when a frame has been through the pipeline: pacing with --fps 0, and the
-    # end of a file either way
-    node.subscribe(node.keys.estimate, latest=True)
+    # estimates tell when a frame has been through the pipeline (pacing with --fps 0, and the
+    # end of a file either way); pre-processed frames when pre-processing is free again
+    window = 1 if args.fps > 0 else args.in_flight
+    acks = _Acks(node, (node.keys.estimate,) if window == 1
+                 else (node.keys.estimate, node.keys.pre_frame))
     ready(node)
-    period = 1.0 / args.fps if paced else 0.0
-    next_t = time.perf_counter()
     try:
-        return _run(node, args, frames, paced, period, next_t)
+        return _run(node, args, frames, acks, window)
     except SourceError as e:
         log.error("%s", e)
         return 2
 
 
-def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], paced: bool,
-         period: float, next_t: float) -> int:
+def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], acks: _Acks,
+         window: int) -> int:
+    """Publish every frame: at ``--fps``, or (``--fps 0``) frame n once pre-processing has
+    published frame n-1 and motion-estimation frame n-window."""
+    keys = node.keys
+    period = 1.0 / args.fps if args.fps > 0 else 0.0
+    next_t = time.perf_counter()
+    sent: collections.deque[int] = collections.deque(maxlen=window)  # stamps of the last sent
     stamp = 0
     for seq, image in enumerate(frames):
         if node.stop.is_set():
             return 0
-        if paced:
+        if period:
             next_t += period
             delay = next_t - time.perf_counter()
             if delay > 0:
                 node.stop.wait(delay)
             else:
                 next_t = time.perf_counter()  # late: do not burst to catch up
+        elif sent:
+            need = {keys.estimate: sent[0]} if len(sent) == window else {}
+            if window > 1:
+                need[keys.pre_frame] = sent[-1]
+            if not acks.wait(need, args.ack_timeout):
+                extra = node.status.extra
+                extra["ack_timeouts"] = extra.get("ack_timeouts", 0) + 1
+                sent.clear()  # lost downstream (a service restarted): go on
         stamp = time.time_ns()
-        node.publish(node.keys.frame, Frame.from_image(image, seq=seq, stamp_ns=stamp).encode(),
+        node.publish(keys.frame, Frame.from_image(image, seq=seq, stamp_ns=stamp).encode(),
                      reliable=False)
         node.status.extra["frames"] = seq + 1
-        if paced:
-            while node.recv(timeout=0.0) is not None:
-                pass  # estimates only matter at the end: consume them, they are no drops
-        elif not _wait_for_estimate(node, stamp, args.ack_timeout):
-            node.status.extra["ack_timeouts"] = node.status.extra.get("ack_timeouts", 0) + 1
+        sent.append(stamp)
+        if period:
+            acks.wait({}, 0.0)  # acknowledgements only matter at the end: consume them
     if stamp and not node.stop.is_set():
-        _wait_for_estimate(node, stamp, max(args.ack_timeout, 1.0))
+        acks.wait({keys.estimate: stamp}, max(args.ack_timeout, 1.0))
     log.info("end of %s after %d frames", args.source, node.status.extra.get("frames", 0))
     return 0
 
 
 def main(args: argparse.Namespace) -> int:
     try:
-        if args.fps < 0 or args.fps > 1000:
+        if not 0 <= args.fps <= 1000:  # also false for NaN
             raise SourceError(f"--fps {args.fps:g} is out of range: allowed 0..1000")
+        if not 1 <= args.in_flight <= 16:
+            raise SourceError(f"--in-flight {args.in_flight} is out of range: allowed 1..16")
+        if not 0 < args.ack_timeout <= 3600:
+            raise SourceError(f"--ack-timeout {args.ack_timeout:g} is out of range: "
+                              "allowed 0 < S <= 3600")
         if args.size:
             parse_size(args.size)
         if args.source.split(":", 1)[0] == "sim":

@@ -9,7 +9,9 @@ windows (50, 30) stay within ``--tolerance`` px. Exactly the code the auto-tuner
 The buffer is the first ``--max-frames`` frames (default 30, the service's buffer);
 ``--bounce`` fills it from a shorter sequence by playing it back and forth. Frames keep their
 size unless ``--resize`` is given (the paper used 256x256; the time grows with the area).
-``--format json`` prints the ``tuner/report`` fields.
+``--format json`` prints the ``tuner/report`` fields. ``--search exhaustive`` times the paper's
+plain SSD search (every displacement scored in full) instead of the default pruned one, so the
+times and the optimum are the paper's; the motion, and so ex and ey, are the same either way.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from ..common.params import FACTORS
 from .auto_tuner.experiment import DEFAULT_REPEATS, METHODS, RESPONSES, bounce
 from .auto_tuner.sensitivity import DEFAULT_STEP, DEFAULT_TOLERANCE, TuneResult, new_seed, tune
 from .camera.sources import SourceError, open_files, parse_size
-from .track import offline_main
+from .track import add_search_flag, offline_main, params_from_args
 
 UNITS = {"t1": "ms", "tf": "ms", "ex": "px", "ey": "px"}
 
@@ -59,6 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"(default {DEFAULT_REPEATS})")
     parser.add_argument("--step", type=int, default=DEFAULT_STEP, metavar="PX",
                         help=f"sweep grid step (default {DEFAULT_STEP}: every distinct window)")
+    add_search_flag(parser)
     parser.add_argument("--method", choices=METHODS, default="lenth",
                         help="significance test: Lenth's PSE, or ANOVA with the inactive "
                              "effects pooled (default lenth)")
@@ -119,7 +122,8 @@ def print_text(result: TuneResult, what: str, out: TextIO) -> None:
     d = result.run.design
     w, h = result.size
     print(f"# vistrack tune: {what}; {result.frames} frames {w}x{h}; seed {rep['seed']}; "
-          f"timing passes {result.repeats}; {result.seconds['total']:.1f} s", file=out)
+          f"{result.sweep.base.search} SSD search; timing passes {result.repeats}; "
+          f"{result.seconds['total']:.1f} s", file=out)
 
     gens = ", ".join(f"{k} = {v}" for k, v in d.generators.items())
     print(f"\n## Design: 2^({d.k}-{len(d.generators)}) fractional factorial, {gens}, "
@@ -178,7 +182,10 @@ def print_text(result: TuneResult, what: str, out: TextIO) -> None:
     print(f"  {opt.reason}", file=out)
 
 
-def run(args: argparse.Namespace, out: TextIO = sys.stdout, err: TextIO = sys.stderr) -> int:
+def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None = None) -> int:
+    # the streams of the moment (not of import time: pytest swaps them per test)
+    out = sys.stdout if out is None else out
+    err = sys.stderr if err is None else err
     if not np.isfinite(args.tolerance) or args.tolerance < 0:
         raise ValueError(f"--tolerance {args.tolerance} must be a number >= 0 (px)")
     if args.repeats < 1 or args.repeats > 20:
@@ -190,6 +197,7 @@ def run(args: argparse.Namespace, out: TextIO = sys.stdout, err: TextIO = sys.st
             Path(args.out).mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise ValueError(f"--out {args.out}: {e.strerror or e}") from None
+    base = params_from_args(args)  # the search every timed run uses
     frames, what = read_buffer(args)
     seed = new_seed() if args.seed is None else args.seed
     show = err.isatty() if args.progress is None else args.progress
@@ -197,7 +205,8 @@ def run(args: argparse.Namespace, out: TextIO = sys.stdout, err: TextIO = sys.st
     start = time.perf_counter()
     try:
         result = tune(frames, seed, tolerance=args.tolerance, step=args.step,
-                      repeats=args.repeats, method=args.method, progress=progress)
+                      repeats=args.repeats, method=args.method, base=base,
+                      progress=progress)
     finally:
         if progress is not None:
             progress.close()

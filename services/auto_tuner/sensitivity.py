@@ -28,11 +28,14 @@ and the sweep on one buffer and returns a :class:`TuneResult` whose :meth:`TuneR
 is the ``tuner/report`` message (CONTRACT, docs/ARCHITECTURE.md).
 
 Budget (``python -m vistrack.services.auto_tuner.bench``): on a 30-frame 256x256 buffer, one
-core, the defaults (3 timing passes, step 2) took 3.7 to 4.4 s a cycle with the machine's other
-core busy and 5.5 s under a load of 5 on its 2 cores: design 1.5 to 1.9 s (16 settings x 3
-passes and 8 untimed references at (50, 30)), sweep 2.2 to 3.4 s (36 settings and the reference
-x 3 passes). Step 1 costs the same (equal geometries are cached); 2 passes save about a
-quarter but leave the times noisier; a step of 4 (a 4 x 4 grid) cuts the sweep to under half.
+core, the defaults (3 timing passes, step 2), with the machine's other core busy, a cycle took
+1.3 to 1.7 s with the pruned search: design 0.5 to 0.65 s (16 settings x 3 passes and 8
+untimed references at (50, 30)), sweep 0.7 to 1.0 s (36 settings and the reference x 3
+passes). With the exhaustive search (the paper's) it took 3.1 to 3.5 s: design 0.6 to 0.8 s
+(its references stay untimed and pruned), sweep 2.5 to 2.7 s, half of which is the timed
+reference (50, 30), ~15 ms a frame x 30 frames x 3 passes, measured for the speed-up. Step 1
+costs the same (equal geometries are cached); 2 passes save about a quarter but leave the
+times noisier; a step of 4 (a 4 x 4 grid) cuts the sweep to under half.
 
 Pure numpy (through :mod:`.experiment`): no Zenoh, no msgpack.
 """
@@ -86,9 +89,9 @@ class Sweep:
     fixed : the values of the three factors held fixed (Table 4 by default).
     t1, tf : (S, C) float64 ms; ex, ey : (S, C) float64 px; npi : (S, C) mean NPI.
         Indexed ``[i, j]`` for ``search_sizes[i]``, ``corr_sizes[j]``.
-    reference : the reference windows (50, 30) with the fixed values, timed in the same passes
-        as the grid, so ``reference.tf / tf`` is a fair speed-up.
-    base : the TrackerParams every point was built from.
+    reference : the reference windows (50, 30) with the fixed values and the base's search,
+        timed in the same passes as the grid, so ``reference.tf / tf`` is a fair speed-up.
+    base : the TrackerParams every point was built from (its ``search`` timed them all).
     """
 
     search_sizes: tuple[int, ...]
@@ -285,7 +288,7 @@ class TuneResult:
         (response -> {"99": [...], "95": [...]}), ``optimum`` (the five parameters), ``sweep``
         (grid and responses). Extra fields (readers ignore what they do not know): ``method``,
         ``levels``, ``aliases``, ``seed``, ``tolerance``, ``reason``, ``frames``, ``size``,
-        ``repeats``, ``seconds``.
+        ``repeats``, ``seconds``, ``search`` (the SSD search the times were measured with).
         """
         run = self.run
         names = run.responses[0].as_dict().keys()
@@ -308,6 +311,7 @@ class TuneResult:
             "size": list(self.size),
             "repeats": self.repeats,
             "seconds": dict(self.seconds),
+            "search": self.sweep.base.search,
         }
 
 
@@ -335,7 +339,9 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
     method : ``"lenth"`` or ``"anova"``, see :func:`.experiment.analyse`.
     design : default :func:`.design.paper_design` (2^(5-1), Table 2 levels).
     ground_truth : optional :class:`GroundTruth`; adds ``gt_*`` responses.
-    base : non-factor parameters (weights, subpixel, ...), default TrackerParams().
+    base : non-factor parameters (weights, subpixel, search, ...), default TrackerParams().
+        Its ``search`` is the SSD search every timed run uses (``"exhaustive"``: the paper's);
+        the untimed reference runs use the pruned one, which gives the same motion.
     progress : optional ``progress(phase, done, total)``, phase ``"design"`` then ``"sweep"``.
     """
     if not np.isfinite(tolerance) or tolerance < 0:

@@ -33,6 +33,7 @@ def test_json_prints_the_report_fields():
     assert rep["order"] == paper_design().randomized_order(7).tolist()
     assert rep["seed"] == 7 and rep["frames"] == 6 and rep["size"] == [96, 96]
     assert rep["tolerance"] == 0.5 and rep["method"] == "lenth"
+    assert rep["search"] == "pruned"  # the default SSD search timed the runs
     assert res.stderr == ""  # no progress line when stderr is not a terminal
 
 
@@ -73,6 +74,23 @@ def test_bad_input_is_one_line_and_exit_2(args, message, capsys):
     assert code == 2
     assert err.startswith("vistrack tune: error: ") and message in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_search_exhaustive_times_the_papers_search(capsys):
+    """Same buffer and seed with either search: the same motion (ex, ey, NPI) and design, but
+    the times come from the search asked for (the report says which)."""
+    reports = {}
+    for search in ("pruned", "exhaustive"):
+        assert _main(["tune", "builtin", *FAST, "--seed", "4", "--format", "json",
+                      "--search", search]) == 0
+        reports[search] = json.loads(capsys.readouterr().out)
+    a, b = reports["pruned"], reports["exhaustive"]
+    assert a["search"] == "pruned" and b["search"] == "exhaustive"
+    for name in ("ex", "ey", "npi_mean"):
+        assert a["responses"][name] == b["responses"][name], name
+    assert a["order"] == b["order"]
+    assert _main(["tune", "--search", "full"]) == 2
+    assert "invalid choice: 'full'" in capsys.readouterr().err
 
 
 def test_out_that_is_a_file_is_an_error_before_any_work(tmp_path, capsys):

@@ -21,5 +21,5 @@ def test_bench_tracker(capsys):
     with capsys.disabled():
         print("\n" + buf.getvalue())
     for key in ("ssd_15_9", "matchtemplate_15_9", "lk_level0", "lk_level2", "ssd_50_30",
-                "whole_frame"):
+                "ssd_15_9_exhaustive", "ssd_50_30_exhaustive", "whole_frame"):
         assert math.isfinite(fig[key]) and fig[key] > 0

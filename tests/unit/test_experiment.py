@@ -451,10 +451,10 @@ def test_real_frames_exhaustive_search_cost_grows_with_both_windows_and_their_pr
         rubberwhale_searches):
     """The paper's reason to sweep SEARCH_SIZE and CORR_SIZE: Eq. (1) scored in full costs
     (2s+1)^2 (2n+1)^2 per feature, so at Table 4's fixed features tf grows with both windows
-    and with their product (the interaction d > 0; on a quiet machine t > 5 for it, > 10 for
-    the main effects). The pruned search, timed on the same buffer, barely has that
-    interaction (measured 10 to 40 times smaller): its bounds rule out most displacements
-    before their (2n+1)^2 terms are summed."""
+    and with their product (the interaction d > 0; measured t > 5 for it, > 10 for the main
+    effects, with the other core busy). The pruned search, timed on the same buffer, barely
+    has that interaction (measured 11 to 60 times smaller): its bounds rule out most
+    displacements before their (2n+1)^2 terms are summed."""
     coef, t = sweep_fit(rubberwhale_searches["exhaustive"])
     assert all(coef[1:] > 0) and all(t[1:] > 3), (coef, t)
     pruned, _ = sweep_fit(rubberwhale_searches["pruned"])

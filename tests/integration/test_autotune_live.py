@@ -11,6 +11,8 @@ checked by its report and trigger, since its optimum may equal what is in force.
 from __future__ import annotations
 
 import itertools
+import os
+import re
 import subprocess
 import sys
 import threading
@@ -88,7 +90,10 @@ def test_tunes_retunes_on_a_scene_change_and_never_stalls_the_estimates(frames_d
         reports = TimedCollector(session, f"{ROOT}/tuner/report")
         params = Collector(session, f"{ROOT}/tuner/params")
         # the buffer must not fill before the worker can take it: the cut would be in it
-        procs["auto-tuner"].wait_for("tuning worker ready", timeout=60)
+        line = procs["auto-tuner"].wait_for("tuning worker ready", timeout=60)
+        worker_pid = int(re.search(r"pid (\d+)", line).group(1))
+        if hasattr(os, "SCHED_IDLE"):  # the experiments only get CPU the pipeline leaves
+            assert os.sched_getscheduler(worker_pid) == os.SCHED_IDLE, line
         t0 = time.monotonic()
         # looping, so frames keep coming however long the cycles take on a loaded machine
         cam = service("camera", ep, "--source", f"file:{frames_dir}", "--fps", str(FPS),

@@ -7,11 +7,14 @@ A service module defines ``loop(node, args)`` (the dora-style loop over ``node.r
 from __future__ import annotations
 
 import argparse
+import gc
 import logging
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
+
+import cv2
 
 from ..common.bus import (
     BusError,
@@ -50,6 +53,10 @@ def serve(service: str, args: argparse.Namespace,
     close the session (always: a callback subscriber left open hangs the interpreter)."""
     setup_logging(args.log_level)
     logger = logging.getLogger(f"vistrack.{service}")
+    # One thread of OpenCV per service: the pipeline's parallelism is its processes. OpenCV's
+    # own pool splits a 256x256 filter across threads that then spin waiting for work, which
+    # cost pre-processing 240 us of CPU a frame on 2 cores shared by six processes.
+    cv2.setNumThreads(1)
     try:
         if hasattr(args, "max_features"):  # the tracker parameter flags: check before Zenoh
             params_from_args(args)
@@ -84,7 +91,15 @@ def decode_or_reject(cls: type[M], payload: bytes, node: Node, logger: logging.L
 
 def ready(node: Node) -> None:
     """Log the line launchers and tests wait for: call it once the loop has warmed up and
-    subscribed to its inputs, so nothing published after the line is missed."""
+    subscribed to its inputs, so nothing published after the line is missed.
+
+    Everything allocated so far (numba's and llvmlite's compiler objects among it: hundreds of
+    thousands) is frozen out of the garbage collector: a full collection walked all of it,
+    a pause of milliseconds in the hot path, and the collector ran often because every
+    estimate allocates a hundred small lists.
+    """
+    gc.collect()
+    gc.freeze()
     logging.getLogger(f"vistrack.{node.service}").info(
         "ready (robot %s, liveliness token %s)", node.robot, node.keys.alive(node.service))
 

@@ -87,9 +87,11 @@ def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
                 log.info("scenario %s finished after %d frames", sim.scenario.name, seq)
                 return 0
             sim.reset()
+        frame = sim.render()
+        # the capture time is when the frame exists, as for a file or device camera: the
+        # render (about 2 ms of warpPerspective) is the simulator's cost, not the pipeline's;
         # lockstep stamps run on the simulated clock, so they are reproducible
         stamp = t0_ns + round(seq * dt * 1e9) if args.lockstep else time.time_ns()
-        frame = sim.render()
         node.publish(node.keys.frame, Frame.from_image(frame, seq=seq, stamp_ns=stamp).encode(),
                      reliable=False)
         p = sim.pose()

@@ -1,0 +1,36 @@
+"""Pipeline benchmark (deselected by default: ``pytest -m bench``; or ``vistrack bench
+pipeline``).
+
+Prints the table: a raw Zenoh round trip, the raw Zenoh skeleton of the five processes (paced
+and unpaced), the stages in one process, and our five processes at 30 fps and unpaced. Asserts
+only that every figure was measured and that the ratios are those of the figures, never a time.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+
+import pytest
+
+from vistrack.services.bench_pipeline import bench_pipeline
+
+pytestmark = pytest.mark.bench
+
+
+def test_bench_pipeline(capsys):
+    buf = io.StringIO()
+    fig = bench_pipeline(out=buf, seconds=3.0)
+    with capsys.disabled():
+        print("\n" + buf.getvalue())
+    for key in ("raw_one_way_ms", "in_process_fps", "skeleton_paced_hop_ms",
+                "skeleton_free_rate_hz", "skeleton_free_cpu_us_per_frame", "paced_lat_p50_ms",
+                "paced_lat_p99_ms", "paced_proc_p50_ms", "free_rate_hz",
+                "free_cpu_us_per_frame"):
+        assert math.isfinite(fig[key]) and fig[key] > 0, key
+    assert fig["paced_lat_p99_ms"] >= fig["paced_lat_p50_ms"]
+    assert fig["hop_ratio_skeleton"] == pytest.approx(fig["paced_hop_ms"]
+                                                      / fig["skeleton_paced_hop_ms"])
+    assert fig["throughput_ratio_in_process"] == pytest.approx(fig["free_rate_hz"]
+                                                               / fig["in_process_fps"])
+    assert fig["free_dropped"] >= 0

@@ -29,10 +29,10 @@ is the ``tuner/report`` message (CONTRACT, docs/ARCHITECTURE.md).
 
 Budget (``python -m vistrack.services.auto_tuner.bench``): on a 30-frame 256x256 buffer, one
 core, the defaults (3 timing passes, step 2), with the machine's other core busy, a cycle took
-1.3 to 1.7 s with the pruned search: design 0.5 to 0.65 s (16 settings x 3 passes and 8
+1.2 to 1.75 s with the pruned search: design 0.5 to 0.65 s (16 settings x 3 passes and 8
 untimed references at (50, 30)), sweep 0.7 to 1.0 s (36 settings and the reference x 3
-passes). With the exhaustive search (the paper's) it took 3.1 to 3.5 s: design 0.6 to 0.8 s
-(its references stay untimed and pruned), sweep 2.5 to 2.7 s, half of which is the timed
+passes). With the exhaustive search (the paper's) it took 3.0 to 3.6 s: design 0.6 to 0.8 s
+(its references stay untimed and pruned), sweep 2.4 to 2.8 s, half of which is the timed
 reference (50, 30), ~15 ms a frame x 30 frames x 3 passes, measured for the speed-up. Step 1
 costs the same (equal geometries are cached); 2 passes save about a quarter but leave the
 times noisier; a step of 4 (a 4 x 4 grid) cuts the sweep to under half.

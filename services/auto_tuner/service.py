@@ -31,9 +31,6 @@ import collections
 import itertools
 import logging
 import math
-import multiprocessing
-import os
-import signal
 import sys
 import time
 from typing import Any
@@ -45,13 +42,13 @@ from ...common.messages import Estimate, Frame, MessageError, Params, Report, pa
 from ..runtime import ParamsInForce, add_service_args, ready, serve
 from . import triggers as tr
 from .sensitivity import DEFAULT_STEP, DEFAULT_TOLERANCE
+from .worker import Worker
 
 log = logging.getLogger("vistrack.auto_tuner")
 
 # The parameters in force are published again this often (same params_id), so a service that
 # starts or reconnects after the last change still learns them.
 REMIND_S = 1.0
-WORKER_NICE = 10  # the experiments yield the CPU to the pipeline's processes
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -90,88 +87,6 @@ def check_flags(args: argparse.Namespace) -> tr.TriggerConfig:
         raise ValueError(f"--scale-band {lo:g} {hi:g} is out of range: allowed 0 < LO < 1 < HI")
     return tr.TriggerConfig(buffer=args.buffer, min_interval_s=args.min_interval,
                             scale_band=(lo, hi), scene_threshold=args.scene_threshold)
-
-
-def _idle_priority() -> str:
-    """Run this process only on CPU time nothing else wants: SCHED_IDLE where Linux allows it
-    (no privilege needed), else ``nice +10``. Returns what was set, for the log.
-
-    With nice alone the worker still took its fair share of a core whenever the pipeline's
-    processes woke (nice 10 weighs 10 % of nice 0, not zero), and the capture-to-command p99
-    of the closed loop went from 6 to 89 ms during a tuning on this 2-core machine. A
-    SCHED_IDLE process is preempted at once by any normal one.
-    """
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-        return "SCHED_IDLE"
-    except (AttributeError, OSError):  # not Linux, or a sandbox that forbids it
-        os.nice(WORKER_NICE)
-        return f"nice +{WORKER_NICE}"
-
-
-def _work(conn: Any) -> None:
-    """The worker process: idle priority, one OpenCV thread, compiled kernels, then one cycle
-    per job."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the group: the service stops us
-    priority = _idle_priority()
-    import cv2
-
-    cv2.setNumThreads(1)  # "bounded CPU": one core at most, and only when it is idle
-    from ...common.vision import warm_up
-    from .sensitivity import tune
-
-    warm_up()  # numba's compile or cache load, before the first job rather than inside it
-    try:
-        conn.send(("ready", priority))
-        while True:
-            job = conn.recv()
-            try:
-                result = tune(job["frames"], None, tolerance=job["tolerance"], step=job["step"],
-                              base=job["base"])
-                conn.send(("ok", result.to_report(), dict(result.optimum.params)))
-            except Exception as e:  # noqa: BLE001 - a failed cycle is reported, the worker lives
-                conn.send(("error", f"{type(e).__name__}: {e}"))
-    except (EOFError, BrokenPipeError):
-        return  # the service is gone or closed the pipe
-
-
-class Worker:
-    """The tuning cycles in a separate process at lower priority.
-
-    A process, not a thread: a cycle is seconds of Python and numba work holding the GIL, which
-    would stall the service loop. Started with 'spawn': a fork of a process with a live Zenoh
-    session would copy the locks of its threads in whatever state they were.
-    """
-
-    def __init__(self) -> None:
-        ctx = multiprocessing.get_context("spawn")
-        self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_work, args=(child,), name="auto-tuner-worker",
-                                 daemon=True)
-        self._proc.start()
-        child.close()
-        self.ready = False  # a job sent before would block the loop on a full pipe
-
-    def submit(self, job: dict[str, Any]) -> None:
-        self._conn.send(job)
-
-    def poll(self) -> tuple | None:
-        """The worker's next result, or None; raises EOFError when the worker died."""
-        while self._conn.poll():
-            msg = self._conn.recv()
-            if msg[0] != "ready":
-                return msg
-            self.ready = True
-            log.info("tuning worker ready (pid %d, %s)", self._proc.pid, msg[1])
-        return None
-
-    def close(self) -> None:
-        self._conn.close()
-        self._proc.terminate()  # a cycle in progress is of no use any more
-        self._proc.join(2.0)
-        if self._proc.is_alive():
-            self._proc.kill()
-            self._proc.join()
 
 
 class AutoTuner:

@@ -1,0 +1,71 @@
+"""`vistrack demo`, the README's main job, end to end: the five services and the simulator in
+closed loop on an embedded router, its summary and its files."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import cv2
+import pytest
+
+pytestmark = pytest.mark.integration
+
+CONTRACT = ("frames", "fps", "latency_ms_p50", "latency_ms_p99", "rms_center_error_px",
+            "rms_scale_error", "retunes")
+
+
+def demo(tmp_path, free_port, *flags: str) -> tuple[subprocess.CompletedProcess, dict]:
+    out = tmp_path / "out"
+    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "demo", "--out",
+                          str(out), "-l", f"tcp/127.0.0.1:{free_port}", *flags],
+                         capture_output=True, text=True, timeout=180)
+    assert run.returncode == 0, run.stderr[-3000:]
+    return run, json.loads((out / "summary.json").read_text())
+
+
+def test_demo_runs_the_closed_loop_and_writes_its_summary_and_files(tmp_path, free_port):
+    run, summary = demo(tmp_path, free_port, "--duration", "6", "--scenario", "sideways")
+    out = tmp_path / "out"
+    for key in CONTRACT:
+        assert key in summary and math.isfinite(summary[key]), key
+    # 30 fps for 6 s, every frame through the five processes
+    assert 150 <= summary["frames"] <= 185
+    assert 25 <= summary["fps"] <= 31
+    assert 0 < summary["latency_ms_p50"] <= summary["latency_ms_p99"]
+    assert summary["latency_ms_p50"] <= summary["cmd_latency_ms_p50"]
+    assert summary["commands"] >= summary["frames"] - 5 and summary["stale_commands"] == 0
+    assert summary["npi_mean"] > 20
+    # the printed summary is the file's
+    printed = json.loads(run.stdout[run.stdout.index("{"):run.stdout.rindex("}") + 1])
+    assert {k: summary[k] for k in printed} == printed
+    strip = cv2.imread(str(out / "strip.png"))
+    assert strip is not None and strip.shape[0] == 256 and strip.shape[1] >= 256 * 4
+    for name in ("errors.png", "trajectories.png", "commands.png", "services.log"):
+        assert (out / name).stat().st_size > 0, name
+    log = (out / "services.log").read_text()
+    for service in ("camera", "preprocessing", "motion-estimation", "auto-tuner",
+                    "fuzzy-controller"):
+        assert f"[{service}]" in log, service
+
+
+def test_demo_with_the_robot_still_does_not_follow_the_target(tmp_path, free_port):
+    _, still = demo(tmp_path, free_port, "--duration", "4", "--scenario", "sideways",
+                    "--no-control")
+    # no command moves the robot, so the target's sideways motion stays in the image
+    assert still["rms_center_error_px"] > 5 and still["frames"] > 90
+
+
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--duration", "0"], "--duration 0 is out of range: allowed 1..3600 s"),
+    (["--scenario", "nowhere"], "nowhere"),
+])
+def test_demo_bad_flags_are_one_line_and_exit_2(flags, message, tmp_path):
+    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "demo", "--out",
+                          str(tmp_path / "out"), *flags], capture_output=True, text=True,
+                         timeout=60)
+    assert run.returncode == 2
+    assert run.stderr.startswith("vistrack demo: error: ") and message in run.stderr
+    assert run.stderr.count("\n") == 1, run.stderr

@@ -118,12 +118,21 @@ class _Acks:
             item = self.node.recv(timeout=max(0.0, deadline - time.monotonic()))
             if item is None:
                 return False
-            stamp = peek_int(item[1], "stamp_ns")
-            if stamp is None:
-                self.node.status.reject(f"{item[0]}: no valid stamp_ns")
-            else:
-                self.newest[item[0]] = max(self.newest[item[0]], stamp)
+            self._note(*item)
         return all(self.newest[k] >= v for k, v in need.items())
+
+    def drain(self) -> None:
+        """Consume what is pending (paced: acknowledgements only matter at the end, and an
+        unread one would count as dropped when the next overwrites it)."""
+        while (item := self.node.recv(timeout=0.0)) is not None:
+            self._note(*item)
+
+    def _note(self, key: str, payload: bytes) -> None:
+        stamp = peek_int(payload, "stamp_ns")
+        if stamp is None:
+            self.node.status.reject(f"{key}: no valid stamp_ns")
+        else:
+            self.newest[key] = max(self.newest[key], stamp)
 
 
 def loop(node: Node, args: argparse.Namespace) -> int:
@@ -177,7 +186,7 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
         node.status.extra["frames"] = seq + 1
         sent.append(stamp)
         if period:
-            acks.wait({}, 0.0)  # acknowledgements only matter at the end: consume them
+            acks.drain()
     if stamp and not node.stop.is_set():
         acks.wait({keys.estimate: stamp}, max(args.ack_timeout, 1.0))
     log.info("end of %s after %d frames", args.source, node.status.extra.get("frames", 0))

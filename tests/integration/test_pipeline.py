@@ -67,3 +67,23 @@ def test_camera_bad_flags_are_one_line_and_exit_2(flags, message):
                          capture_output=True, text=True, timeout=60)
     assert run.returncode == 2
     assert run.stderr == f"vistrack camera: error: {message}\n"
+
+
+def test_a_paced_camera_reads_every_estimate_and_counts_no_drop(rubberwhale, free_port):
+    """At --fps the estimates only mark the end of a file, but the camera still consumes each
+    one: an unread estimate overwritten by the next would count as a dropped input."""
+    with router(free_port) as ep, zenoh.open(zenoh_config(ep)) as session, \
+            services(ep, names=("preprocessing", "motion-estimation")):
+        est = Collector(session, "vistrack/robot/motion/estimate")
+        cam = service("camera", ep, "--source", f"file:{rubberwhale}", "--fps", "20", "--loop")
+        try:
+            cam.wait_for("ready", timeout=60)
+            est.wait(lambda items: len(items) >= 30, timeout=60)
+            replies = [r.ok for r in session.get("vistrack/robot/camera/status", timeout=2.0)
+                       if r.ok is not None]
+        finally:
+            cam.stop()
+    assert len(replies) == 1
+    status = msgpack.unpackb(replies[0].payload.to_bytes())
+    assert status["received"] >= 30  # the estimates reached the camera
+    assert status["dropped"] == 0 and status["rejected"] == 0, status

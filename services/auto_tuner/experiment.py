@@ -65,7 +65,12 @@ end-point error of the features tracked across that pair (``gt_epe``).
 
 Design and analysis: :func:`run_design` runs every design point in randomised order and
 :func:`analyse` turns the responses into effects and the Table 3 significance map, by Lenth's
-method (default) or ANOVA with the inactive effects pooled into error.
+method (default) or ANOVA with the inactive effects pooled into error. That is the paper's
+unreplicated design, and what the auto-tuner runs. :func:`run_replicated` times every point
+several times, independently and in a completely randomised order, and
+:func:`analyse_replicated` tests the effects against that pure error instead: on real frames
+tf has more active effects than Lenth's method can cope with (the feature count multiplies
+every window cost), and only the replicated design finds the paper's Table 3 row for tf.
 
 Pure numpy/scipy (through :mod:`.anova`): no Zenoh, no msgpack.
 """
@@ -287,28 +292,90 @@ class Experiment:
             rng = np.random.default_rng(shuffle_seed)
             todo = [todo[0]] + [[t[j] for j in rng.permutation(len(t))] for t in todo[1:]]
         missing_refs = [k for k in refs if k not in self._runs and k not in keys]
-        total = sum(len(t) for t in todo) + len(missing_refs)
-        done = 0
+        tick = _ticker(progress, phase, sum(len(t) for t in todo) + len(missing_refs))
         for r in range(self.repeats):
             for i in todo[r]:
                 self._run(points[i], keys[i], timed_passes=r + 1)
-                done += 1
-                if progress is not None:
-                    progress(phase, done, total)
-        for k in missing_refs:  # untimed: only their motion is used
-            self._run(refs[k], k)
-            done += 1
-            if progress is not None:
-                progress(phase, done, total)
+                tick()
+        self._run_references(refs, missing_refs, tick)
         return [self.responses(p) for p in points]
+
+    def measure_replicated(self, points: Sequence[TrackerParams], replicates: int, *,
+                           seed: int | None = None, progress: Progress | None = None,
+                           phase: str = "runs") -> tuple[list[list[Responses]], np.ndarray]:
+        """Time every point ``replicates`` times, each time independently, in random order.
+
+        A *unit* is one replicate of one point. Every unit is timed afresh in each of the
+        ``repeats`` passes: the buffer pre-processed and tracked anew with its own timer
+        readings, never taken from the cache :meth:`measure` keeps (only the untimed,
+        deterministic outputs are shared: the pre-processed frames, the motion, the reference
+        runs). A unit's times are the per-frame minima over its own passes, as in
+        :meth:`measure`.
+
+        Parameters
+        ----------
+        points : the settings to run.
+        replicates : independent timings of every point, >= 2.
+        seed : seed of the orders (``numpy.random.default_rng(seed)``); None: fresh ones.
+        progress : optional ``progress(phase, done, total)`` after every tracker run.
+
+        Returns
+        -------
+        responses : ``responses[i][r]``, the :class:`Responses` of replicate ``r`` of point
+            ``i``.
+        order : (points * replicates, 2) int64, the units of the first pass as
+            ``(point, replicate)`` in the order they ran.
+
+        Notes
+        -----
+        Complete randomisation, pass by pass: every pass runs *all* points x replicates in
+        a fresh random order. A slow spell of the machine then lands on units at random
+        rather than on one replicate (which would make it a block and inflate the pure error)
+        or on one point's replicates (which would fake an effect). The passes of a unit are
+        a whole pass apart for the reason given in the module notes: a run lasts ~30 ms,
+        shorter than the spells its per-frame minimum is meant to see past.
+        """
+        if (isinstance(replicates, bool) or not isinstance(replicates, int | np.integer)
+                or replicates < 2):
+            raise ValueError(f"replicates={replicates!r} must be an int >= 2 (1 is the "
+                             "unreplicated design: use measure())")
+        points = list(points)
+        keys = [_key(p) for p in points]
+        refs = {_key(self._motion_reference(p)): self._motion_reference(p) for p in points}
+        missing_refs = [k for k in refs if k not in self._runs and k not in keys]
+        units = [(i, r) for i in range(len(points)) for r in range(replicates)]
+        rng = np.random.default_rng(seed)
+        passes = [rng.permutation(len(units)) for _ in range(self.repeats)]
+        pre: list[list[list[np.ndarray]]] = [[[] for _ in range(replicates)] for _ in points]
+        track: list[list[list[np.ndarray]]] = [[[] for _ in range(replicates)] for _ in points]
+        tick = _ticker(progress, phase, len(units) * self.repeats + len(missing_refs))
+        for order in passes:
+            for u in order:
+                i, r = units[u]
+                t_pre, t_track = self._time_afresh(points[i], keys[i])
+                pre[i][r].append(t_pre)
+                track[i][r].append(t_track)
+                tick()
+        self._run_references(refs, missing_refs, tick)
+        responses = [[self._score(p, track[i][r], pre[i][r]) for r in range(replicates)]
+                     for i, p in enumerate(points)]
+        first = np.array([units[u] for u in passes[0]], np.int64).reshape(-1, 2)
+        first.setflags(write=False)
+        return responses, first
 
     def responses(self, params: TrackerParams) -> Responses:
         """The responses of a point already run (see :meth:`measure`)."""
+        return self._score(params, self._runs[_key(params)].times,
+                           self._pre_times[_pre_key(params)])
+
+    def _score(self, params: TrackerParams, track_times: Sequence[np.ndarray],
+               pre_times: Sequence[np.ndarray]) -> Responses:
+        """Responses of a point from its timing passes, each (n_frames,) ms, and the motion
+        of its (deterministic) run and reference, which must have been run."""
         run = self._runs[_key(params)]
         ref = self._runs[_key(self._motion_reference(params))]
         # each part at its least-disturbed pass (see the module notes)
-        times = (np.min(np.stack(run.times), axis=0)
-                 + np.min(np.stack(self._pre_times[_pre_key(params)]), axis=0))
+        times = np.min(np.stack(track_times), axis=0) + np.min(np.stack(pre_times), axis=0)
         gt_ex = gt_ey = None
         if self.ground_truth is not None and self.ground_truth.motion is not None:
             truth = self.ground_truth.motion
@@ -320,6 +387,12 @@ class Experiment:
             ey=float(np.mean(np.abs(run.dy[1:] - ref.dy[1:]))),
             npi_mean=float(np.mean(run.npi)), gt_ex=gt_ex, gt_ey=gt_ey, gt_epe=run.epe)
 
+    def _run_references(self, refs: Mapping[tuple, TrackerParams], missing: Sequence[tuple],
+                        tick: Callable[[], None]) -> None:
+        for k in missing:  # untimed: only their motion is used
+            self._run(refs[k], k)
+            tick()
+
     def _run(self, params: TrackerParams, key: tuple, timed_passes: int = 0) -> None:
         frames = self._preprocessed(params, timed_passes)
         tracker = Tracker(params)
@@ -327,12 +400,32 @@ class Experiment:
         times = np.array([e.t_ms for e in estimates])
         run = self._runs.get(key)
         if run is None:
-            run = _Run(dx=np.array([e.dx for e in estimates]),
-                       dy=np.array([e.dy for e in estimates]),
-                       npi=np.array([e.npi for e in estimates], np.float64),
-                       epe=self._epe(estimates))
-            self._runs[key] = run
+            run = self._runs[key] = self._new_run(estimates)
         run.times.append(times)
+
+    def _new_run(self, estimates: list) -> _Run:
+        return _Run(dx=np.array([e.dx for e in estimates]),
+                    dy=np.array([e.dy for e in estimates]),
+                    npi=np.array([e.npi for e in estimates], np.float64),
+                    epe=self._epe(estimates))
+
+    def _time_afresh(self, params: TrackerParams, key: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """One independent timing of a point, bypassing the timing caches: the buffer
+        pre-processed and tracked anew. Returns its (n_frames,) pre-processing and tracking
+        times, ms. The outputs are deterministic, so the first ones are kept for the motion
+        and for the untimed runs that share them; the times are never stored."""
+        t_pre = np.empty(len(self.frames))
+        frames = []
+        for i, frame in enumerate(self.frames):
+            t0 = time.perf_counter()
+            frames.append(preprocess(frame, params))
+            t_pre[i] = (time.perf_counter() - t0) * 1e3
+        self._pre.setdefault(_pre_key(params), frames)
+        tracker = Tracker(params)
+        estimates = [tracker.update(pre) for pre in frames]
+        if key not in self._runs:
+            self._runs[key] = self._new_run(estimates)
+        return t_pre, np.array([e.t_ms for e in estimates])
 
     def _preprocessed(self, params: TrackerParams, timed_passes: int) -> list[Preprocessed]:
         """The buffer pre-processed for ``params``, timed at least ``timed_passes`` times."""
@@ -361,6 +454,19 @@ class Experiment:
         before = np.array([start[int(b.ids[k])] for k in both])
         err = groundtruth.endpoint_errors(before, b.points[both], gt.flow)
         return float(np.median(err)) if err.size else None
+
+
+def _ticker(progress: Progress | None, phase: str, total: int) -> Callable[[], None]:
+    """A function to call after every tracker run: reports ``progress(phase, done, total)``."""
+    done = 0
+
+    def tick() -> None:
+        nonlocal done
+        done += 1
+        if progress is not None:
+            progress(phase, done, total)
+
+    return tick
 
 
 def _key(params: TrackerParams) -> tuple:
@@ -492,6 +598,108 @@ def run_design(frames: Sequence[np.ndarray] | Experiment, design: Design, seed: 
     return DesignRun(design, tuple(points), order, tuple(responses), seed)
 
 
+@dataclass(frozen=True, eq=False)
+class ReplicatedRun:
+    """A replicated design run on a buffer: every replicate's responses, in standard order.
+
+    Attributes
+    ----------
+    design : the design (with factor names and levels).
+    params : TrackerParams of every run, standard order.
+    order : (runs * replicates, 2) int64, the first timing pass's units as ``(run,
+        replicate)`` in the order they ran, runs in standard order (later passes reshuffle
+        all the units again, see :func:`run_replicated`).
+    replicates : ``replicates[i][r]``, the Responses of replicate ``r`` of run ``i``.
+    seed : the seed of the orders.
+    """
+
+    design: Design
+    params: tuple[TrackerParams, ...]
+    order: np.ndarray
+    replicates: tuple[tuple[Responses, ...], ...]
+    seed: int | None
+
+    @property
+    def n_replicates(self) -> int:
+        """Replicates of every run."""
+        return len(self.replicates[0])
+
+    def response(self, name: str) -> np.ndarray:
+        """(runs, replicates) float64 values of one response (``"t1"``, ``"tf"``, ...)."""
+        values = [[r.as_dict().get(name) for r in reps] for reps in self.replicates]
+        if any(v is None for row in values for v in row):
+            raise KeyError(f"no response {name!r}; have "
+                           f"{sorted(self.replicates[0][0].as_dict())}")
+        return np.array(values, np.float64)
+
+    def means(self) -> DesignRun:
+        """The per-run means as a :class:`DesignRun`; its ``order`` is the order in which
+        the runs first ran (their first replicate in the first pass)."""
+        mean = tuple(_mean_responses(reps) for reps in self.replicates)
+        first = dict.fromkeys(int(i) for i in self.order[:, 0])  # insertion order
+        order = np.array(list(first), np.int64)
+        order.setflags(write=False)
+        return DesignRun(self.design, self.params, order, mean, self.seed)
+
+
+def _mean_responses(reps: Sequence[Responses]) -> Responses:
+    """The mean of each response over replicates (a ``gt_*`` score only if all have it)."""
+
+    def mean(name: str) -> float:
+        return float(np.mean([getattr(r, name) for r in reps]))
+
+    def mean_or_none(name: str) -> float | None:
+        return None if any(getattr(r, name) is None for r in reps) else mean(name)
+
+    return Responses(t1=mean("t1"), tf=mean("tf"), ex=mean("ex"), ey=mean("ey"),
+                     npi_mean=mean("npi_mean"), gt_ex=mean_or_none("gt_ex"),
+                     gt_ey=mean_or_none("gt_ey"), gt_epe=mean_or_none("gt_epe"))
+
+
+def run_replicated(frames: Sequence[np.ndarray] | Experiment, design: Design, seed: int | None,
+                   replicates: int, *, base: TrackerParams | None = None,
+                   progress: Progress | None = None, repeats: int | None = None,
+                   ground_truth: GroundTruth | None = None) -> ReplicatedRun:
+    """Run every point of ``design`` ``replicates`` times, each an independent timing.
+
+    The unreplicated design (:func:`run_design`) leaves no degree of freedom for error, so
+    its effects are tested against the smaller effects (Lenth's method), which fails when
+    most effects are real (tf's, on real frames: the feature count, set by factors 1, 2, 5,
+    multiplies every window cost). Replicates measure the timing noise itself, *pure error*,
+    and :func:`analyse_replicated` tests every effect against it.
+
+    Parameters
+    ----------
+    frames : grey frames or an :class:`Experiment` (its cached runs are shared for the
+        untimed outputs only; every unit is timed afresh, see
+        :meth:`Experiment.measure_replicated`).
+    design : a two-level design with names and levels, e.g. ``paper_design()``.
+    seed : seed of the orders: the same seed gives the same orders.
+    replicates : independent timings of every run, >= 2.
+    base : values of the parameters the design does not vary (default TrackerParams()).
+    progress : optional ``progress("design", done, total)``.
+    repeats, ground_truth : see :func:`run_point`.
+
+    Returns
+    -------
+    ReplicatedRun with responses of shape (runs, replicates).
+
+    Notes
+    -----
+    The order is completely randomised over all runs x replicates: every timing pass runs
+    all the units in a fresh random order (units are not grouped by replicate). Each unit
+    pre-processes the buffer itself, so even runs that share a pre-processing (THRES_PERCENT
+    and CORR_SIZE's border margin) do not share its timing noise: within a replicate as
+    between replicates, every observation is its own.
+    """
+    exp = _experiment(frames, repeats, ground_truth)
+    points = design_params(design, base)
+    responses, order = exp.measure_replicated(points, replicates, seed=seed,
+                                              progress=progress, phase="design")
+    return ReplicatedRun(design, tuple(points), order,
+                         tuple(tuple(reps) for reps in responses), seed)
+
+
 # ------------------------------------------------------------------------------ analysis
 
 
@@ -501,7 +709,8 @@ class Analysis:
 
     Attributes
     ----------
-    method : ``"lenth"`` or ``"anova"``.
+    method : ``"lenth"`` or ``"anova"`` (:func:`analyse`), or ``"pure-error"``
+        (:func:`analyse_replicated`).
     effects : response -> {term: effect}, terms in the paper's numbers (``"34"``), response
         units (ms or px) per change from the low to the high level.
     significant : response -> ``{"99": [...], "95": [...]}`` (Table 3: at 99 %, and at 95 %
@@ -532,26 +741,59 @@ def analyse(run: DesignRun, *, method: str = "lenth",
     """
     if method not in METHODS:
         raise ValueError(f"method={method!r} is not allowed: use one of {', '.join(METHODS)}")
+
+    def test(y: np.ndarray, eff: dict[str, float]) -> Any:
+        if method == "lenth":
+            return anova_mod.lenth(eff)
+        return anova_mod.anova(run.design, y, pool="auto")
+
+    return _analysis(method, run.design, {name: run.response(name) for name in responses}, test)
+
+
+def _analysis(method: str, design: Design, ys: Mapping[str, np.ndarray],
+              test: Callable[[np.ndarray, dict[str, float]], Any]) -> Analysis:
+    """Effects of every response ``ys[name]`` ((runs,) or (runs, reps)) and the Table 3 map
+    of ``test(y, effects)``, a LenthResult or AnovaTable."""
     effects: dict[str, dict[str, float]] = {}
     results: dict[str, Any] = {}
-    for name in responses:
-        y = run.response(name)
-        eff = anova_mod.effects(run.design, y)
+    for name, y in ys.items():
+        eff = anova_mod.effects(design, y)
         effects[name] = {number_label(t): float(v) for t, v in eff.items()}
         try:
-            if method == "lenth":
-                results[name] = anova_mod.lenth(eff)
-            else:
-                results[name] = anova_mod.anova(run.design, y, pool="auto")
+            results[name] = test(y, eff)
         except ValueError:
             # half or more of the effects are exactly 0 (e.g. every run equals its reference):
             # there is no scale to test against, so nothing is declared significant
             results[name] = None
     tested = {k: v for k, v in results.items() if v is not None}
     significant = anova_mod.table3(tested)
-    for name in responses:
+    for name in ys:
         significant.setdefault(name, {"99": [], "95": []})
-    return Analysis(method, effects, {k: significant[k] for k in responses}, results)
+    return Analysis(method, effects, {k: significant[k] for k in ys}, results)
+
+
+def analyse_replicated(run: ReplicatedRun, *,
+                       responses: Sequence[str] = RESPONSES) -> Analysis:
+    """Effects and the Table 3 map of a replicated design run, tested against pure error.
+
+    Every response that varies between the replicates of a run (the times t1, tf) is
+    analysed by ANOVA with y of shape (runs, replicates): each term's F test is against the
+    within-run variation, on runs x (replicates - 1) degrees of freedom, with no pooling and
+    no assumption about which effects are small. A response identical in every replicate
+    (ex, ey, NPI: the tracker is deterministic, only its timing varies) has no pure error;
+    its replicates add nothing, so it is analysed as the unreplicated design is, by Lenth's
+    method on the run means (``results[name]`` is then a LenthResult, not an AnovaTable).
+
+    Effects are those of the run means. ``method`` is ``"pure-error"``.
+    """
+
+    def test(y: np.ndarray, eff: dict[str, float]) -> Any:
+        if np.all(y == y[:, :1]):
+            return anova_mod.lenth(eff)
+        return anova_mod.anova(run.design, y)
+
+    return _analysis("pure-error", run.design,
+                     {name: run.response(name) for name in responses}, test)
 
 
 def aliases(design: Design) -> dict[str, list[str]]:

@@ -12,6 +12,10 @@ size unless ``--resize`` is given (the paper used 256x256; the time grows with t
 ``--format json`` prints the ``tuner/report`` fields. ``--search exhaustive`` times the paper's
 plain SSD search (every displacement scored in full) instead of the default pruned one, so the
 times and the optimum are the paper's; the motion, and so ex and ey, are the same either way.
+``--replicates N`` (N >= 2) times every design run N times, independently and in a completely
+randomised order, and tests the effects against that pure error instead of the paper's
+unreplicated analysis (Lenth's method, or ``--method anova``); the responses shown are the
+per-run means.
 """
 
 from __future__ import annotations
@@ -62,9 +66,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--step", type=int, default=DEFAULT_STEP, metavar="PX",
                         help=f"sweep grid step (default {DEFAULT_STEP}: every distinct window)")
     add_search_flag(parser)
-    parser.add_argument("--method", choices=METHODS, default="lenth",
-                        help="significance test: Lenth's PSE, or ANOVA with the inactive "
-                             "effects pooled (default lenth)")
+    parser.add_argument("--method", choices=METHODS, default=None,
+                        help="significance test of the unreplicated design: Lenth's PSE, or "
+                             "ANOVA with the inactive effects pooled (default lenth)")
+    parser.add_argument("--replicates", type=int, default=1, metavar="N",
+                        help="independent timings of every design run, in a completely "
+                             "randomised order; N >= 2 tests the effects against that pure "
+                             "error (default 1: the paper's unreplicated design)")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress line on stderr (default: when stderr is a terminal)")
 
@@ -121,13 +129,17 @@ def print_text(result: TuneResult, what: str, out: TextIO) -> None:
     rep = result.to_report()
     d = result.run.design
     w, h = result.size
+    replicates = rep["replicates"]
     print(f"# vistrack tune: {what}; {result.frames} frames {w}x{h}; seed {rep['seed']}; "
           f"{result.sweep.base.search} SSD search; timing passes {result.repeats}; "
-          f"{result.seconds['total']:.1f} s", file=out)
+          + (f"{replicates} replicates of every design run; " if replicates > 1 else "")
+          + f"{result.seconds['total']:.1f} s", file=out)
 
     gens = ", ".join(f"{k} = {v}" for k, v in d.generators.items())
+    order = ("in run order" if replicates == 1 else
+             f"in the order the runs first ran; responses: mean of {replicates} replicates")
     print(f"\n## Design: 2^({d.k}-{len(d.generators)}) fractional factorial, {gens}, "
-          f"I = {' = '.join(d.defining_relation)}, resolution {d.resolution}; in run order",
+          f"I = {' = '.join(d.defining_relation)}, resolution {d.resolution}; {order}",
           file=out)
     print("factors: " + ", ".join(f"{i + 1} {n}" for i, n in enumerate(rep["factors"])),
           file=out)
@@ -144,7 +156,8 @@ def print_text(result: TuneResult, what: str, out: TextIO) -> None:
     chains = rep["aliases"]
     print("  " + "   ".join(f"{t} = {' = '.join(c)}" for t, c in chains.items()), file=out)
 
-    print(f"\n## Effects (high minus low level; {rep['method']} significance: "
+    method = rep["method"] if replicates == 1 else "pure error"
+    print(f"\n## Effects (high minus low level; {method} significance: "
           "** 99 %, * 95 %)", file=out)
     print("term" + "".join(f"{n + ' ' + UNITS[n]:>13s}" for n in RESPONSES), file=out)
     for term in rep["effects"]["tf"]:
@@ -155,11 +168,15 @@ def print_text(result: TuneResult, what: str, out: TextIO) -> None:
             cells.append(f"{rep['effects'][n][term]:+11.3f}{mark:2s}")
         print(f"{term:>4s}" + "".join(cells), file=out)
 
-    print(f"\n## Table 3: significant terms ({rep['method']})", file=out)
-    print(f"{'output':8s}{'99 %':24s}{'95 %'}", file=out)
+    print(f"\n## Table 3: significant terms ({method})", file=out)
+    at99 = {n: ", ".join(rep["significant"][n]["99"]) or "-" for n in RESPONSES}
+    width = max(24, 2 + max(map(len, at99.values())))  # a replicated tf can list all 15
+    print(f"{'output':8s}{'99 %':{width}s}{'95 %'}", file=out)
     for n in RESPONSES:
-        sig = rep["significant"][n]
-        print(f"{n:8s}{', '.join(sig['99']) or '-':24s}{', '.join(sig['95']) or '-'}", file=out)
+        print(f"{n:8s}{at99[n]:{width}s}{', '.join(rep['significant'][n]['95']) or '-'}",
+              file=out)
+    if replicates > 1:
+        _print_pure_error(rep, out)
 
     sw = result.sweep
     print(f"\n## Sensitivity sweep: {', '.join(f'{k}={v:g}' for k, v in sw.fixed.items())}; "
@@ -182,6 +199,20 @@ def print_text(result: TuneResult, what: str, out: TextIO) -> None:
     print(f"  {opt.reason}", file=out)
 
 
+def _print_pure_error(rep: dict, out: TextIO) -> None:
+    """Which responses were tested against pure error, on how many degrees of freedom."""
+    errors = rep["pure_error"]
+    for n in RESPONSES:
+        if n in errors:
+            e = errors[n]
+            print(f"{n}: ANOVA against pure error, {rep['replicates']} independent timings of "
+                  f"each of the {len(rep['design'])} runs: {e['df']} df, within-run standard "
+                  f"deviation {e['ms'] ** 0.5:.4f} {UNITS[n]}", file=out)
+        else:
+            print(f"{n}: identical in every replicate (no timing in it), so no pure error: "
+                  "Lenth's method on the run means", file=out)
+
+
 def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None = None) -> int:
     # the streams of the moment (not of import time: pytest swaps them per test)
     out = sys.stdout if out is None else out
@@ -190,6 +221,12 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
         raise ValueError(f"--tolerance {args.tolerance} must be a number >= 0 (px)")
     if args.repeats < 1 or args.repeats > 20:
         raise ValueError(f"--repeats {args.repeats} is out of range: allowed 1..20")
+    if args.replicates < 1 or args.replicates > 20:
+        raise ValueError(f"--replicates {args.replicates} is out of range: allowed 1..20")
+    if args.replicates > 1 and args.method is not None:
+        raise ValueError(f"--method {args.method} tests the unreplicated design; with "
+                         f"--replicates {args.replicates} the effects are tested against pure "
+                         "error")
     if args.step < 1:
         raise ValueError(f"--step {args.step} must be >= 1")
     if args.out:
@@ -205,8 +242,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
     start = time.perf_counter()
     try:
         result = tune(frames, seed, tolerance=args.tolerance, step=args.step,
-                      repeats=args.repeats, method=args.method, base=base,
-                      progress=progress)
+                      repeats=args.repeats, method=args.method or "lenth", base=base,
+                      progress=progress, replicates=args.replicates)
     finally:
         if progress is not None:
             progress.close()

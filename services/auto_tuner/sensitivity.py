@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 
 from vistrack.common.params import FACTORS, TrackerParams
+from vistrack.services.auto_tuner import anova as anova_mod
 from vistrack.services.auto_tuner.design import Design, paper_design
 from vistrack.services.auto_tuner.experiment import (
     METHODS,
@@ -60,11 +61,14 @@ from vistrack.services.auto_tuner.experiment import (
     Experiment,
     GroundTruth,
     Progress,
+    ReplicatedRun,
     Responses,
     aliases,
     analyse,
+    analyse_replicated,
     levels_of,
     run_design,
+    run_replicated,
 )
 
 #: The swept ranges of Section 6.1, px (inclusive).
@@ -261,7 +265,8 @@ class TuneResult:
     """One tuning cycle: the design run, its analysis, the sweep and the optimum.
 
     ``seconds`` is the wall time of the cycle's parts: ``design`` (with its reference runs and
-    the analysis), ``sweep`` and ``total``.
+    the analysis), ``sweep`` and ``total``. ``replicated`` is the replicated design run when
+    the design was replicated (``run`` then holds its per-run means), else None.
     """
 
     run: DesignRun
@@ -273,6 +278,7 @@ class TuneResult:
     size: tuple[int, int]
     repeats: int
     seconds: dict[str, float]
+    replicated: ReplicatedRun | None = None
 
     @property
     def params(self) -> TrackerParams:
@@ -288,10 +294,29 @@ class TuneResult:
         (response -> {"99": [...], "95": [...]}), ``optimum`` (the five parameters), ``sweep``
         (grid and responses). Extra fields (readers ignore what they do not know): ``method``,
         ``levels``, ``aliases``, ``seed``, ``tolerance``, ``reason``, ``frames``, ``size``,
-        ``repeats``, ``seconds``, ``search`` (the SSD search the times were measured with).
+        ``repeats``, ``seconds``, ``search`` (the SSD search the times were measured with),
+        ``replicates`` (independent timings of every design run, 1: unreplicated).
+
+        A replicated design (``replicates`` >= 2, ``method`` ``"pure-error"``) keeps the
+        contract's shapes: ``responses`` are the per-run means and ``order`` the order in which
+        the runs first ran. It adds ``replicate_responses`` (name -> runs x replicates lists,
+        standard order), ``replicate_order`` (the first timing pass's ``[run, replicate]``
+        units in the order they ran) and ``pure_error`` (response -> ``{"df", "ms"}``, the
+        error every effect of that response was tested against; responses identical in every
+        replicate, such as ex and ey, have none and were tested by Lenth's method).
         """
         run = self.run
         names = run.responses[0].as_dict().keys()
+        extra: dict[str, Any] = {}
+        if self.replicated is not None:
+            rep = self.replicated
+            extra = {
+                "replicate_responses": {n: rep.response(n).tolist() for n in names},
+                "replicate_order": rep.order.tolist(),
+                "pure_error": {n: {"df": int(t.error.df), "ms": float(t.error.ms)}
+                               for n, t in self.analysis.results.items()
+                               if isinstance(t, anova_mod.AnovaTable)},
+            }
         return {
             "design": run.design.matrix.tolist(),
             "factors": list(run.design.names or run.design.factors),
@@ -312,6 +337,8 @@ class TuneResult:
             "repeats": self.repeats,
             "seconds": dict(self.seconds),
             "search": self.sweep.base.search,
+            "replicates": 1 if self.replicated is None else self.replicated.n_replicates,
+            **extra,
         }
 
 
@@ -324,7 +351,7 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
          tolerance: float = DEFAULT_TOLERANCE, step: int = DEFAULT_STEP,
          repeats: int | None = None, method: str = "lenth", design: Design | None = None,
          ground_truth: GroundTruth | None = None, base: TrackerParams | None = None,
-         progress: Progress | None = None) -> TuneResult:
+         progress: Progress | None = None, replicates: int = 1) -> TuneResult:
     """The whole tuning cycle on a buffer of frames: design, analysis, sweep, optimum.
 
     Parameters
@@ -336,29 +363,46 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
     tolerance : px, see :func:`optimum`.
     step : sweep grid step, see :func:`sweep`.
     repeats : timing passes (default :data:`.experiment.DEFAULT_REPEATS`).
-    method : ``"lenth"`` or ``"anova"``, see :func:`.experiment.analyse`.
+    method : ``"lenth"`` or ``"anova"``, see :func:`.experiment.analyse`: the test of the
+        unreplicated design. With ``replicates`` >= 2 it must be left at its default, as the
+        effects are then tested against pure error (:func:`.experiment.analyse_replicated`).
     design : default :func:`.design.paper_design` (2^(5-1), Table 2 levels).
     ground_truth : optional :class:`GroundTruth`; adds ``gt_*`` responses.
     base : non-factor parameters (weights, subpixel, search, ...), default TrackerParams().
         Its ``search`` is the SSD search every timed run uses (``"exhaustive"``: the paper's);
         the untimed reference runs use the pruned one, which gives the same motion.
     progress : optional ``progress(phase, done, total)``, phase ``"design"`` then ``"sweep"``.
+    replicates : independent timings of every design run (default 1: the paper's unreplicated
+        design, what the auto-tuner service runs). With N >= 2 the design is run N times in a
+        completely randomised order (:func:`.experiment.run_replicated`), costing N times the
+        design's time, and analysed against pure error; the sweep is not replicated.
     """
     if not np.isfinite(tolerance) or tolerance < 0:
         raise ValueError(f"tolerance={tolerance!r} must be a number >= 0 (px)")
     if method not in METHODS:
         raise ValueError(f"method={method!r} is not allowed: use one of {', '.join(METHODS)}")
+    if isinstance(replicates, bool) or not isinstance(replicates, int) or replicates < 1:
+        raise ValueError(f"replicates={replicates!r} must be an int >= 1")
+    if replicates > 1 and method != "lenth":
+        raise ValueError(f"method={method!r} tests the unreplicated design; with "
+                         f"replicates={replicates} the effects are tested against pure error")
     exp = Experiment(frames, ground_truth=ground_truth,
                      **({} if repeats is None else {"repeats": repeats}))
     start = time.perf_counter()  # after warm_up: a service compiles once, not every cycle
     seed = new_seed() if seed is None else int(seed)
-    run = run_design(exp, design if design is not None else paper_design(), seed,
-                     progress=progress, base=base)
-    analysis = analyse(run, method=method)
+    design = design if design is not None else paper_design()
+    replicated = None
+    if replicates == 1:
+        run = run_design(exp, design, seed, progress=progress, base=base)
+        analysis = analyse(run, method=method)
+    else:
+        replicated = run_replicated(exp, design, seed, replicates, progress=progress, base=base)
+        run = replicated.means()
+        analysis = analyse_replicated(replicated)
     mid = time.perf_counter()
     result = sweep(exp, step=step, base=base, seed=seed, progress=progress)
     best = optimum(result, tolerance)
     end = time.perf_counter()
     seconds = {"design": mid - start, "sweep": end - mid, "total": end - start}
     return TuneResult(run, analysis, result, best, float(tolerance), len(exp.frames), exp.size,
-                      exp.repeats, seconds)
+                      exp.repeats, seconds, replicated)

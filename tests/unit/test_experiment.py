@@ -409,9 +409,29 @@ def test_replicated_analysis_tests_effects_against_pure_error():
     assert a.significant["t1"] == {"99": [], "95": []}
 
 
-def test_replicates_must_be_two_or_more(small_frames):
+def test_bad_replicates_are_refused(small_frames):
     with pytest.raises(ValueError, match="replicates=1 must be an int >= 2"):
         run_replicated(small_frames, paper_design(), seed=1, replicates=1)
+    with pytest.raises(ValueError, match="replicates=0 must be an int >= 1"):
+        tune(small_frames, seed=1, replicates=0)
+    with pytest.raises(ValueError, match="pure error"):
+        tune(small_frames, seed=1, replicates=2, method="anova")
+
+
+def test_replicated_report_keeps_the_contract_shapes(small_frames):
+    result = tune(small_frames, seed=3, step=5, repeats=1, replicates=2)
+    rep = result.to_report()
+    check_report(rep)
+    assert rep["replicates"] == 2 and rep["method"] == "pure-error"
+    reps = np.array(rep["replicate_responses"]["tf"])
+    assert reps.shape == (16, 2)
+    assert np.allclose(rep["responses"]["tf"], reps.mean(axis=1))
+    assert sorted(map(tuple, rep["replicate_order"])) == [(i, r) for i in range(16)
+                                                         for r in range(2)]
+    assert rep["pure_error"]["tf"]["df"] == 16 and rep["pure_error"]["tf"]["ms"] > 0
+    assert "ex" not in rep["pure_error"]  # deterministic: no pure error
+    unreplicated = tune(small_frames, seed=3, step=5, repeats=1).to_report()
+    assert unreplicated["replicates"] == 1 and "replicate_responses" not in unreplicated
 
 
 # ------------------------------------------------------------------------------ optimum

@@ -64,6 +64,9 @@ def test_text_sections_progress_and_plots(tmp_path):
     (["--resize", "huge"], "WIDTHxHEIGHT"),
     (["--max-frames", "1"], "--max-frames"),
     (["--repeats", "0"], "--repeats"),
+    (["--replicates", "0"], "--replicates 0 is out of range"),
+    (["--replicates", "21"], "--replicates 21 is out of range"),
+    (["--replicates", "3", "--method", "anova"], "tested against pure error"),
     (["--step", "0"], "--step"),
     (["--seed", "x"], "invalid int"),
     (["--format", "xml"], "invalid choice"),
@@ -91,6 +94,24 @@ def test_search_exhaustive_times_the_papers_search(capsys):
     assert a["order"] == b["order"]
     assert _main(["tune", "--search", "full"]) == 2
     assert "invalid choice: 'full'" in capsys.readouterr().err
+
+
+def test_replicates_analyse_against_pure_error(capsys):
+    """--replicates 2: the report keeps the contract's shapes (responses are the run means)
+    and adds every replicate; the text says what the effects were tested against."""
+    assert _main(["tune", "builtin", *FAST, "--seed", "4", "--format", "json",
+                  "--replicates", "2"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    check_report(rep)
+    assert rep["replicates"] == 2 and rep["method"] == "pure-error"
+    assert [len(row) for row in rep["replicate_responses"]["tf"]] == [2] * 16
+    assert rep["pure_error"]["tf"]["df"] == 16
+    assert _main(["tune", "builtin", *FAST, "--seed", "4", "--replicates", "2"]) == 0
+    text = capsys.readouterr().out
+    assert "2 replicates of every design run" in text
+    assert "## Table 3: significant terms (pure error)" in text
+    assert "tf: ANOVA against pure error, 2 independent timings of each of the 16 runs: 16 df" \
+        in text
 
 
 def test_out_that_is_a_file_is_an_error_before_any_work(tmp_path, capsys):

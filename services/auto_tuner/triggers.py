@@ -123,7 +123,7 @@ def scene_distance(thumb: np.ndarray, references: np.ndarray) -> float:
     (from :func:`reference_windows`): 0 same view, ~1 unrelated, at most 2."""
     k = THUMB_SHIFT
     centre = _normalise(thumb[k:THUMB - k, k:THUMB - k].ravel()[None, :])[0]
-    return float(1.0 - np.max(np.einsum("ij,j->i", references, centre)))
+    return float(1.0 - np.max(references @ centre))
 
 
 # -- hysteresis ------------------------------------------------------------------------------

@@ -127,6 +127,20 @@ def config_from_args(args: argparse.Namespace) -> zenoh.Config:
     return conf
 
 
+def loopback_config(endpoint: str, *, router: bool = False) -> zenoh.Config:
+    """A ``zenoh.Config`` that connects to ``endpoint`` (or, ``router=True``, a router that
+    listens on it), multicast scouting off: the explicit wiring benchmarks and tests use, so
+    they work in sandboxes without multicast and run side by side on their own ports."""
+    conf = zenoh.Config()
+    if router:
+        conf.insert_json5("mode", '"router"')
+        conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    else:
+        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
 def open_session(conf: zenoh.Config) -> zenoh.Session:
     """``zenoh.open`` with errors (e.g. a listen port in use) raised as :class:`BusError`."""
     try:

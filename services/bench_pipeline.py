@@ -26,7 +26,6 @@ its experiments, which would take a core for seconds, are left out of the measur
 
 from __future__ import annotations
 
-import json
 import os
 import socket
 import subprocess
@@ -40,7 +39,7 @@ import numpy as np
 import zenoh
 
 from ..common import synthetic
-from ..common.bus import alive_services, query_status
+from ..common.bus import alive_services, loopback_config, query_status
 from ..common.keys import Keys
 from ..common.messages import CmdVel, Frame, PreFrame, peek_int
 from ..common.params import TrackerParams
@@ -122,17 +121,6 @@ def _cpu_s(pids: list[int]) -> float:
             fields = f.read().rsplit(")", 1)[1].split()
         total += int(fields[11]) + int(fields[12])
     return total / os.sysconf("SC_CLK_TCK")
-
-
-def _conf(endpoint: str, *, router: bool = False) -> zenoh.Config:
-    c = zenoh.Config()
-    if router:
-        c.insert_json5("mode", '"router"')
-        c.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    else:
-        c.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    return c
 
 
 @contextmanager
@@ -320,7 +308,8 @@ def bench_pipeline(out=sys.stdout, seconds: float = 5.0) -> dict[str, float]:
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     fig: dict[str, float] = {}
     sizes = message_sizes(frames)
-    with zenoh.open(_conf(endpoint, router=True)), zenoh.open(_conf(endpoint)) as session:
+    with zenoh.open(loopback_config(endpoint, router=True)), \
+            zenoh.open(loopback_config(endpoint)) as session:
         rtt = raw_round_trip(session, endpoint, 256 * 256)
         fig["raw_one_way_ms"] = float(np.median(rtt)) / 2 * 1e3
         fig["raw_one_way_p99_ms"] = float(np.percentile(rtt, 99)) / 2 * 1e3

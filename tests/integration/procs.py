@@ -5,7 +5,6 @@ Every helper waits for a condition with a deadline (a log line, a sample), never
 
 from __future__ import annotations
 
-import json
 import os
 import queue
 import signal
@@ -18,18 +17,12 @@ from contextlib import contextmanager
 
 import zenoh
 
+from vistrack.common.bus import loopback_config
+
 SERVICE_CLI = ("preprocessing", "motion-estimation", "auto-tuner", "fuzzy-controller")
 
 
-def zenoh_config(endpoint: str, *, router: bool = False) -> zenoh.Config:
-    conf = zenoh.Config()
-    if router:
-        conf.insert_json5("mode", '"router"')
-        conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    else:
-        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
+zenoh_config = loopback_config  # the name the tests use
 
 
 @contextmanager

@@ -26,10 +26,11 @@ import datetime as dt
 import ipaddress
 import os
 import re
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from .usage import add_number, print_error
 
 CA_CERT = "ca.pem"
 CA_KEY = "ca.key"
@@ -136,6 +137,9 @@ def make_ca(directory: Path, name: str = "vistrack CA", days: int = CA_DAYS,
     c = _crypto()
     if days < 1:
         raise CertError(f"--days {days} must be >= 1")
+    if not 1 <= len(name) <= 64:  # what X.509 allows in a common name
+        raise CertError(f"--name {name!r} is {len(name)} characters long: a common name has "
+                        "1 to 64")
     directory.mkdir(parents=True, exist_ok=True)
     cert_path, key_path = directory / CA_CERT, directory / CA_KEY
     _refuse_existing([cert_path, key_path], force)
@@ -286,24 +290,14 @@ def inspect(path: Path, ca_path: Path | None = None) -> CertInfo:
 
 # -- the command line ------------------------------------------------------------------------
 
-def _days(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of days") from None
-    if not 1 <= value <= 36500:
-        raise argparse.ArgumentTypeError(f"{value} is out of range: allowed 1..36500")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     actions = parser.add_subparsers(dest="action", metavar="ACTION", parser_class=type(parser))
     actions.required = True
     ca = actions.add_parser("ca", help="create the certificate authority (ca.pem, ca.key)")
     ca.add_argument("--dir", default=DEFAULT_DIR, help=f"where to write (default {DEFAULT_DIR})")
     ca.add_argument("--name", default="vistrack CA", help="the CA's common name")
-    ca.add_argument("--days", type=_days, default=CA_DAYS,
-                    help=f"validity in days (default {CA_DAYS})")
+    add_number(ca, "--days", lo=1, hi=36500, integer=True, default=CA_DAYS, metavar="N",
+               help=f"validity in days, %(allowed)s (default {CA_DAYS})")
     ca.add_argument("--force", action="store_true", help="replace existing files")
     iss = actions.add_parser("issue", help="issue NAME.pem and NAME.key signed by the CA")
     iss.add_argument("name", metavar="NAME",
@@ -312,8 +306,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help=f"where the CA is and the files go (default {DEFAULT_DIR})")
     iss.add_argument("--host", action="append", default=[], metavar="HOST",
                      help="a DNS name or IP address the host is reached at (repeatable)")
-    iss.add_argument("--days", type=_days, default=HOST_DAYS,
-                     help=f"validity in days (default {HOST_DAYS})")
+    add_number(iss, "--days", lo=1, hi=36500, integer=True, default=HOST_DAYS, metavar="N",
+               help=f"validity in days, %(allowed)s (default {HOST_DAYS})")
     iss.add_argument("--force", action="store_true", help="replace existing files")
     show = actions.add_parser("show", help="print certificates; check them against a CA")
     show.add_argument("files", nargs="+", metavar="FILE.pem")
@@ -332,10 +326,10 @@ def main(args: argparse.Namespace) -> int:
         else:
             return _show(args)
     except CertError as e:
-        print(f"vistrack certs: error: {e}", file=sys.stderr)
+        print_error("certs", e)
         return e.code
     except OSError as e:
-        print(f"vistrack certs: error: {e.filename}: {e.strerror}", file=sys.stderr)
+        print_error("certs", f"{e.filename}: {e.strerror}")
         return 2
     return 0
 

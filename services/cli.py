@@ -11,6 +11,8 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from . import usage
+
 # name -> (module under vistrack.services, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("demo", "the whole system in closed loop on the robot simulator (main job)"),
@@ -66,7 +68,16 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
-    args = build_parser(command if command in COMMANDS else "").parse_args(argv)
+    parser = build_parser(command if command in COMMANDS else "")
+    try:
+        args, unknown = parser.parse_known_args(argv)
+        if unknown:  # named here, so the error says which subcommand did not know them
+            raise usage.FlagError(f"unrecognized arguments: {' '.join(unknown)} "
+                                  f"(see vistrack {args.command} --help)")
+        usage.run_checks(args._module, args)
+    except ValueError as e:  # a flag out of its range, a source that does not exist, ...
+        usage.print_error(str(command), e)
+        return 2
     try:
         return int(args._module.main(args) or 0)
     except KeyboardInterrupt:

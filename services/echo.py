@@ -24,12 +24,12 @@ from .tools import (
     Inbox,
     ToolError,
     add_tool_args,
-    error,
     print_json,
     resolve_key,
     run,
     stop_on_signals,
 )
+from .usage import add_number
 
 # Raw payloads are not validated, but their size still is bounded: a bin or str up to a
 # 4096x4096 frame's candidates, as in common.messages.
@@ -40,10 +40,11 @@ _RAW_LIMITS = {"max_bin_len": 64 << 20, "max_str_len": 1 << 20, "max_array_len":
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("key", metavar="KEY",
                         help="motion/estimate, camera/frame, estimate, '**', or a full key")
-    parser.add_argument("--count", type=int, default=None, metavar="N",
-                        help="exit after N samples")
-    parser.add_argument("--timeout", type=float, default=None, metavar="S",
-                        help="exit after S seconds; with --count, exit 1 if fewer arrived")
+    add_number(parser, "--count", lo=1, hi=10**9, integer=True, default=None, metavar="N",
+               help="exit after N samples, %(allowed)s")
+    add_number(parser, "--timeout", lo=0, hi=1e6, lo_open=True, unit="s", default=None,
+               metavar="S", help="exit after S seconds, %(allowed)s; with --count, exit 1 if "
+                                 "fewer arrived")
     parser.add_argument("--raw", action="store_true",
                         help="print the msgpack map as received, without validation")
     add_tool_args(parser)
@@ -74,12 +75,6 @@ def _suffix_type(key: str) -> bool:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.count is not None and args.count < 1:
-        error("echo", f"--count {args.count} must be >= 1")
-        return 2
-    if args.timeout is not None and args.timeout <= 0:
-        error("echo", f"--timeout {args.timeout:g} must be > 0")
-        return 2
     return run("echo", args, lambda session, keys: echo(session, keys, args))
 
 

@@ -19,7 +19,8 @@ import zenoh
 
 from ..common.bus import SeqGap
 from ..common.keys import Keys
-from .tools import Inbox, add_tool_args, error, print_json, resolve_key, run, stop_on_signals
+from .tools import Inbox, add_tool_args, print_json, resolve_key, run, stop_on_signals
+from .usage import add_number
 
 REPORT_S = 1.0
 
@@ -27,10 +28,12 @@ REPORT_S = 1.0
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("key", metavar="KEY",
                         help="camera/frame, motion/estimate, estimate, '**', or a full key")
-    parser.add_argument("--window", type=int, default=100, metavar="N",
-                        help="samples the period statistics are computed over (default 100)")
-    parser.add_argument("--duration", type=float, default=None, metavar="S",
-                        help="exit after S seconds (default: run until Ctrl-C)")
+    add_number(parser, "--window", lo=2, hi=100_000, integer=True, default=100, metavar="N",
+               help="samples the period statistics are computed over, %(allowed)s "
+                    "(default 100)")
+    add_number(parser, "--duration", lo=0, hi=1e6, lo_open=True, unit="s", default=None,
+               metavar="S", help="exit after S seconds, %(allowed)s (default: run until "
+                                 "Ctrl-C)")
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object per key and report")
     add_tool_args(parser)
@@ -85,12 +88,6 @@ def format_report(key: str, r: dict[str, Any]) -> str:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.window < 2:
-        error("hz", f"--window {args.window} must be >= 2")
-        return 2
-    if args.duration is not None and args.duration <= 0:
-        error("hz", f"--duration {args.duration:g} must be > 0")
-        return 2
     return run("hz", args, lambda session, keys: hz(session, keys, args))
 
 

@@ -35,6 +35,7 @@ import argparse
 import ctypes
 import dataclasses
 import importlib
+import json
 import os
 import re
 import signal
@@ -59,13 +60,13 @@ from ..common.bus import (
     open_session,
 )
 from ..common.keys import SERVICES, Keys, validate_robot_id
-from .camera.sources import SourceError, parse_size
 from .router import (
     DEFAULT_LISTEN,
     listen_endpoints,
     router_config,
     start_router,
 )
+from .usage import FlagError, add_number, check_endpoint, one_line, print_error, run_checks
 
 #: Restart policies of a service.
 POLICIES = ("never", "on-failure", "always")
@@ -357,8 +358,9 @@ def _endpoints(reader: _Reader, node: yaml.Node, path: str) -> tuple[str, ...]:
     for item in items:
         endpoint = reader.scalar(item, path, (str,), "an endpoint such as tcp/127.0.0.1:7447")
         try:
-            zenoh.Config().insert_json5("listen/endpoints", f'["{endpoint}"]')
-        except zenoh.ZError:
+            zenoh.Config().insert_json5("listen/endpoints", json.dumps([endpoint]))
+            check_endpoint(path, endpoint)
+        except (zenoh.ZError, FlagError):
             raise reader.error(item, path, f"{endpoint!r} is not a Zenoh endpoint: "
                                "<protocol>/<address>, e.g. tcp/127.0.0.1:7447") from None
         out.append(endpoint)
@@ -493,10 +495,13 @@ class _CheckingParser(argparse.ArgumentParser):
 
 
 def check_service_flags(service: str, argv: list[str]) -> str | None:
-    """Why ``argv`` (plus the launcher's own flags) would not parse for ``service``, or None.
+    """Why ``argv`` (plus the launcher's own flags) would not be accepted by ``service``, or
+    None.
 
-    Uses the service's own ``add_arguments``, so unknown flags and bad values are found
-    before anything starts rather than as a crash loop.
+    Parses them with the service's own ``add_arguments`` (unknown flags, values out of their
+    declared ranges) and runs its ``check_args`` (a camera source that does not exist, ...),
+    so what ``vistrack <service>`` would refuse is found before anything starts rather than as
+    a crash loop.
     """
     from .cli import COMMANDS  # here, not at the top: cli imports this module
 
@@ -504,9 +509,10 @@ def check_service_flags(service: str, argv: list[str]) -> str | None:
     parser = _CheckingParser(prog=f"vistrack {service}", add_help=False)
     module.add_arguments(parser)
     try:
-        parser.parse_args([*argv, "-e", DEFAULT_LISTEN[0], "--no-multicast-scouting"])
-    except _FlagsError as e:
-        return str(e).strip()
+        args = parser.parse_args([*argv, "-e", DEFAULT_LISTEN[0], "--no-multicast-scouting"])
+        run_checks(module, args)
+    except (_FlagsError, ValueError) as e:
+        return one_line(e)
     return None
 
 
@@ -989,39 +995,22 @@ class Launcher:
 
 # -- the command line ------------------------------------------------------------------------
 
-def _size_arg(text: str) -> str:
-    try:
-        parse_size(text)
-    except SourceError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
-    return text
-
-
-def _seconds_arg(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not 0 < value <= 1e6:
-        raise argparse.ArgumentTypeError(f"{text} is out of range: allowed > 0 s")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("launch", nargs="?", metavar="LAUNCH.yaml",
                         help="launch file (default: deploy/local.yaml)")
     parser.add_argument("--camera", metavar="SOURCE",
                         help="the camera's source: file:PATH, device:N, builtin or "
                              "sim[:SCENARIO]; drops the launch file's --loop")
-    parser.add_argument("--fps", type=float, metavar="F", help="the camera's frames per second")
-    parser.add_argument("--size", type=_size_arg, metavar="WxH", help="the camera's frame size")
+    parser.add_argument("--fps", type=float, metavar="F",
+                        help="the camera's frames per second (its --fps)")
+    parser.add_argument("--size", metavar="WxH", help="the camera's frame size (its --size)")
     parser.add_argument("--loop", action="store_true",
                         help="with --camera: replay a file source forever")
-    parser.add_argument("--duration", type=_seconds_arg, metavar="S",
-                        help="end the run after S seconds")
-    parser.add_argument("--ready-timeout", type=_seconds_arg, metavar="S",
-                        help="longest wait for the services at start-up (default: the "
-                             "launch file's ready_timeout)")
+    add_number(parser, "--duration", lo=0, hi=1e6, lo_open=True, unit="s", metavar="S",
+               help="end the run after S seconds, %(allowed)s")
+    add_number(parser, "--ready-timeout", lo=0, hi=3600, lo_open=True, unit="s", metavar="S",
+               help="longest wait for the services at start-up, %(allowed)s (default: the "
+                    "launch file's ready_timeout)")
     add_zenoh_args(parser)
     # None = not given: the launch file's robot then applies
     parser.set_defaults(robot=None)
@@ -1036,8 +1025,15 @@ def launch_from_args(args: argparse.Namespace) -> LaunchSpec:
         A bad launch file or flag combination (exit code 2).
     """
     launch = load_launch(args.launch) if args.launch else default_launch()
-    launch = launch.with_camera(source=args.camera, fps=args.fps, size=args.size,
-                                loop=args.loop)
+    overridden = launch.with_camera(source=args.camera, fps=args.fps, size=args.size,
+                                    loop=args.loop)
+    if overridden is not launch:  # the camera's flags with --camera/--fps/--size applied
+        camera = overridden.service("camera")
+        assert camera is not None
+        problem = check_service_flags("camera", list(camera.flags))
+        if problem:
+            raise LaunchError(problem)
+    launch = overridden
     changes: dict[str, Any] = {}
     if args.robot is not None:
         changes["robot"] = args.robot
@@ -1061,14 +1057,14 @@ def main(args: argparse.Namespace) -> int:
     try:
         launch = launch_from_args(args)
     except (LaunchError, BusError) as e:
-        print(f"vistrack up: error: {e}", file=sys.stderr)
+        print_error("up", e)
         return 2
     stop = threading.Event()
     restore = install_signal_handlers(stop)
     try:
         return _run(launch, args, stop)
     except (LaunchError, BusError) as e:
-        print(f"vistrack up: error: {e}", file=sys.stderr)
+        print_error("up", e)
         return 1
     finally:
         restore()

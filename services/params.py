@@ -39,6 +39,7 @@ from .tools import (
     print_json,
     run,
 )
+from .usage import add_number
 
 CONFIRMING_SERVICE = "motion_estimation"
 HEADERS = ("SERVICE", "PARAMS_ID", "SOURCE", *(f.upper() for f in FACTORS), "REASON")
@@ -51,8 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     actions.required = True
     get = actions.add_parser("get", help="print the parameters in force on every service")
     get.add_argument("--json", action="store_true", help="one JSON object per service")
-    get.add_argument("--timeout", type=float, default=1.0, metavar="S",
-                     help="how long to wait for the services' answers (default 1 s)")
+    add_number(get, "--timeout", lo=0, hi=3600, lo_open=True, unit="s", default=1.0,
+               metavar="S", help="how long to wait for the services' answers, %(allowed)s "
+                                 "(default 1 s)")
     add_tool_args(get)
     ranges = ", ".join(f"{f} {_range(f)}" for f in FACTORS)
     put = actions.add_parser("set", help="change tracker parameters live",
@@ -60,8 +62,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     put.add_argument("assignments", nargs="+", metavar="NAME=VALUE",
                      help="e.g. search_size=21 corr_size=11")
     put.add_argument("--json", action="store_true", help="print the result as JSON")
-    put.add_argument("--timeout", type=float, default=5.0, metavar="S",
-                     help="longest wait for a subscriber and for the confirmation (default 5 s)")
+    add_number(put, "--timeout", lo=0, hi=3600, lo_open=True, unit="s", default=5.0,
+               metavar="S", help="longest wait for a subscriber and for the confirmation, "
+                                 "%(allowed)s (default 5 s)")
     add_tool_args(put)
 
 
@@ -105,9 +108,6 @@ def parse_assignments(items: list[str]) -> dict[str, Any]:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.timeout <= 0:
-        error("params", f"--timeout {args.timeout:g} must be > 0")
-        return 2
     if args.action == "get":
         return run("params", args, lambda session, keys: get(session, keys, args))
     try:

@@ -32,6 +32,7 @@ import zenoh
 
 from ..common.keys import Keys, key_suffix
 from .tools import Inbox, ToolError, add_tool_args, error, resolve_key, run, stop_on_signals
+from .usage import add_number
 
 FORMAT = "vistrack-record"
 VERSION = 1
@@ -218,10 +219,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("keys", nargs="*", metavar="KEY",
                         help="keys to record: camera/frame, estimate, '**', full keys "
                              "(default: every key of the robot)")
-    parser.add_argument("--duration", type=float, default=None, metavar="S",
-                        help="stop after S seconds")
-    parser.add_argument("--count", type=int, default=None, metavar="N",
-                        help="stop after N samples")
+    add_number(parser, "--duration", lo=0, hi=1e6, lo_open=True, unit="s", default=None,
+               metavar="S", help="stop after S seconds, %(allowed)s")
+    add_number(parser, "--count", lo=1, hi=10**12, integer=True, default=None, metavar="N",
+               help="stop after N samples, %(allowed)s")
     add_tool_args(parser)
 
 
@@ -231,12 +232,6 @@ def _recorded(key: str) -> bool:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.duration is not None and args.duration <= 0:
-        error("record", f"--duration {args.duration:g} must be > 0")
-        return 2
-    if args.count is not None and args.count < 1:
-        error("record", f"--count {args.count} must be >= 1")
-        return 2
     try:
         keys = Keys(args.robot)
         exprs = sorted({resolve_key(keys, k) for k in args.keys}) or [f"{keys.root}/**"]

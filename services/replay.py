@@ -38,6 +38,7 @@ from .tools import (
     stop_on_signals,
     warn,
 )
+from .usage import add_number
 
 # Streams where only the newest sample matters: published with congestion control DROP, as
 # the camera, preprocessing and motion-estimation services do.
@@ -54,17 +55,17 @@ def _robot(value: str) -> str:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE", help="a recording made by vistrack record")
     pace = parser.add_mutually_exclusive_group()
-    pace.add_argument("--speed", type=float, default=1.0, metavar="X",
-                      help="playback speed, a multiple of the recorded one (default 1)")
+    add_number(pace, "--speed", lo=0.01, hi=1000, default=1.0, metavar="X",
+               help="playback speed, a multiple of the recorded one, %(allowed)s (default 1)")
     pace.add_argument("--fast", action="store_true", help="publish as fast as possible")
     parser.add_argument("--loop", action="store_true", help="replay forever")
     parser.add_argument("--remap-robot", type=_robot, default=None, metavar="ID",
                         help="publish under vistrack/<ID>/ instead of the recorded robot")
     parser.add_argument("--restamp", action="store_true",
                         help="set each message's stamp_ns to its publication time")
-    parser.add_argument("--wait", type=float, default=5.0, metavar="S",
-                        help="longest wait for a subscriber before the first sample; 0: "
-                             "do not wait (default 5 s)")
+    add_number(parser, "--wait", lo=0, hi=3600, unit="s", default=5.0, metavar="S",
+               help="longest wait for a subscriber before the first sample, %(allowed)s; 0: "
+                    "do not wait (default 5 s)")
     add_tool_args(parser)
 
 
@@ -90,12 +91,6 @@ def restamp(payload: bytes, stamp_ns: int) -> bytes:
 
 
 def main(args: argparse.Namespace) -> int:
-    if not args.fast and not 0.01 <= args.speed <= 1000:
-        error("replay", f"--speed {args.speed:g} is out of range: allowed 0.01..1000")
-        return 2
-    if args.wait < 0:
-        error("replay", f"--wait {args.wait:g} must be >= 0")
-        return 2
     try:
         recording = Recording(args.file)  # a file that is no recording fails before Zenoh
     except RecordError as e:

@@ -18,7 +18,8 @@ import zenoh
 
 from ..common.keys import Keys
 from ..common.messages import to_jsonable
-from .tools import ServiceState, add_tool_args, error, format_table, gather, print_json, run
+from .tools import ServiceState, add_tool_args, format_table, gather, print_json, run
+from .usage import add_number
 
 HEADERS = ("SERVICE", "STATE", "PID", "UP_S", "RECEIVED", "PUBLISHED", "DROPPED", "REJECTED",
            "P50_MS", "P99_MS", "PARAMS", "EXTRA", "LAST_ERROR")
@@ -27,8 +28,9 @@ _MAX_ERROR = 80  # characters of last_error in the table (--json has it all)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="one JSON object per service")
-    parser.add_argument("--timeout", type=float, default=1.0, metavar="S",
-                        help="how long to wait for the services' answers (default 1 s)")
+    add_number(parser, "--timeout", lo=0, hi=3600, lo_open=True, unit="s", default=1.0,
+               metavar="S", help="how long to wait for the services' answers, %(allowed)s "
+                                 "(default 1 s)")
     add_tool_args(parser)
 
 
@@ -66,9 +68,6 @@ def _num(value: Any, digits: int = 2) -> Any:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.timeout <= 0:
-        error("status", f"--timeout {args.timeout:g} must be > 0")
-        return 2
     return run("status", args, lambda session, keys: status(session, keys, args))
 
 

@@ -33,6 +33,7 @@ from ..common.bus import (
     query_status,
 )
 from ..common.keys import Keys
+from .usage import print_error
 
 
 class ToolError(Exception):
@@ -57,7 +58,7 @@ def add_tool_args(parser: argparse.ArgumentParser) -> None:
 
 def error(tool: str, message: object) -> None:
     """Print the one-line error of ``tool`` on stderr."""
-    print(f"vistrack {tool}: error: {message}", file=sys.stderr, flush=True)
+    print_error(tool, message)
 
 
 def warn(tool: str, message: object) -> None:

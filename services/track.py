@@ -17,6 +17,7 @@ from typing import TextIO
 from ..common.params import BOUNDS, SEARCH_KINDS, ParamError, TrackerParams
 from ..common.vision import Estimate, Tracker, timing, warm_up
 from .camera.sources import SourceError, open_files, parse_size
+from .usage import add_number, print_error
 
 PARAM_FLAGS = {
     "max_features": ("--max-features", int, "MAX_FEAT_NUM: most feature points"),
@@ -31,12 +32,13 @@ CSV_FIELDS = ["seq", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale", "t_ms"]
 
 
 def add_param_flags(parser: argparse.ArgumentParser) -> None:
-    """The five paper parameters as flags (defaults: Table 4 with search 15, correlation 9)."""
+    """The five paper parameters as flags (defaults: Table 4 with search 15, correlation 9),
+    checked against :data:`~vistrack.common.params.BOUNDS` as they are parsed."""
     defaults = TrackerParams()
     for name, (flag, typ, text) in PARAM_FLAGS.items():
         lo, hi = BOUNDS[name]
-        parser.add_argument(flag, dest=name, type=typ, default=None, metavar="N",
-                            help=f"{text} ({lo:g}..{hi:g}, default {getattr(defaults, name)})")
+        add_number(parser, flag, dest=name, lo=lo, hi=hi, integer=typ is int, default=None,
+                   metavar="N", help=f"{text} (%(allowed)s, default {getattr(defaults, name)})")
     parser.add_argument("--subpixel", action="store_true",
                         help="refine each match to sub-pixel precision")
     add_search_flag(parser)
@@ -90,7 +92,7 @@ def _table_row(e: Estimate) -> str:
 def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     out = sys.stdout if out is None else out  # the stream of the moment, not of import time
     params = params_from_args(args)
-    size = parse_size(args.resize) if args.resize else None
+    size = parse_size(args.resize, "--resize") if args.resize else None
     source = open_files(args.frames, size)
     warm_up()  # numba compile/cache load, so t1 measures the tracker and not the JIT
     tracker = Tracker(params)
@@ -132,7 +134,7 @@ def offline_main(name: str, run: Callable[[argparse.Namespace], int],
     try:
         return run(args)
     except (SourceError, ParamError, ValueError) as e:
-        print(f"vistrack {name}: error: {e}", file=sys.stderr)
+        print_error(name, e)
         return 2
     except BrokenPipeError:
         return 0

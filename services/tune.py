@@ -32,9 +32,19 @@ import numpy as np
 
 from ..common.params import FACTORS
 from .auto_tuner.experiment import DEFAULT_REPEATS, METHODS, RESPONSES, bounce
-from .auto_tuner.sensitivity import DEFAULT_STEP, DEFAULT_TOLERANCE, TuneResult, new_seed, tune
+from .auto_tuner.sensitivity import (
+    BUFFER_RANGE,
+    DEFAULT_STEP,
+    DEFAULT_TOLERANCE,
+    STEP_RANGE,
+    TOLERANCE_RANGE,
+    TuneResult,
+    new_seed,
+    tune,
+)
 from .camera.sources import SourceError, open_files, parse_size
 from .track import add_search_flag, offline_main, params_from_args
+from .usage import add_number
 
 UNITS = {"t1": "ms", "tf": "ms", "ex": "px", "ey": "px"}
 
@@ -44,44 +54,55 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a video file, a folder of images (sorted by name), a glob, or "
                              "image files in order; none (or 'builtin') runs the built-in "
                              "generated sequence")
-    parser.add_argument("--seed", type=int, default=None, metavar="N",
-                        help="seed of the design's run order (default: a fresh one, printed)")
+    add_number(parser, "--seed", lo=0, hi=2**63 - 1, integer=True, default=None, metavar="N",
+               help="seed of the design's run order, %(allowed)s (default: a fresh one, "
+                    "printed)")
     parser.add_argument("--out", metavar="DIR", default=None,
                         help="write the plots (half-normal, main effects, interactions, sweep "
                              "heat maps) as PNG into DIR")
     parser.add_argument("--format", choices=("text", "json"), default="text",
                         help="text tables, or the tuner/report fields as JSON (default text)")
-    parser.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, metavar="PX",
-                        help="largest mean error ex, ey against the reference windows (50, 30) "
-                             f"the optimum may have, px (default {DEFAULT_TOLERANCE})")
+    add_number(parser, "--tolerance", lo=TOLERANCE_RANGE[0], hi=TOLERANCE_RANGE[1],
+               default=DEFAULT_TOLERANCE, metavar="PX",
+               help="largest mean error ex, ey against the reference windows (50, 30) the "
+                    f"optimum may have, %(allowed)s px (default {DEFAULT_TOLERANCE})")
     parser.add_argument("--resize", metavar="WxH", default=None,
                         help="resize every frame (default: keep the input size)")
-    parser.add_argument("--max-frames", type=int, default=30, metavar="N",
-                        help="frames in the buffer (default 30, as the service keeps)")
+    add_number(parser, "--max-frames", lo=BUFFER_RANGE[0], hi=BUFFER_RANGE[1], integer=True,
+               default=30, metavar="N",
+               help="frames in the buffer, %(allowed)s (default 30, as the service keeps)")
     parser.add_argument("--bounce", action="store_true",
                         help="fill the buffer by playing a shorter sequence back and forth")
-    parser.add_argument("--repeats", type=int, default=DEFAULT_REPEATS, metavar="N",
-                        help="timing passes; each frame's least disturbed time is kept "
-                             f"(default {DEFAULT_REPEATS})")
-    parser.add_argument("--step", type=int, default=DEFAULT_STEP, metavar="PX",
-                        help=f"sweep grid step (default {DEFAULT_STEP}: every distinct window)")
+    add_number(parser, "--repeats", lo=1, hi=20, integer=True, default=DEFAULT_REPEATS,
+               metavar="N", help="timing passes, %(allowed)s; each frame's least disturbed "
+                                 f"time is kept (default {DEFAULT_REPEATS})")
+    add_number(parser, "--step", lo=STEP_RANGE[0], hi=STEP_RANGE[1], integer=True,
+               default=DEFAULT_STEP, metavar="PX",
+               help=f"sweep grid step, %(allowed)s (default {DEFAULT_STEP}: every distinct "
+                    "window)")
     add_search_flag(parser)
     parser.add_argument("--method", choices=METHODS, default=None,
                         help="significance test of the unreplicated design: Lenth's PSE, or "
                              "ANOVA with the inactive effects pooled (default lenth)")
-    parser.add_argument("--replicates", type=int, default=1, metavar="N",
-                        help="independent timings of every design run, in a completely "
-                             "randomised order; N >= 2 tests the effects against that pure "
-                             "error (default 1: the paper's unreplicated design)")
+    add_number(parser, "--replicates", lo=1, hi=20, integer=True, default=1, metavar="N",
+               help="independent timings of every design run, %(allowed)s, in a completely "
+                    "randomised order; N >= 2 tests the effects against that pure error "
+                    "(default 1: the paper's unreplicated design)")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress line on stderr (default: when stderr is a terminal)")
 
 
+def check_args(args: argparse.Namespace) -> None:
+    """The check across flags (the ranges are declared with the flags)."""
+    if args.replicates > 1 and args.method is not None:
+        raise ValueError(f"--method {args.method} tests the unreplicated design; with "
+                         f"--replicates {args.replicates} the effects are tested against pure "
+                         "error")
+
+
 def read_buffer(args: argparse.Namespace) -> tuple[list[np.ndarray], str]:
     """The frames to tune on, per FRAMES, --resize, --max-frames and --bounce."""
-    if not 2 <= args.max_frames <= 1000:
-        raise ValueError(f"--max-frames {args.max_frames} is out of range: allowed 2..1000")
-    size = parse_size(args.resize) if args.resize else None
+    size = parse_size(args.resize, "--resize") if args.resize else None
     source = open_files(args.frames, size)
     frames = list(itertools.islice(iter(source), args.max_frames))
     if not frames:
@@ -217,18 +238,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
     # the streams of the moment (not of import time: pytest swaps them per test)
     out = sys.stdout if out is None else out
     err = sys.stderr if err is None else err
-    if not np.isfinite(args.tolerance) or args.tolerance < 0:
-        raise ValueError(f"--tolerance {args.tolerance} must be a number >= 0 (px)")
-    if args.repeats < 1 or args.repeats > 20:
-        raise ValueError(f"--repeats {args.repeats} is out of range: allowed 1..20")
-    if args.replicates < 1 or args.replicates > 20:
-        raise ValueError(f"--replicates {args.replicates} is out of range: allowed 1..20")
-    if args.replicates > 1 and args.method is not None:
-        raise ValueError(f"--method {args.method} tests the unreplicated design; with "
-                         f"--replicates {args.replicates} the effects are tested against pure "
-                         "error")
-    if args.step < 1:
-        raise ValueError(f"--step {args.step} must be >= 1")
+    check_args(args)
     if args.out:
         try:  # fail now rather than after the experiment
             Path(args.out).mkdir(parents=True, exist_ok=True)

@@ -80,6 +80,12 @@ TABLE4_FIXED: Mapping[str, float] = {"max_features": 100, "thres_percent": 2.0,
                                      "ungroup_size": 5}
 #: Largest mean |ex|, |ey| against the reference windows an optimum may have, px.
 DEFAULT_TOLERANCE = 0.5
+#: What the command lines (``vistrack tune``, the auto-tuner service) accept: sweep steps
+#: (10 already leaves only the grid's corners), tolerances (px), and frames in a tuning
+#: buffer (two at least: t1 and tf).
+STEP_RANGE = (1, 10)
+TOLERANCE_RANGE = (0.0, 100.0)
+BUFFER_RANGE = (2, 1000)
 
 
 @dataclass(frozen=True, eq=False)

@@ -31,7 +31,6 @@ import collections
 import itertools
 import logging
 import math
-import sys
 import time
 from typing import Any
 
@@ -40,8 +39,15 @@ import numpy as np
 from ...common.bus import Node
 from ...common.messages import Estimate, Frame, MessageError, Params, Report, pack
 from ..runtime import ParamsInForce, add_service_args, ready, serve
+from ..usage import add_number
 from . import triggers as tr
-from .sensitivity import DEFAULT_STEP, DEFAULT_TOLERANCE
+from .sensitivity import (
+    BUFFER_RANGE,
+    DEFAULT_STEP,
+    DEFAULT_TOLERANCE,
+    STEP_RANGE,
+    TOLERANCE_RANGE,
+)
 from .worker import Worker
 
 log = logging.getLogger("vistrack.auto_tuner")
@@ -52,36 +58,39 @@ REMIND_S = 1.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--buffer", type=int, default=30, metavar="N",
-                        help="frames kept for the experiments, 2..1000 (default 30)")
+    add_number(parser, "--buffer", lo=BUFFER_RANGE[0], hi=BUFFER_RANGE[1], integer=True,
+               default=30, metavar="N",
+               help="frames kept for the experiments, %(allowed)s (default 30)")
     parser.add_argument("--no-tune", action="store_true",
                         help="never tune: keep the buffer and remind the parameters in force")
-    parser.add_argument("--tune-sweep-step", type=int, default=DEFAULT_STEP, metavar="PX",
-                        help=f"sweep grid step, 1..10 (default {DEFAULT_STEP})")
-    parser.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, metavar="PX",
-                        help="largest ex, ey against the reference windows the optimum may "
-                             f"have, 0..100 px (default {DEFAULT_TOLERANCE})")
-    parser.add_argument("--min-interval", type=float, default=tr.DEFAULT_MIN_INTERVAL_S,
-                        metavar="S", help="least time between two tunings, 0..86400 s "
-                                          f"(default {tr.DEFAULT_MIN_INTERVAL_S:g})")
+    add_number(parser, "--tune-sweep-step", lo=STEP_RANGE[0], hi=STEP_RANGE[1], integer=True,
+               default=DEFAULT_STEP, metavar="PX",
+               help=f"sweep grid step, %(allowed)s (default {DEFAULT_STEP})")
+    add_number(parser, "--tolerance", lo=TOLERANCE_RANGE[0], hi=TOLERANCE_RANGE[1],
+               default=DEFAULT_TOLERANCE, metavar="PX",
+               help="largest ex, ey against the reference windows the optimum may have, "
+                    f"%(allowed)s px (default {DEFAULT_TOLERANCE})")
+    add_number(parser, "--min-interval", lo=0, hi=86400, default=tr.DEFAULT_MIN_INTERVAL_S,
+               metavar="S", help="least time between two tunings, %(allowed)s s "
+                                 f"(default {tr.DEFAULT_MIN_INTERVAL_S:g})")
     parser.add_argument("--scale-band", type=float, nargs=2, default=tr.DEFAULT_SCALE_BAND,
                         metavar=("LO", "HI"), help="re-tune when the scale since the last "
                         "tuning leaves [LO, HI], 0 < LO < 1 < HI (default 0.8 1.25)")
-    parser.add_argument("--scene-threshold", type=float, default=tr.DEFAULT_SCENE_THRESHOLD,
-                        metavar="X", help="scene distance (0 same view, ~1 another scene) "
-                        f"that re-tunes, 0.01..2 (default {tr.DEFAULT_SCENE_THRESHOLD})")
+    add_number(parser, "--scene-threshold", lo=0.01, hi=2,
+               default=tr.DEFAULT_SCENE_THRESHOLD, metavar="X",
+               help="scene distance (0 same view, ~1 another scene) that re-tunes, "
+                    f"%(allowed)s (default {tr.DEFAULT_SCENE_THRESHOLD})")
     add_service_args(parser, tracker_params=True)
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """``--scale-band``, the one check across values (the others are declared with their
+    flags)."""
+    check_flags(args)
 
 
 def check_flags(args: argparse.Namespace) -> tr.TriggerConfig:
     """The trigger configuration; ValueError names the flag, its value and the range."""
-    for flag, value, lo, hi in (("--buffer", args.buffer, 2, 1000),
-                                ("--tune-sweep-step", args.tune_sweep_step, 1, 10),
-                                ("--tolerance", args.tolerance, 0, 100),
-                                ("--min-interval", args.min_interval, 0, 86400),
-                                ("--scene-threshold", args.scene_threshold, 0.01, 2)):
-        if not lo <= value <= hi:  # also false for NaN
-            raise ValueError(f"{flag} {value:g} is out of range: allowed {lo:g}..{hi:g}")
     lo, hi = args.scale_band
     if not (0 < lo < 1 < hi and math.isfinite(hi)):
         raise ValueError(f"--scale-band {lo:g} {hi:g} is out of range: allowed 0 < LO < 1 < HI")
@@ -266,9 +275,4 @@ def loop(node: Node, args: argparse.Namespace) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    try:
-        check_flags(args)  # before Zenoh: bad flags fail fast
-    except ValueError as e:
-        print(f"vistrack auto-tuner: error: {e}", file=sys.stderr)
-        return 2
     return serve("auto_tuner", args, loop)

@@ -23,21 +23,23 @@ import argparse
 import collections
 import itertools
 import logging
-import sys
 import time
 from collections.abc import Iterable, Iterator
 
 import numpy as np
 
 from ...common.bus import Node
-from ...common.messages import Frame, peek_int
+from ...common.messages import MAX_SIDE, Frame, peek_int
 from ..runtime import add_service_args, ready, serve
+from ..usage import add_number, print_error
 from .simcam import make_simulator, run_sim
-from .sources import BUILTIN, SourceError, open_device, open_files, parse_size
+from .sources import BUILTIN, SourceError, device_index, open_device, open_files, parse_size
 
 log = logging.getLogger("vistrack.camera")
 
 LOOP_CACHE_BYTES = 256 * 1024 * 1024
+#: Frame sides the camera sends, px: a ``camera/frame`` carries at most MAX_SIDE a side.
+FRAME_SIDES = (8, MAX_SIDE)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -46,17 +48,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "built-in generated sequence, default), or sim[:SCENARIO] (the "
                              "robot simulator; scenarios: default, sideways, approach, steps, "
                              "still, lighting, or a YAML file)")
-    parser.add_argument("--fps", type=float, default=0.0,
-                        help="frames per second; 0 = as fast as the pipeline takes them "
-                             "(default 0)")
+    add_number(parser, "--fps", lo=0, hi=1000, default=0.0, metavar="F",
+               help="frames per second, %(allowed)s; 0 = as fast as the pipeline takes them "
+                    "(default 0)")
     parser.add_argument("--loop", action="store_true", help="replay a file source forever")
     parser.add_argument("--size", metavar="WxH", default=None,
                         help="resize frames (default: native size)")
-    parser.add_argument("--in-flight", type=int, default=2, metavar="N",
-                        help="with --fps 0, most frames sent and not yet estimated, 1..16 "
-                             "(default 2: pre-processing and tracking overlap)")
-    parser.add_argument("--ack-timeout", type=float, default=1.0, metavar="S",
-                        help="with --fps 0, longest wait for a frame's estimate (default 1 s)")
+    add_number(parser, "--in-flight", lo=1, hi=16, integer=True, default=2, metavar="N",
+               help="with --fps 0, most frames sent and not yet estimated, %(allowed)s "
+                    "(default 2: pre-processing and tracking overlap)")
+    add_number(parser, "--ack-timeout", lo=0, hi=3600, lo_open=True, default=1.0, metavar="S",
+               help="with --fps 0, longest wait for a frame's estimate, %(allowed)s "
+                    "(default 1 s)")
     sim = parser.add_argument_group("simulator source")
     sim.add_argument("--lockstep", action="store_true",
                      help="render a frame only after the previous frame's command (or, with "
@@ -65,22 +68,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="ignore control/cmd_vel: the robot stands still")
     sim.add_argument("--texture", metavar="PATH", default=None,
                      help="target texture image (default: built-in procedural texture)")
-    sim.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
-                     help="Gaussian sensor noise, grey levels (default 0)")
-    sim.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    add_number(sim, "--noise", lo=0, hi=100, default=0.0, metavar="SIGMA",
+               help="Gaussian sensor noise, grey levels, %(allowed)s (default 0)")
+    add_number(sim, "--seed", lo=0, hi=2**63 - 1, integer=True, default=0, metavar="N",
+               help="noise seed, %(allowed)s (default 0)")
     add_service_args(parser)
 
 
 def open_source(spec: str, size: tuple[int, int] | None, loop: bool) -> Iterator[np.ndarray]:
-    """Frames of a SOURCE spec; raises SourceError naming what is wrong."""
+    """Frames of a SOURCE spec (not ``sim``); raises SourceError naming what is wrong."""
     if spec.startswith("device:"):
-        try:
-            index = int(spec.split(":", 1)[1])
-        except ValueError:
-            raise SourceError(f"{spec!r}: device index must be an integer, e.g. device:0") from None
-        return open_device(index, size)
+        return open_device(device_index(spec), size)
+    if spec == "file:":
+        raise SourceError("--source 'file:' names no file: give file:PATH (a video, an image "
+                          "folder or a glob)")
     path = spec[len("file:"):] if spec.startswith("file:") else spec
-    frames: Iterable[np.ndarray] = open_files([path] if path else [], size)
+    frames: Iterable[np.ndarray] = open_files([path], size)
     if not loop:
         return iter(frames)
     # a looping source is decoded once and replayed from memory while it fits comfortably,
@@ -135,11 +138,21 @@ class _Acks:
             self.newest[key] = max(self.newest[key], stamp)
 
 
-def loop(node: Node, args: argparse.Namespace) -> int:
-    size = parse_size(args.size) if args.size else None
-    if args.source.split(":", 1)[0] == "sim":
-        return run_sim(node, args, make_simulator(args, size))
-    frames = open_source(args.source, size, args.loop)
+def _is_sim(args: argparse.Namespace) -> bool:
+    return args.source.split(":", 1)[0] == "sim"
+
+
+def _size(args: argparse.Namespace) -> tuple[int, int] | None:
+    return parse_size(args.size, "--size", sides=FRAME_SIDES) if args.size else None
+
+
+def loop(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray] | None = None
+         ) -> int:
+    """Publish the frames of ``--source`` (``frames``, already opened by :func:`main`)."""
+    if frames is None:
+        if _is_sim(args):
+            return run_sim(node, args, make_simulator(args))
+        frames = open_source(args.source, _size(args), args.loop)
     # estimates tell when a frame has been through the pipeline (pacing with --fps 0, and the
     # end of a file either way); pre-processed frames when pre-processing is free again
     window = 1 if args.fps > 0 else args.in_flight
@@ -193,22 +206,37 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
     return 0
 
 
+def check_args(args: argparse.Namespace) -> None:
+    """``--size`` and ``--source`` (cheap: files are listed, not read; no device is opened),
+    so ``vistrack camera`` and a launch file's camera flags fail before anything starts."""
+    if _is_sim(args):
+        make_simulator(args)
+        return
+    _size(args)
+    if args.source.startswith("device:"):
+        device_index(args.source)
+    else:
+        open_source(args.source, None, False)
+
+
+def _first_frame_read(frames: Iterator[np.ndarray]) -> Iterator[np.ndarray]:
+    """``frames`` with its first frame read now: a video that does not decode, a device that
+    does not open, or frames too large for a ``camera/frame`` are a one-line error before the
+    service starts, not a log line."""
+    first = next(frames)
+    h, w = first.shape
+    if max(w, h) > MAX_SIDE:
+        raise SourceError(f"frames are {w}x{h}: a camera/frame carries at most {MAX_SIDE} px "
+                          f"a side; give --size to scale them")
+    return itertools.chain([first], frames)
+
+
 def main(args: argparse.Namespace) -> int:
+    if _is_sim(args):
+        return serve("camera", args, loop)
     try:
-        if not 0 <= args.fps <= 1000:  # also false for NaN
-            raise SourceError(f"--fps {args.fps:g} is out of range: allowed 0..1000")
-        if not 1 <= args.in_flight <= 16:
-            raise SourceError(f"--in-flight {args.in_flight} is out of range: allowed 1..16")
-        if not 0 < args.ack_timeout <= 3600:
-            raise SourceError(f"--ack-timeout {args.ack_timeout:g} is out of range: "
-                              "allowed 0 < S <= 3600")
-        if args.size:
-            parse_size(args.size)
-        if args.source.split(":", 1)[0] == "sim":
-            make_simulator(args, parse_size(args.size) if args.size else None)
-        elif not args.source.startswith("device:"):
-            open_source(args.source, None, False)  # fail fast on a bad path, before Zenoh
-    except (SourceError, ValueError) as e:
-        print(f"vistrack camera: error: {e}", file=sys.stderr)
+        frames = _first_frame_read(open_source(args.source, _size(args), args.loop))
+    except SourceError as e:
+        print_error("camera", e)
         return 2
-    return serve("camera", args, loop)
+    return serve("camera", args, lambda node, a: loop(node, a, frames))

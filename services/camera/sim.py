@@ -247,6 +247,10 @@ def _wrap(angle: float) -> float:
 _DEFAULT_HFOV_DEG = 60.0
 
 
+#: Image sides the simulated camera renders, px.
+CAMERA_SIDES = (16, 4096)
+
+
 @dataclass(frozen=True)
 class Camera:
     """Pinhole camera at the robot origin looking along the robot's +x, square pixels.
@@ -272,8 +276,8 @@ class Camera:
 
     def __post_init__(self) -> None:
         for name in ("width", "height"):
-            object.__setattr__(self, name, int(_check("Camera", name, getattr(self, name), 16,
-                                                      4096, integer=True)))
+            object.__setattr__(self, name, int(_check("Camera", name, getattr(self, name),
+                                                      *CAMERA_SIDES, integer=True)))
         if self.focal_px is None:
             f = (self.width / 2.0) / math.tan(math.radians(_DEFAULT_HFOV_DEG / 2.0))
             object.__setattr__(self, "focal_px", f)

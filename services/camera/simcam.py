@@ -18,16 +18,24 @@ import time
 from ...common.bus import Node
 from ...common.messages import CmdVel, Estimate, Frame, MessageError, Pose
 from ..runtime import ready
-from .sim import Camera, Command, Simulator
+from .scenarios import ScenarioError, load_scenario
+from .sim import CAMERA_SIDES, Camera, Command, Simulator
+from .sources import parse_size
 
 log = logging.getLogger("vistrack.camera")
 
 
-def make_simulator(args: argparse.Namespace, size: tuple[int, int] | None) -> Simulator:
+def make_simulator(args: argparse.Namespace) -> Simulator:
+    """The simulator of ``--source sim[:SCENARIO]``, ``--size``, ``--noise``, ``--texture`` and
+    ``--seed``; a ValueError names the flag that is wrong."""
     scenario = args.source.split(":", 1)[1] if ":" in args.source else "default"
-    w, h = size if size is not None else (256, 256)
-    return Simulator(scenario or "default", camera=Camera(width=w, height=h,
-                                                          noise_sigma=args.noise),
+    w, h = (parse_size(args.size, "--size", sides=CAMERA_SIDES) if args.size
+            else (256, 256))
+    try:
+        scene = load_scenario(scenario or "default")
+    except ScenarioError as e:
+        raise ScenarioError(f"--source {args.source}: {e}") from None
+    return Simulator(scene, camera=Camera(width=w, height=h, noise_sigma=args.noise),
                      texture=args.texture, seed=args.seed)
 
 

@@ -8,6 +8,7 @@ frames through exactly this code. Every frame comes out 8-bit grey, converted th
 from __future__ import annotations
 
 import glob
+import math
 import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -21,21 +22,34 @@ from ...common.vision import to_gray
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
 VIDEO_EXTS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 BUILTIN = "builtin"
+#: Frame sides ``parse_size`` accepts by default, px.
+SIZE_RANGE = (8, 8192)
+#: Camera device indices ``device:N`` accepts (cv2.VideoCapture(-1) crashes the process).
+DEVICE_RANGE = (0, 99)
+
+# OpenCV and its FFmpeg back end print their own warnings on stderr ("moov atom not found",
+# "can't open camera by index") before the one-line error that names the file or device.
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET; read at first capture
+cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
 class SourceError(ValueError):
     """A frame source cannot be opened or read; the message names the path and the problem."""
 
 
-def parse_size(text: str) -> tuple[int, int]:
-    """'WxH' -> (width, height), each 8..8192."""
+def parse_size(text: str, flag: str = "size", *,
+               sides: tuple[int, int] = SIZE_RANGE) -> tuple[int, int]:
+    """'WxH' -> (width, height), each within ``sides`` (default 8..8192); errors name ``flag``
+    (the flag the text came from, e.g. ``--resize``)."""
     try:
         w_s, h_s = text.lower().split("x")
         w, h = int(w_s), int(h_s)
     except ValueError:
-        raise SourceError(f"size {text!r} is not WIDTHxHEIGHT, e.g. 256x256") from None
-    if not (8 <= w <= 8192 and 8 <= h <= 8192):
-        raise SourceError(f"size {text!r} is out of range: width and height must be 8..8192")
+        raise SourceError(f"{flag} {text!r} is not WIDTHxHEIGHT, e.g. 256x256") from None
+    lo, hi = sides
+    if not (lo <= w <= hi and lo <= h <= hi):
+        raise SourceError(f"{flag} {text} is out of range: width and height must be "
+                          f"{lo}..{hi}")
     return w, h
 
 
@@ -49,6 +63,15 @@ def read_image(path: str) -> np.ndarray:
     if img is None:
         raise SourceError(f"{path}: not a readable image")
     return to_gray(img)
+
+
+def _check_images(paths: list[str]) -> None:
+    """Fail now, not after the first frames, on a file that is not an image at all: OpenCV
+    knows a format from a file's first bytes. (A damaged image of a known format still fails
+    when it is read, naming the file.)"""
+    for p in paths:
+        if os.path.isfile(p) and not cv2.haveImageReader(p):
+            raise SourceError(f"{p}: not a readable image")
 
 
 @dataclass
@@ -86,12 +109,14 @@ class FileFrames:
             if not cap.isOpened():
                 raise SourceError(f"{path}: not a readable video")
             try:
+                announced = cap.get(cv2.CAP_PROP_FRAME_COUNT)
                 k = 0
                 while True:
                     ok, img = cap.read()
                     if not ok:
                         if k == 0:
                             raise SourceError(f"{path}: video has no readable frame")
+                        _check_complete(path, k, announced)
                         return
                     yield f"{path}#{k}", to_gray(img)
                     k += 1
@@ -100,6 +125,15 @@ class FileFrames:
         else:
             for p in self.paths:
                 yield p, read_image(p)
+
+
+def _check_complete(path: str, read: int, announced: float) -> None:
+    """A video that ends well before the frame count of its header is cut short or damaged:
+    say so once its readable frames have been used. Containers without an index estimate the
+    count from the duration, so a shortfall of a frame or two percent is not an error."""
+    if math.isfinite(announced) and announced > 0 and announced - read > max(1, 0.02 * announced):
+        raise SourceError(f"{path}: the video ends after {read} of the {announced:.0f} frames "
+                          "its header announces (cut short or damaged)")
 
 
 @dataclass
@@ -134,26 +168,49 @@ def open_files(specs: Sequence[str], size: tuple[int, int] | None = None
             paths = sorted(os.path.join(spec, f) for f in os.listdir(spec) if _is_image(f))
             if not paths:
                 raise SourceError(f"{spec}: folder holds no image ({', '.join(IMAGE_EXTS)})")
+            _check_images(paths)
             return FileFrames(paths, size=size, description=f"{spec} ({len(paths)} images)")
         if any(ch in spec for ch in "*?[") and not os.path.exists(spec):
             paths = sorted(p for p in glob.glob(spec) if _is_image(p))
             if not paths:
                 raise SourceError(f"{spec}: pattern matches no image file")
+            _check_images(paths)
             return FileFrames(paths, size=size, description=f"{spec} ({len(paths)} images)")
+        if not spec:
+            raise SourceError("'' is not a file or folder: give a video, a folder of images, "
+                              "a glob or image files")
         if not os.path.exists(spec):
             raise SourceError(f"{spec}: no such file or folder")
         if not _is_image(spec):
             return FileFrames([spec], video=True, size=size, description=spec)
     for p in specs:
         if not os.path.exists(p):
-            raise SourceError(f"{p}: no such file")
+            raise SourceError(f"{p!r}: no such file" if not p else f"{p}: no such file")
         if os.path.isdir(p):
             raise SourceError(f"{p}: is a folder; give one folder alone, or image files")
+    _check_images(specs)
     return FileFrames(specs, size=size, description=f"{len(specs)} images")
+
+
+def device_index(spec: str) -> int:
+    """N of a ``device:N`` source, checked against :data:`DEVICE_RANGE`."""
+    text = spec.split(":", 1)[1]
+    lo, hi = DEVICE_RANGE
+    try:
+        index = int(text)
+    except ValueError:
+        raise SourceError(f"{spec!r}: the device index must be an integer {lo}..{hi}, "
+                          "e.g. device:0") from None
+    if not lo <= index <= hi:
+        raise SourceError(f"{spec!r}: device index {index} is out of range: allowed {lo}..{hi}")
+    return index
 
 
 def open_device(index: int, size: tuple[int, int] | None = None) -> Iterator[np.ndarray]:
     """Frames from a camera device through cv2.VideoCapture, grey, optionally resized."""
+    lo, hi = DEVICE_RANGE
+    if not lo <= index <= hi:  # a negative index crashes OpenCV (segmentation fault)
+        raise SourceError(f"device:{index}: device index out of range: allowed {lo}..{hi}")
     cap = cv2.VideoCapture(index)
     if not cap.isOpened():
         raise SourceError(f"device:{index}: cannot open the camera device")

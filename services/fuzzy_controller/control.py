@@ -102,6 +102,12 @@ class SurfaceConfig:
         return Path(base).expanduser() / "vistrack"
 
 
+#: Allowed values of :class:`ControllerConfig`'s fields (and of the service's flags).
+STALE_AFTER_RANGE = (0.0, 10.0)  # s, 0 excluded
+MIN_NPI_RANGE = (0, 10000)
+X_REF_RANGE = (0.0, 1e5)  # px
+
+
 @dataclass(frozen=True)
 class ControllerConfig:
     """Set point, rate filter and watchdog of :class:`FuzzyController` and
@@ -135,13 +141,14 @@ class ControllerConfig:
     def __post_init__(self) -> None:
         obj = "ControllerConfig"
         object.__setattr__(self, "stale_after_s", check_number(
-            obj, "stale_after_s", self.stale_after_s, 0.0, 10.0, lo_open=True))
+            obj, "stale_after_s", self.stale_after_s, *STALE_AFTER_RANGE, lo_open=True))
         object.__setattr__(self, "min_npi", check_number(
-            obj, "min_npi", self.min_npi, 0, 10000, integer=True))
+            obj, "min_npi", self.min_npi, *MIN_NPI_RANGE, integer=True))
         object.__setattr__(self, "rate_tau_s", check_number(
             obj, "rate_tau_s", self.rate_tau_s, 0.0, 10.0))
         if self.x_ref is not None:
-            object.__setattr__(self, "x_ref", check_number(obj, "x_ref", self.x_ref, 0.0, 1e5))
+            object.__setattr__(self, "x_ref", check_number(obj, "x_ref", self.x_ref,
+                                                           *X_REF_RANGE))
         if self.scale_ref is not None:
             object.__setattr__(self, "scale_ref", check_number(
                 obj, "scale_ref", self.scale_ref, 0.0, 1e9, lo_open=True))

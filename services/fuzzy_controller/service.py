@@ -17,10 +17,14 @@ import logging
 import time
 
 from ...common.bus import Node
-from ...common.messages import CmdVel, Estimate, MessageError
+from ...common.messages import MAX_SIDE, CmdVel, Estimate, MessageError
 from ..runtime import add_service_args, ready, serve
+from ..usage import add_number
 from .control import (
+    MIN_NPI_RANGE,
+    STALE_AFTER_RANGE,
     STOP,
+    X_REF_RANGE,
     ControllerConfig,
     FuzzyController,
     FuzzySurface,
@@ -42,14 +46,20 @@ LIMITS = FuzzyLimits(ex_max=0.1, dex_max=0.3, ez_max=0.1, dez_max=0.3, vy_max=0.
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--law", choices=("fuzzy", "proportional"), default="fuzzy",
                         help="control law (default fuzzy)")
-    parser.add_argument("--image-width", type=float, default=256.0, metavar="PX",
-                        help="image width used to normalise the centring error (default 256)")
-    parser.add_argument("--x-ref", type=float, default=None, metavar="PX",
-                        help="set-point centroid x (default: captured from the first estimate)")
-    parser.add_argument("--stale-after", type=float, default=0.3, metavar="S",
-                        help="watchdog: stop the robot when estimates are older (default 0.3)")
-    parser.add_argument("--min-npi", type=int, default=5,
-                        help="stop the robot when fewer features are tracked (default 5)")
+    add_number(parser, "--image-width", lo=8, hi=MAX_SIDE, default=256.0, metavar="PX",
+               help="image width used to normalise the centring error, %(allowed)s "
+                    "(default 256)")
+    add_number(parser, "--x-ref", lo=X_REF_RANGE[0], hi=X_REF_RANGE[1], default=None,
+               metavar="PX", help="set-point centroid x, %(allowed)s (default: captured from "
+                                  "the first estimate)")
+    add_number(parser, "--stale-after", lo=STALE_AFTER_RANGE[0], hi=STALE_AFTER_RANGE[1],
+               lo_open=True, default=0.3, metavar="S",
+               help="watchdog: stop the robot when estimates are older, %(allowed)s "
+                    "(default 0.3)")
+    add_number(parser, "--min-npi", lo=MIN_NPI_RANGE[0], hi=MIN_NPI_RANGE[1], integer=True,
+               default=5, metavar="N",
+               help="stop the robot when fewer features are tracked, %(allowed)s (default 5; "
+                    "0: never)")
     add_service_args(parser)
 
 
@@ -104,10 +114,4 @@ def loop(node: Node, args: argparse.Namespace) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    try:
-        make_controller(args) if args.law == "proportional" else ControllerConfig(
-            stale_after_s=args.stale_after, min_npi=args.min_npi, x_ref=args.x_ref)
-    except ValueError as e:
-        print(f"vistrack fuzzy-controller: error: {e}", file=__import__("sys").stderr)
-        return 2
     return serve("fuzzy_controller", args, loop)

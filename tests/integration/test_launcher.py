@@ -344,6 +344,22 @@ BAD_LAUNCH_FILES = {
                     r"line 3: services\.camera\.backoff\.initial: -1 is out of range"),
     "bad endpoint": ("router: {listen: [localhost]}\nservices: {camera: }\n",
                      r"line 1: router\.listen: 'localhost' is not a Zenoh endpoint"),
+    "endpoint without a port": ("router: {listen: [tcp/127.0.0.1]}\nservices: {camera: }\n",
+                                r"line 1: router\.listen: 'tcp/127\.0\.0\.1' is not a Zenoh "
+                                r"endpoint"),
+    # what the service itself would refuse is refused here, before anything starts
+    "flag out of range": ("services:\n  camera:\n    flags: {--fps: -5}\n",
+                          r"line 3: services\.camera\.flags: --fps -5 is out of range: "
+                          r"allowed 0\.\.1000$"),
+    "flag not a number": ("services:\n  preprocessing:\n    flags: [--search-size, .nan]\n",
+                          r"line 3: services\.preprocessing\.flags: --search-size 'nan' is "
+                          r"not an integer: allowed 2\.\.128$"),
+    "camera source missing": ("services:\n  camera:\n    flags: {--source: file:/no/such}\n",
+                              r"line 3: services\.camera\.flags: /no/such: no such file or "
+                              r"folder$"),
+    "scale band": ("services:\n  auto-tuner:\n    flags: [--scale-band, '1.1', '1.5']\n",
+                   r"line 3: services\.auto-tuner\.flags: --scale-band 1\.1 1\.5 is out of "
+                   r"range: allowed 0 < LO < 1 < HI$"),
 }
 
 
@@ -371,6 +387,22 @@ def test_bad_launch_file_from_the_real_command_line(tmp_path):
 def test_listen_and_connect_together_is_a_usage_error(capsys):
     assert cli.main(["up", "-l", "tcp/127.0.0.1:1", "-e", "tcp/127.0.0.1:2"]) == 2
     assert "give one of them" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--fps", "-1"], "--fps -1 is out of range: allowed 0..1000"),
+    (["--size", "5000x5000"], "--size 5000x5000 is out of range: width and height must be "
+                              "8..4096"),
+    (["--camera", "sim:nowhere"], "--source sim:nowhere: 'nowhere' is neither a built-in "
+     "scenario (allowed: default, sideways, approach, steps, still, lighting) nor an existing "
+     "YAML file"),
+    (["--camera", "device:-1"], "'device:-1': device index -1 is out of range: allowed 0..99"),
+])
+def test_camera_overrides_are_checked_before_anything_starts(flags, message, capsys):
+    """``up --fps/--size/--camera`` go through the camera's own checks: a usage error (2),
+    not a camera that exits during start-up (1)."""
+    assert cli.main(["up", *flags, "-l", "tcp/127.0.0.1:1"]) == 2
+    assert capsys.readouterr().err == f"vistrack up: error: {message}\n"
 
 
 def test_deploy_local_yaml_is_the_built_in_default_and_valid():

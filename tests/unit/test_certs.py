@@ -124,6 +124,10 @@ def test_command_line(tmp_path, capsys):
                      "--ca", f"{tmp_path}/other/ca.pem"]) == 1
     assert "NOT signed by the CA" in capsys.readouterr().out
     assert cli.main(["certs", "show", f"{d}/missing.pem"]) == 2
-    with pytest.raises(SystemExit) as e:
-        cli.main(["certs", "issue", "x", "--days", "0"])
-    assert e.value.code == 2
+    capsys.readouterr()
+    assert cli.main(["certs", "issue", "x", "--days", "0"]) == 2
+    assert capsys.readouterr().err == ("vistrack certs: error: --days 0 is out of range: "
+                                       "allowed 1..36500\n")
+    assert cli.main(["certs", "ca", "--dir", str(tmp_path / "long"), "--name", "x" * 65]) == 2
+    assert capsys.readouterr().err == ("vistrack certs: error: --name '" + "x" * 65 + "' is 65 "
+                                       "characters long: a common name has 1 to 64\n")

@@ -100,10 +100,13 @@ def test_video_file_and_builtin(tmp_path):
 @pytest.mark.parametrize("args,needle", [
     (["/no/such/file.png"], "no such file"),
     (["--search-size", "500"], "--search-size 500 is out of range: allowed 2..128"),
-    (["--thres-percent", "9"], "--thres-percent 9.0 is out of range: allowed 0.1..5"),
+    (["--thres-percent", "9"], "--thres-percent 9 is out of range: allowed 0.1..5"),
+    (["--thres-percent", "nan"], "--thres-percent nan is out of range: allowed 0.1..5"),
     (["--format", "xml"], "invalid choice"),
-    (["--resize", "big"], "WIDTHxHEIGHT"),
-    (["--max-features", "many"], "invalid int value"),
+    (["--resize", "big"], "--resize 'big' is not WIDTHxHEIGHT, e.g. 256x256"),
+    (["--resize", "0x0"], "--resize 0x0 is out of range: width and height must be 8..8192"),
+    (["--max-features", "many"], "--max-features 'many' is not an integer: allowed 1..2000"),
+    (["--max-features", "1e9"], "--max-features '1e9' is not an integer: allowed 1..2000"),
     (["--search", "full"], "invalid choice"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, needle):

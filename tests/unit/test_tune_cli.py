@@ -60,15 +60,18 @@ def test_text_sections_progress_and_plots(tmp_path):
 
 @pytest.mark.parametrize("args,message", [
     (["/no/such/file.png"], "no such file"),
-    (["--tolerance", "-1"], "--tolerance"),
-    (["--resize", "huge"], "WIDTHxHEIGHT"),
-    (["--max-frames", "1"], "--max-frames"),
-    (["--repeats", "0"], "--repeats"),
-    (["--replicates", "0"], "--replicates 0 is out of range"),
-    (["--replicates", "21"], "--replicates 21 is out of range"),
+    (["--tolerance", "-1"], "--tolerance -1 is out of range: allowed 0..100"),
+    (["--tolerance", "nan"], "--tolerance nan is out of range: allowed 0..100"),
+    (["--resize", "huge"], "--resize 'huge' is not WIDTHxHEIGHT"),
+    (["--max-frames", "1"], "--max-frames 1 is out of range: allowed 2..1000"),
+    (["--repeats", "0"], "--repeats 0 is out of range: allowed 1..20"),
+    (["--replicates", "0"], "--replicates 0 is out of range: allowed 1..20"),
+    (["--replicates", "21"], "--replicates 21 is out of range: allowed 1..20"),
     (["--replicates", "3", "--method", "anova"], "tested against pure error"),
-    (["--step", "0"], "--step"),
-    (["--seed", "x"], "invalid int"),
+    (["--step", "0"], "--step 0 is out of range: allowed 1..10"),
+    (["--step", "11"], "--step 11 is out of range: allowed 1..10"),
+    (["--seed", "-1"], "--seed -1 is out of range: allowed 0..9223372036854775807"),
+    (["--seed", "x"], "--seed 'x' is not an integer: allowed 0..9223372036854775807"),
     (["--format", "xml"], "invalid choice"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, message, capsys):

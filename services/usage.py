@@ -1,0 +1,173 @@
+"""What every subcommand shares about bad command lines: numeric flags with declared ranges,
+the optional ``check_args`` hook, and the one-line error.
+
+A numeric flag is declared once with its range (:func:`add_number`); argparse then converts and
+checks it while parsing, wherever the flags are parsed: ``vistrack <sub>`` (``cli.py``) and a
+launch file's ``flags:`` (``launcher.check_service_flags``). The error names the flag, the value
+as given and the allowed range, e.g. ``--fps nan is out of range: allowed 0..1000``. Help texts
+can show the range with ``%(allowed)s``.
+
+A subcommand module may also define ``check_args(args)``: checks across flags, or of what a flag
+names (a source, a file), that raise ``ValueError`` with the same kind of message. It runs after
+parsing, before ``main``, in both places.
+
+Pure argparse: no Zenoh, no OpenCV, so the offline tools import it for free.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import re
+import sys
+from dataclasses import dataclass
+from types import ModuleType
+from typing import Any
+
+
+class FlagError(ValueError):
+    """A flag's value is not a number or is out of its declared range; the text names the
+    flag, the value as given and the allowed range.
+
+    Raised from inside argparse (it is not an ``argparse.ArgumentError``, so it carries its
+    own text out rather than argparse's "argument --x: ..." form): callers of ``parse_args``
+    catch it with the ``ValueError`` of ``check_args``.
+    """
+
+
+def _num(value: float) -> str:
+    if isinstance(value, int):
+        return str(value)
+    return str(int(value)) if value.is_integer() and abs(value) < 1e15 else f"{value:g}"
+
+
+@dataclass(frozen=True)
+class Range:
+    """The allowed values of a numeric flag: ``lo..hi`` (both included, so NaN and infinities
+    are out), ``lo`` excluded when ``lo_open``; whole numbers only when ``integer``."""
+
+    lo: float
+    hi: float
+    integer: bool = False
+    lo_open: bool = False
+    unit: str = ""
+
+    def allowed(self, metavar: str = "X") -> str:
+        """``0..1000``, ``0 < S <= 3600``, with the unit after it if any."""
+        text = (f"{_num(self.lo)} < {metavar} <= {_num(self.hi)}" if self.lo_open
+                else f"{_num(self.lo)}..{_num(self.hi)}")
+        return f"{text} {self.unit}" if self.unit else text
+
+    def contains(self, value: float) -> bool:
+        """Whether ``value`` is allowed (False for NaN)."""
+        above = self.lo < value if self.lo_open else self.lo <= value
+        return above and value <= self.hi
+
+    def parse(self, flag: str, text: str, metavar: str = "X") -> int | float:
+        """``text`` as the flag's number.
+
+        Raises
+        ------
+        FlagError
+            Naming ``flag``, ``text`` as given and the range.
+        """
+        try:
+            value: int | float = int(text) if self.integer else float(text)
+        except ValueError:
+            kind = "an integer" if self.integer else "a number"
+            raise FlagError(f"{flag} {text!r} is not {kind}: allowed "
+                            f"{self.allowed(metavar)}") from None
+        if not self.contains(value):
+            raise FlagError(f"{flag} {text} is out of range: allowed {self.allowed(metavar)}")
+        return value
+
+
+class _Number(argparse.Action):
+    """Stores the flag's value converted and checked by its :class:`Range`."""
+
+    def __init__(self, option_strings: list[str], dest: str, *, range: Range,
+                 **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, **kwargs)
+        self.range = range
+        self.allowed = range.allowed(self.metavar if isinstance(self.metavar, str) else "X")
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: Any, option_string: str | None = None) -> None:
+        metavar = self.metavar if isinstance(self.metavar, str) else "X"
+        flag = option_string or self.dest
+        setattr(namespace, self.dest, self.range.parse(flag, values, metavar))
+
+
+def add_number(parser: Any, *names: str, lo: float, hi: float, integer: bool = False,
+               lo_open: bool = False, unit: str = "", **kwargs: Any) -> argparse.Action:
+    """``parser.add_argument(*names, **kwargs)`` for a number in ``lo..hi`` (``lo`` excluded
+    when ``lo_open``, whole numbers when ``integer``). ``parser`` may be an argument group.
+    The help may say ``%(allowed)s`` for the range. Defaults are not checked: give valid ones.
+    """
+    if "type" in kwargs or "nargs" in kwargs:
+        raise TypeError("add_number parses one value itself: no type= or nargs=")
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+        raise ValueError(f"range {lo}..{hi} of {names} is not a finite interval")
+    action: argparse.Action = parser.add_argument(
+        *names, action=_Number, range=Range(lo, hi, integer, lo_open, unit), **kwargs)
+    return action
+
+
+def run_checks(module: ModuleType, args: argparse.Namespace) -> None:
+    """The checks after parsing: the Zenoh endpoints (``-e``, ``-l``) if the subcommand takes
+    them, then ``module.check_args(args)`` if it defines one. A ``ValueError`` says, in its
+    message, what is wrong."""
+    for flag, attr in (("-e/--connect", "connect"), ("-l/--listen", "listen")):
+        for endpoint in getattr(args, attr, None) or ():
+            check_endpoint(flag, endpoint)
+    check = getattr(module, "check_args", None)
+    if check is not None:
+        check(args)
+
+
+# Protocols whose address is host:port. Zenoh accepts "tcp/1.2.3" or a port of 99999 when it
+# reads the flags and fails only when the session opens, with a message about sockets.
+_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+_HOST_PORT = re.compile(r"(\[[0-9A-Za-z:.%]+\]|[^:/\[\]\s]+):(\d{1,5})")
+
+
+def check_endpoint(flag: str, endpoint: str) -> str:
+    """``endpoint`` if it is ``<protocol>/<address>`` and, for tcp, udp, tls, quic and ws,
+    the address is ``<host>:<port>`` with a port 0..65535; else a FlagError naming ``flag``."""
+    proto, sep, rest = endpoint.partition("/")
+    if not (sep and proto and rest):
+        raise FlagError(f"{flag} {endpoint!r} is not a Zenoh endpoint: expected "
+                        "<protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+    address = re.split(r"[?#]", rest, maxsplit=1)[0]
+    if proto in _IP_PROTOCOLS:
+        match = _HOST_PORT.fullmatch(address)
+        if match is None or int(match[2]) > 65535:
+            raise FlagError(f"{flag} {endpoint!r} is not a Zenoh endpoint: expected "
+                            f"{proto}/<host>:<port> with a port 0..65535, e.g. "
+                            f"{proto}/127.0.0.1:7447")
+    return endpoint
+
+
+# Where a Rust library (Zenoh) says in which of its own source files an error was raised: of
+# no use to the user, and the path is as long as the message.
+_RUST_WHERE = re.compile(r"\s+at\s+/\S+\.rs:\d+\.?")
+# A pest parser's multi-line error (Zenoh's JSON5 config reader): " --> 1:17 ... = problem".
+_PEST = re.compile(r"-->\s*(\d+):(\d+).*?\n\s*=\s*(.+)", re.DOTALL)
+
+
+def one_line(message: object) -> str:
+    """``message`` on one line: a parser's multi-line report becomes ``line L, column C:
+    problem``; other line breaks and runs of spaces become one space; Rust source locations
+    are dropped."""
+    text = _RUST_WHERE.sub("", str(message))
+    pest = _PEST.search(text)
+    if pest is not None:
+        line, column, problem = pest.groups()
+        text = (text[:pest.start()].rstrip(" :") + f": line {line}, column {column}: "
+                + problem.strip())
+    return " ".join(text.split())
+
+
+def print_error(command: str, message: object) -> None:
+    """The one-line error of a subcommand on stderr: ``vistrack COMMAND: error: MESSAGE``."""
+    print(f"vistrack {command}: error: {one_line(message)}", file=sys.stderr, flush=True)

@@ -82,9 +82,10 @@ class RecordWriter:
     def __init__(self, path: str | Path, *, robot: str, keys: list[str]) -> None:
         self.path = Path(path)
         try:
-            self._file: BinaryIO = open(self.path, "wb")  # closed by close()
+            self._file: BinaryIO = open(path, "wb")  # closed by close()
         except OSError as e:
-            raise ToolError(f"cannot write {path}: {e.strerror}", code=2) from None
+            raise ToolError(f"cannot write {str(path) or repr(str(path))}: {e.strerror}",
+                            code=2) from None
         self._packer = msgpack.Packer(use_bin_type=True)
         self.start_ns = time.time_ns()
         self._start_mono = time.monotonic_ns()
@@ -207,9 +208,23 @@ def _record(path: Path, offset: int, obj: Any) -> Record:
         raise RecordError(path, offset, "corrupt record: 't_ns' must be an integer >= 0")
     if not isinstance(key, str) or not key:
         raise RecordError(path, offset, "corrupt record: 'key' must be a non-empty string")
+    if not _is_concrete_key(key):
+        raise RecordError(path, offset, f"corrupt record: 'key' {key[:80]!r} is not a key a "
+                          "sample can be published on (no empty chunk, wildcard, '#' or '?')")
     if not isinstance(payload, bytes):
         raise RecordError(path, offset, "corrupt record: 'payload' must be bin")
     return Record(t_ns, key, payload, offset)
+
+
+def _is_concrete_key(key: str) -> bool:
+    """Whether ``key`` is a valid Zenoh key without wildcards (what a recorded sample had)."""
+    if "*" in key or "$" in key:
+        return False
+    try:
+        zenoh.KeyExpr(key)
+    except zenoh.ZError:
+        return False
+    return True
 
 
 # -- the command ------------------------------------------------------------------------------

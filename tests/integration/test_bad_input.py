@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import cv2
+import msgpack
 import numpy as np
 import pytest
 
@@ -44,7 +45,11 @@ def d(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (d / "cut.avi").write_bytes(data[:len(data) // 3])
     cv2.imwrite(str(d / "wide.png"), np.zeros((10, 5000), np.uint8))
     (d / "bad.json5").write_text("{ mode: 'peer', ")
+    header = msgpack.packb({"format": "vistrack-record", "version": 1, "robot": "robot",
+                            "keys": ["vistrack/robot/**"], "start_ns": 1})
     (d / "garbage.rec").write_bytes(bytes(range(200)))
+    (d / "badkey.rec").write_bytes(header + msgpack.packb(
+        {"t_ns": 1, "key": "vistrack/robot//frame", "payload": b"x"}))
     return d
 
 
@@ -195,9 +200,23 @@ def test_bad_input_is_one_line_and_exit_2(d, sub, argv, message):
     check(run, sub, message.format(d=d))
 
 
+def test_a_damaged_recording_is_replayed_to_its_first_bad_record(d):
+    """A record whose key cannot be published on is corrupt like any other bad record: the
+    warning and the error name the file and the byte offset (it was a Zenoh error, exit 1)."""
+    run = vistrack("replay", str(d / "badkey.rec"), "--wait", "0", NS)
+    assert run.returncode == 2
+    assert run.stderr.splitlines() == [
+        f"vistrack replay: warning: {d}/badkey.rec is damaged: replayed the 0 valid samples "
+        "before byte offset 79",
+        f"vistrack replay: error: {d}/badkey.rec at byte offset 79: corrupt record: 'key' "
+        "'vistrack/robot//frame' is not a key a sample can be published on (no empty chunk, "
+        "wildcard, '#' or '?')"]
+
+
 def test_a_video_cut_short_is_tracked_then_reported(d):
     """The frames a cut video still has are tracked and printed; then the one-line error."""
     run = vistrack("track", str(d / "cut.avi"), "--format", "csv")
     assert run.returncode == 2
     assert len(run.stdout.splitlines()) == 1 + 3  # the CSV header and three frames
     assert run.stderr.count("\n") == 1 and "ends after 3 of the 10 frames" in run.stderr
+

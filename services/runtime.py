@@ -27,6 +27,7 @@ from ..common.bus import (
 from ..common.messages import MessageError, Params
 from ..common.params import ParamError, TrackerParams
 from .track import add_param_flags, params_from_args
+from .usage import print_error
 
 log = logging.getLogger("vistrack")
 
@@ -57,14 +58,20 @@ def serve(service: str, args: argparse.Namespace,
     # own pool splits a 256x256 filter across threads that then spin waiting for work, which
     # cost pre-processing 240 us of CPU a frame on 2 cores shared by six processes.
     cv2.setNumThreads(1)
+    command = service.replace("_", "-")
     try:
         if hasattr(args, "max_features"):  # the tracker parameter flags: check before Zenoh
             params_from_args(args)
         conf = config_from_args(args)
     except (BusError, ParamError) as e:
-        print(f"vistrack {service.replace('_', '-')}: error: {e}", file=sys.stderr)
+        print_error(command, e)
         return 2
-    with ZenohNode(service, conf, args.robot) as node:
+    try:
+        node = ZenohNode(service, conf, args.robot)
+    except BusError as e:  # the session did not open: a port in use, an absent interface
+        print_error(command, e)
+        return 1
+    with node:
         restore = install_signal_handlers(node.stop)
         try:
             rc = loop(node, args)

@@ -220,3 +220,12 @@ def test_a_video_cut_short_is_tracked_then_reported(d):
     assert len(run.stdout.splitlines()) == 1 + 3  # the CSV header and three frames
     assert run.stderr.count("\n") == 1 and "ends after 3 of the 10 frames" in run.stderr
 
+
+@pytest.mark.parametrize("sub", ["camera", "preprocessing"])
+def test_a_session_that_cannot_open_is_one_line_and_exit_1(sub):
+    """An endpoint that is well formed but cannot be listened on (an address of no interface
+    here) is a runtime failure: one line naming it, exit 1 (it was a traceback)."""
+    run = vistrack(sub, "-l", "tcp/192.0.2.1:7447", NS)  # TEST-NET-1: never a local address
+    assert run.returncode == 1
+    assert run.stderr.startswith(f"vistrack {sub}: error: cannot open zenoh session: ")
+    assert "tcp/192.0.2.1:7447" in run.stderr and run.stderr.count("\n") == 1, run.stderr

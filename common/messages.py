@@ -37,6 +37,10 @@ SCHEMA_VERSION = 1
 MAX_SIDE = 4096
 MAX_PIXELS = MAX_SIDE * MAX_SIDE
 MAX_TEXT = 4096  # longest free-text field (``reason``), characters
+#: Largest ``params_id`` a reader accepts: exact in JSON (and float64), and far from msgpack's
+#: 2**64 limit, so that "one above the largest seen" can always be encoded. A publisher at
+#: the limit has no newer id to give (see ``next_params_id``).
+MAX_PARAMS_ID = 2**53 - 1
 
 # Explicit msgpack limits: a hostile or corrupt length prefix must not make the reader
 # allocate more than a full-size frame's worth of candidates (4 bytes per pixel).
@@ -350,6 +354,7 @@ class _Message:
 
 
 _SEQ = {"seq": _int(), "stamp_ns": _int()}
+_PARAMS_ID = _int(0, MAX_PARAMS_ID)
 _SIDE = _int(1, MAX_SIDE)
 _IMAGE = {"width": _SIDE, "height": _SIDE, "encoding": _str(("mono8",))}
 
@@ -434,7 +439,7 @@ class PreFrame(_Message):
     """
 
     KEY: ClassVar[str] = "preprocessing/frame"
-    _CHECKS: ClassVar[dict[str, _Check]] = {**_SEQ, **_IMAGE, "params_id": _int()}
+    _CHECKS: ClassVar[dict[str, _Check]] = {**_SEQ, **_IMAGE, "params_id": _PARAMS_ID}
 
     seq: int
     stamp_ns: int
@@ -515,7 +520,7 @@ class Estimate(_Message):
     _CHECKS: ClassVar[dict[str, _Check]] = {
         **_SEQ, "npi": _int(), "xc": _float(), "yc": _float(), "xe": _float(0.0),
         "ye": _float(0.0), "dx": _float(), "dy": _float(), "scale": _float(positive=True),
-        "t_ms": _float(0.0), "first": _bool, "features": _features, "params_id": _int()}
+        "t_ms": _float(0.0), "first": _bool, "features": _features, "params_id": _PARAMS_ID}
 
     seq: int
     stamp_ns: int
@@ -549,7 +554,7 @@ class Params(_Message):
 
     KEY: ClassVar[str] = "tuner/params"
     _CHECKS: ClassVar[dict[str, _Check]] = {
-        **_SEQ, "params_id": _int(), "source": _str(("tuner", "user")), "reason": _str()}
+        **_SEQ, "params_id": _PARAMS_ID, "source": _str(("tuner", "user")), "reason": _str()}
 
     seq: int
     stamp_ns: int
@@ -584,6 +589,21 @@ class Params(_Message):
         """The message announcing ``params``."""
         return cls(seq=seq, stamp_ns=stamp_ns, params_id=params_id, source=source,
                    reason=reason, **params.factors())
+
+
+def next_params_id(largest: int) -> int:
+    """The ``params_id`` of a new parameter set: one above ``largest``, the largest in force.
+
+    Raises
+    ------
+    MessageError
+        If that is beyond :data:`MAX_PARAMS_ID` (a publisher sent the largest id there is).
+    """
+    if largest >= MAX_PARAMS_ID:
+        raise MessageError(f"params_id {largest} in force is the largest a message may carry "
+                           f"({MAX_PARAMS_ID}): no newer parameters can be announced",
+                           field="params_id")
+    return largest + 1
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -26,7 +26,7 @@ from typing import Any
 import zenoh
 
 from ..common.keys import Keys
-from ..common.messages import MessageError, Params, unpack
+from ..common.messages import MessageError, Params, next_params_id, unpack
 from ..common.params import BOUNDS, FACTORS, ParamError, TrackerParams
 from .tools import (
     ServiceState,
@@ -156,7 +156,10 @@ def set_params(session: zenoh.Session, keys: Keys, changes: dict[str, Any],
         raise ToolError(f"{CONFIRMING_SERVICE} of robot {keys.robot!r} does not answer: is it "
                         "running? (see vistrack status)")
     # above every id in force, or a service that is ahead would reject the set as stale
-    params_id = max(int(p["params_id"]) for p in params.values()) + 1
+    try:
+        params_id = next_params_id(max(int(p["params_id"]) for p in params.values()))
+    except MessageError as e:
+        raise ToolError(str(e)) from None
     base = TrackerParams().replace(**{f: current[f] for f in FACTORS if f in current})
     try:
         new = base.replace(**changes)

@@ -37,7 +37,15 @@ from typing import Any
 import numpy as np
 
 from ...common.bus import Node
-from ...common.messages import Estimate, Frame, MessageError, Params, Report, pack
+from ...common.messages import (
+    Estimate,
+    Frame,
+    MessageError,
+    Params,
+    Report,
+    next_params_id,
+    pack,
+)
 from ..runtime import ParamsInForce, add_service_args, ready, serve
 from ..usage import add_number
 from . import triggers as tr
@@ -117,12 +125,19 @@ class AutoTuner:
         node.status.extra.update(buffered=0, tunings=0, last_reason="", tuning=False,
                                  last_cycle_s=None)
 
-    def announce(self, reason: str | None = None) -> None:
+    def announce(self, reason: str | None = None) -> bool:
         """Publish the parameters in force: a new ``params_id`` from the tuner when ``reason``
-        is given, else again as they are (a reminder for late joiners)."""
+        is given, else again as they are (a reminder for late joiners). False when there is
+        no new ``params_id`` to give (logged, in the status): nothing is published."""
         st = self.state
         if reason is not None:
-            st.params_id = max(st.params_id, self.seen_id) + 1
+            try:
+                new_id = next_params_id(max(st.params_id, self.seen_id))
+            except MessageError as e:
+                self.node.status.error(e)
+                log.error("%s (%s)", e, reason)
+                return False
+            st.params_id = new_id
             st.source, st.reason = "tuner", reason
             st.publish_status(self.node)
             log.info("publishing params_id %d (%s): %s", st.params_id, reason,
@@ -132,6 +147,7 @@ class AutoTuner:
                                          stamp_ns=time.time_ns(), params_id=st.params_id,
                                          source=source, reason=st.reason)
         self.node.publish(self.node.keys.params, msg.encode(), reliable=True)
+        return True
 
     def _decode(self, cls: type, payload: bytes) -> Any:
         try:
@@ -222,8 +238,9 @@ class AutoTuner:
         user_meanwhile = st.params_id != self.id_at_start
         changed = new != st.params and not user_meanwhile
         if changed:
-            st.params = new
-            self.announce(self.reason)
+            old, st.params = st.params, new
+            if not self.announce(self.reason):
+                st.params, changed = old, False
         extra.update(tunings=extra["tunings"] + 1, last_reason=self.reason)
         log.info("tuning (%s) done in %.1f s: optimum %s%s", self.reason, cycle, optimum,
                  "" if changed else " (a user's set arrived meanwhile: kept)" if user_meanwhile

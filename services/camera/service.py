@@ -109,6 +109,7 @@ class _Acks:
     def __init__(self, node: Node, keys: tuple[str, ...]) -> None:
         self.node = node
         self.newest = dict.fromkeys(keys, -1)
+        self.sent = -1  # stamp of the newest frame sent: nothing later can be acknowledged
         for key in keys:
             node.subscribe(key, latest=True)
 
@@ -134,6 +135,9 @@ class _Acks:
         stamp = peek_int(payload, "stamp_ns")
         if stamp is None:
             self.node.status.reject(f"{key}: no valid stamp_ns")
+        elif stamp > self.sent:  # it would stand for every frame still to come
+            self.node.status.reject(f"{key}: stamp_ns {stamp} is after the newest frame sent "
+                                    f"({self.sent})")
         else:
             self.newest[key] = max(self.newest[key], stamp)
 
@@ -194,6 +198,7 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
                 extra["ack_timeouts"] = extra.get("ack_timeouts", 0) + 1
                 sent.clear()  # lost downstream (a service restarted): go on
         stamp = time.time_ns()
+        acks.sent = stamp
         node.publish(keys.frame, Frame.from_image(image, seq=seq, stamp_ns=stamp).encode(),
                      reliable=False)
         node.status.extra["frames"] = seq + 1

@@ -36,6 +36,11 @@ from .rules import FuzzyLimits
 log = logging.getLogger("vistrack.fuzzy_controller")
 
 STALE_REPEAT_S = 0.1  # how often the stop is repeated while the estimates are stale
+# The watchdog measures an estimate's age from its stamp (the capture time), so it assumes
+# the camera's clock and this one agree to well under --stale-after. An estimate stamped
+# further ahead than this is refused: accepted, it would never look stale (its command would
+# be kept however old it got), and every later estimate would look out of order.
+MAX_AHEAD_S = 1.0
 
 # Full command at a quarter image width off centre (~32 px at 256) and at a 20 % size error:
 # the whole-image limits of the rule base's defaults left the robot trailing a target that
@@ -94,6 +99,11 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         t0 = time.perf_counter()
         try:
             est = Estimate.decode(item[1])
+            ahead = est.stamp_ns * 1e-9 - now
+            if ahead > MAX_AHEAD_S:
+                raise ValueError(f"stamp_ns {est.stamp_ns} is {ahead:.3g} s ahead of this "
+                                 f"host's clock (allowed: {MAX_AHEAD_S:g} s): clocks out of "
+                                 "step, or a bad stamp")
             if est.first or xc0 is None:  # a new track: new features, so a new set point
                 ctrl.reset()
                 xc0 = est.xc

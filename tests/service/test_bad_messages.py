@@ -5,6 +5,8 @@ service goes on (the malformed ones are in tests/integration/test_tools.py)."""
 from __future__ import annotations
 
 import logging
+import threading
+import time
 
 import msgpack
 import pytest
@@ -12,6 +14,8 @@ import pytest
 from vistrack.common.bus import MemoryNode
 from vistrack.common.messages import (
     MAX_PARAMS_ID,
+    CmdVel,
+    Estimate,
     MessageError,
     Params,
     next_params_id,
@@ -33,6 +37,13 @@ def params_payload(params_id: int, **factors) -> bytes:
                           "thres_percent": 2.0, "search_size": 15, "corr_size": 9,
                           "ungroup_size": 5, "params_id": params_id, "source": "user",
                           "reason": "test", **factors})
+
+
+def wait_for(condition, timeout=5.0, what="condition"):
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.002)
 
 
 @pytest.mark.parametrize(("factor", "value", "problem"), [
@@ -82,3 +93,62 @@ def test_the_tuner_at_the_largest_params_id_keeps_what_is_in_force():
         assert "largest a message may carry" in node.status.last_error
         assert tuner.announce()  # the reminder of what is in force still goes out
         assert Params.decode(node.published_on(node.keys.params)[0]).params_id == 0
+
+
+def test_the_camera_takes_no_acknowledgement_of_a_frame_it_has_not_sent():
+    """An estimate stamped in the future would stand for every frame still to come: a paced
+    camera would stop waiting and end a file before its last frames were processed."""
+    from vistrack.services.camera.service import _Acks
+
+    def estimate(stamp_ns: int) -> bytes:
+        return Estimate(seq=0, stamp_ns=stamp_ns, npi=0, xc=0.0, yc=0.0, xe=0.0, ye=0.0,
+                        dx=0.0, dy=0.0, scale=1.0, t_ms=0.0, first=True, features=[],
+                        params_id=0).encode()
+
+    with MemoryNode("camera") as node:
+        acks = _Acks(node, (node.keys.estimate,))
+        acks.sent = 1000
+        node.feed(node.keys.estimate, estimate(10**18))
+        assert not acks.wait({node.keys.estimate: 1000}, 0.05)
+        assert node.status.rejected == 1
+        assert "stamp_ns 1000000000000000000 is after the newest frame sent (1000)" in \
+            node.status.last_error
+        node.feed(node.keys.estimate, estimate(1000))
+        assert acks.wait({node.keys.estimate: 1000}, 1.0)
+
+
+def test_the_controller_refuses_an_estimate_from_the_future():
+    """Accepted, a stamp from the future never looked stale (its command was kept however old
+    it got) and every later estimate was refused as out of order: the robot kept moving."""
+    from vistrack.services.fuzzy_controller.service import loop
+
+    def estimate(seq: int, stamp_ns: int, first: bool = False) -> bytes:
+        return Estimate(seq=seq, stamp_ns=stamp_ns, npi=50, xc=128.0 + seq, yc=128.0, xe=400.0,
+                        ye=400.0, dx=float(seq), dy=0.0, scale=1.0, t_ms=1.0, first=first,
+                        features=[], params_id=0).encode()
+
+    def answered(stamp_ns: int) -> list[CmdVel]:  # the command of an estimate has its stamp
+        return [c for c in map(CmdVel.decode, node.published_on(node.keys.cmd_vel))
+                if c.stamp_ns == stamp_ns]
+
+    with MemoryNode("fuzzy_controller") as node:
+        thread = threading.Thread(target=loop, args=(node, parse("fuzzy-controller")))
+        thread.start()
+        try:
+            stamp = time.time_ns()
+            wait_for(lambda: node.feed(node.keys.estimate, estimate(0, stamp, True)),
+                     what="the controller's subscription")
+            wait_for(lambda: answered(stamp), what="the first command")
+            future = time.time_ns() + 3_600 * 10**9
+            node.feed(node.keys.estimate, estimate(1, future))
+            wait_for(lambda: node.status.rejected == 1, what="the refusal")
+            assert "s ahead of this host's clock (allowed: 1 s)" in node.status.last_error
+            for seq in (2, 3):  # later estimates are taken as before
+                stamp = time.time_ns()
+                node.feed(node.keys.estimate, estimate(seq, stamp))
+                wait_for(lambda stamp=stamp: answered(stamp), what=f"command {seq}")
+                assert not answered(stamp)[0].stale
+        finally:
+            node.stop.set()
+            thread.join(5)
+        assert not answered(future) and node.status.rejected == 1

@@ -34,6 +34,7 @@ ALL = ("camera", "preprocessing", "motion-estimation", "auto-tuner", "fuzzy-cont
 SERVICE_NAMES = ("auto_tuner", "camera", "fuzzy_controller", "motion_estimation",
                  "preprocessing")
 CAMERA = ["--source", "builtin", "--fps", "20", "--loop"]
+NS = "--no-multicast-scouting"
 
 # Contract fields besides v, seq, stamp_ns, with their msgpack-decoded Python types.
 CONTRACT: dict[str, dict[str, type]] = {
@@ -375,6 +376,103 @@ def test_malformed_input_is_rejected_counted_and_survived(pipeline, endpoint, se
         assert status[s]["state"] == "ok"
         assert status[s]["rejected"] >= rejected[s] + n, s
     assert status["motion_estimation"]["last_error"]
+
+
+def test_params_out_of_range_while_frames_flow(pipeline, session):
+    """A tuner/params of the right shape, newer than what is in force, with a value out of
+    range: every consumer refuses and counts it, keeps its parameters, and estimates go on."""
+    consumers = ("preprocessing", "motion_estimation", "auto_tuner")
+    before = {s: status_of(session, s) for s in consumers}
+    payload = msgpack.packb({**GOOD["tuner/params"], "params_id": 10**6, "search_size": 500})
+    session.put(f"{ROOT}/tuner/params", payload,
+                congestion_control=zenoh.CongestionControl.BLOCK)
+    wait_until(lambda: all(status_of(session, s)["rejected"] > before[s]["rejected"]
+                           for s in consumers), 10, "every consumer counted the refusal")
+    with collecting(session, f"{ROOT}/motion/estimate") as est:
+        est.wait(lambda items: len(items) >= 5, timeout=20)
+    for s in consumers:
+        after = status_of(session, s)
+        assert after["params"] == before[s]["params"], s
+        assert "search_size=500 is out of range: allowed 2..128" in after["last_error"], s
+    in_force = before["motion_estimation"]["params"]["params_id"]
+    assert {m["params_id"] for m in map(msgpack.unpackb, (p for _, p in est.items))} \
+        == {in_force}
+
+
+def test_a_frame_of_another_size_restarts_the_track_and_estimates_go_on(pipeline, session):
+    small = {**GOOD["camera/frame"], "seq": 10**6, "data": bytes(range(256)) * 12}
+    with collecting(session, f"{ROOT}/motion/estimate") as est:
+        # a latest-only input may be overwritten by a camera frame: send until one gets through
+        deadline = time.monotonic() + 15
+        while not any(msgpack.unpackb(p)["seq"] == 10**6 for _, p in est.items):
+            assert time.monotonic() < deadline, "no estimate of the 64x48 frame"
+            session.put(f"{ROOT}/camera/frame", msgpack.packb({**small,
+                                                              "stamp_ns": time.time_ns()}))
+            time.sleep(0.1)
+        start = len(est.items)
+        est.wait(lambda items: len(items) >= start + 5, timeout=20)
+    got = [msgpack.unpackb(p) for _, p in est.items]
+    odd = next(i for i, m in enumerate(got) if m["seq"] == 10**6)
+    assert got[odd]["first"]  # a new track for the new size
+    assert any(m["first"] for m in got[odd + 1:])  # and again for the camera's own size
+    for name, proc in pipeline.items():
+        assert proc.p.poll() is None, f"{name} died"
+
+
+def test_an_estimate_from_the_future_is_refused_and_commands_go_on(pipeline, session):
+    before = status_of(session, "fuzzy_controller")["rejected"]
+    future = {**GOOD["motion/estimate"], "npi": 50, "stamp_ns": time.time_ns() + 3600 * 10**9}
+    with collecting(session, f"{ROOT}/control/cmd_vel") as cmd:
+        deadline = time.monotonic() + 15
+        while status_of(session, "fuzzy_controller")["rejected"] == before:
+            assert time.monotonic() < deadline, "the future estimate was not refused"
+            session.put(f"{ROOT}/motion/estimate", msgpack.packb(future))
+            time.sleep(0.1)
+        start = len(cmd.items)
+        cmd.wait(lambda items: len(items) >= start + 5, timeout=20)
+    assert "ahead of this host's clock" in status_of(session, "fuzzy_controller")["last_error"]
+    later = [msgpack.unpackb(p) for _, p in cmd.items[start:]]
+    assert all(c["stamp_ns"] < future["stamp_ns"] for c in later)
+    assert not all(c["stale"] for c in later)  # the camera's estimates still drive the robot
+
+
+def test_the_simulator_refuses_bad_velocity_commands(pipeline, endpoint, session):
+    """NaN, infinite or wrong-type commands on control/cmd_vel are refused and counted by a
+    simulator camera, which keeps rendering; a huge finite one is held to the robot's limits."""
+    robot = "simbad"
+    cam = Proc(["camera", "-e", endpoint, NS, "--robot", robot, "--source", "sim",
+                "--fps", "30", "--loop"])
+    try:
+        cam.wait_for("ready", timeout=60)
+        key = f"vistrack/{robot}/control/cmd_vel"
+        good = {"v": 1, "seq": 1, "stamp_ns": 1, "vx": 0.0, "vy": 0.0, "wz": 0.0,
+                "stale": False}
+        rejected = 0
+        for bad in ({"vx": float("nan")}, {"wz": float("inf")}, {"vy": "fast"}):
+            deadline = time.monotonic() + 15
+            while status_of_robot(session, robot, "camera")["rejected"] == rejected:
+                assert time.monotonic() < deadline, f"{bad} was not refused"
+                session.put(key, msgpack.packb({**good, **bad}))
+                time.sleep(0.05)
+            rejected = status_of_robot(session, robot, "camera")["rejected"]
+        assert "control/cmd_vel: field" in status_of_robot(session, robot, "camera")["last_error"]
+        with collecting(session, f"vistrack/{robot}/sim/pose") as pose:
+            for _ in range(10):
+                session.put(key, msgpack.packb({**good, "vx": 1e308, "vy": 1e308, "wz": 1e308}))
+                time.sleep(0.05)
+            pose.wait(lambda items: len(items) >= 20, timeout=10)
+        last = msgpack.unpackb(pose.items[-1][1])
+        assert all(abs(last[k]) < 10 for k in ("x", "y", "theta")), last
+        assert cam.p.poll() is None, "\n".join(cam.lines[-20:])
+    finally:
+        cam.stop()
+
+
+def status_of_robot(session: zenoh.Session, robot: str, service: str) -> dict:
+    for reply in session.get(f"vistrack/{robot}/{service}/status", timeout=2.0):
+        if reply.ok is not None:
+            return msgpack.unpackb(reply.ok.payload.to_bytes())
+    raise AssertionError(f"{service} of {robot} did not answer its status query")
 
 
 # -- record and replay ---------------------------------------------------------------------

@@ -10,6 +10,8 @@ from __future__ import annotations
 import glob
 import math
 import os
+import sys
+import tempfile
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
@@ -59,10 +61,36 @@ def read_image(path: str) -> np.ndarray:
         raise SourceError(f"{path}: no such file")
     if os.path.isdir(path):
         raise SourceError(f"{path}: is a folder, expected an image file")
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if path.lower().endswith((".jpg", ".jpeg")):
+        img, said = _imread_jpeg(path)
+        if img is not None and "Premature end" in said:
+            raise SourceError(f"{path}: damaged image: the JPEG data ends before the image "
+                              "does (cut short?)")
+    else:
+        img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
     if img is None:
         raise SourceError(f"{path}: not a readable image")
     return to_gray(img)
+
+
+def _imread_jpeg(path: str) -> tuple[np.ndarray | None, str]:
+    """``cv2.imread`` of a JPEG file and what libjpeg printed meanwhile.
+
+    A JPEG file cut short decodes (grey below the cut) with libjpeg's "Premature end of JPEG
+    file" on the process's stderr as the only sign: it is caught here, on its way to stderr,
+    so that the cut is an error naming the file rather than a line of C library output.
+    """
+    with tempfile.TemporaryFile() as caught:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        os.dup2(caught.fileno(), 2)
+        try:
+            img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        caught.seek(0)
+        return img, caught.read(4096).decode("utf-8", "replace")
 
 
 def _check_images(paths: list[str]) -> None:

@@ -35,6 +35,12 @@ def d(tmp_path_factory: pytest.TempPathFactory) -> Path:
     cv2.imwrite(str(d / "mixed" / "a.png"), np.full((64, 64), 128, np.uint8))
     (d / "mixed" / "b.png").write_bytes(b"not a png")
     (d / "junk.mp4").write_bytes(bytes(range(256)) * 20)
+    (d / "cutjpg").mkdir()
+    rng = np.random.default_rng(0)
+    for name in ("a.jpg", "b.jpg"):
+        cv2.imwrite(str(d / "cutjpg" / name), rng.integers(0, 256, (64, 64), dtype=np.uint8))
+    jpeg = (d / "cutjpg" / "b.jpg").read_bytes()
+    (d / "cutjpg" / "b.jpg").write_bytes(jpeg[:len(jpeg) // 2])
     video = d / "clip.avi"
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 64))
     rng = np.random.default_rng(0)
@@ -71,6 +77,8 @@ CASES = {
         (["--resize", "4x4"], "--resize 4x4 is out of range: width and height must be 8..8192"),
         (["{d}/mixed"], "{d}/mixed/b.png: not a readable image"),
         (["{d}/junk.mp4"], "{d}/junk.mp4: not a readable video"),
+        (["{d}/cutjpg"], "{d}/cutjpg/b.jpg: damaged image: the JPEG data ends before the image "
+                         "does (cut short?)"),
         (["{d}/cut.avi"], "{d}/cut.avi: the video ends after 3 of the 10 frames its header "
                           "announces (cut short or damaged)"),
         ([""], "'' is not a file or folder: give a video, a folder of images, a glob or image "

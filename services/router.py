@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import threading
 
 import zenoh
@@ -25,6 +24,7 @@ from ..common.bus import (
     install_signal_handlers,
     open_session,
 )
+from .usage import print_error
 
 #: Where the router listens when neither ``-l`` nor a config file names an endpoint.
 DEFAULT_LISTEN = ("tcp/127.0.0.1:7447",)
@@ -78,19 +78,18 @@ def start_router(listen: list[str] | None, config_file: str | None = None, *,
 
 def main(args: argparse.Namespace) -> int:
     if args.mode not in (None, "router"):
-        print(f"vistrack router: error: -m {args.mode}: a router runs in mode router",
-              file=sys.stderr)
+        print_error("router", f"-m {args.mode}: a router runs in mode router")
         return 2
     try:
         conf = router_config(args.listen, args.config, connect=args.connect,
                              multicast_scouting=not args.no_multicast_scouting)
     except BusError as e:  # a usage error: bad file or endpoint
-        print(f"vistrack router: error: {e}", file=sys.stderr)
+        print_error("router", e)
         return 2
     try:
         session = open_session(conf)
     except BusError as e:  # e.g. the port is in use
-        print(f"vistrack router: error: {e}", file=sys.stderr)
+        print_error("router", e)
         return 1
     stop = threading.Event()
     restore = install_signal_handlers(stop)

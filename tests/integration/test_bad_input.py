@@ -172,6 +172,8 @@ CASES = {
          "--wait nan is out of range: allowed 0..3600 s"),
     ],
     "router": [
+        (["-c", "{d}/bad.json5"], "zenoh config file {d}/bad.json5: line 1, column 17: "
+                                  "expected identifier or string"),
         (["-l", "tcp/127.0.0.1:99999", NS], "-l/--listen 'tcp/127.0.0.1:99999' is not a Zenoh "
          "endpoint: expected tcp/<host>:<port> with a port 0..65535, e.g. tcp/127.0.0.1:7447"),
     ],

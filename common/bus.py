@@ -419,6 +419,13 @@ class Node(abc.ABC):
         (or once ``stop`` is set or the node is closed, with nothing pending)."""
         return self._inbox.get(timeout, self.stop)
 
+    def advertise(self, key: str, *, reliable: bool) -> None:
+        """Declare the publisher of ``key`` now, before the loop is ready: declaring it on the
+        first :meth:`publish` put 0.2 to 18 ms into the first frame's latency."""
+        if self._closed:
+            raise BusError(f"node {self.service!r} is closed: cannot publish on {key}")
+        self._advertise(key, reliable)
+
     def publish(self, key: str, payload: bytes, *, reliable: bool) -> None:
         """Publish ``payload`` on ``key``.
 
@@ -453,6 +460,10 @@ class Node(abc.ABC):
     @abc.abstractmethod
     def _send(self, key: str, payload: bytes, reliable: bool) -> None:
         """Put ``payload`` on ``key``."""
+
+    @abc.abstractmethod
+    def _advertise(self, key: str, reliable: bool) -> None:
+        """Prepare to publish on ``key``."""
 
     @abc.abstractmethod
     def _release(self) -> None:
@@ -520,6 +531,9 @@ class MemoryNode(Node):
 
     def _declare(self, key: str, latest: bool, deliver: Callable[[str, bytes], None]) -> None:
         self._deliver[key] = (zenoh.KeyExpr(key), deliver)
+
+    def _advertise(self, key: str, reliable: bool) -> None:
+        pass  # in memory there is nothing to declare
 
     def _send(self, key: str, payload: bytes, reliable: bool) -> None:
         with self._published_lock:
@@ -600,6 +614,9 @@ class ZenohNode(Node):
                 pub = self.session.declare_publisher(key, congestion_control=congestion)
                 self._publishers[(key, reliable)] = pub
             return pub
+
+    def _advertise(self, key: str, reliable: bool) -> None:
+        self._publisher(key, reliable)
 
     def _send(self, key: str, payload: bytes, reliable: bool) -> None:
         self._publisher(key, reliable).put(payload)

@@ -176,6 +176,20 @@ def test_publish_and_receive(nodes):
     assert a.recv(timeout=0.01) is None
 
 
+def test_advertise_declares_the_publisher_before_the_first_publish(nodes):
+    a, b = nodes()
+    b.advertise(b.keys.estimate, reliable=False)
+    declared = dict(b._publishers)
+    assert list(declared) == [(b.keys.estimate, False)]
+    subscribe_and_match(a, b, a.keys.estimate, latest=True, reliable=False)
+    b.publish(b.keys.estimate, msg(0), reliable=False)
+    assert a.recv(timeout=DEADLINE_S) is not None
+    assert b._publishers[(b.keys.estimate, False)] is declared[(b.keys.estimate, False)]
+    b.close()
+    with pytest.raises(BusError, match="closed"):
+        b.advertise(b.keys.estimate, reliable=False)
+
+
 def test_latest_only_keeps_the_newest_and_counts_drops(nodes):
     a, b = nodes()
     # BLOCK on the publisher, so every payload reaches the node: drops are the slot's only

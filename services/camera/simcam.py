@@ -34,6 +34,8 @@ def make_simulator(args: argparse.Namespace) -> Simulator:
     try:
         scene = load_scenario(scenario or "default")
     except ScenarioError as e:
+        if str(e).startswith(scenario):  # a scenario file: its path already leads the text
+            raise
         raise ScenarioError(f"--source {args.source}: {e}") from None
     return Simulator(scene, camera=Camera(width=w, height=h, noise_sigma=args.noise),
                      texture=args.texture, seed=args.seed)

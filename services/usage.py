@@ -153,6 +153,9 @@ def check_endpoint(flag: str, endpoint: str) -> str:
 _RUST_WHERE = re.compile(r"\s+at\s+/\S+\.rs:\d+\.?")
 # A pest parser's multi-line error (Zenoh's JSON5 config reader): " --> 1:17 ... = problem".
 _PEST = re.compile(r"-->\s*(\d+):(\d+).*?\n\s*=\s*(.+)", re.DOTALL)
+# Zenoh's config schema error, in Rust's debug form.
+_SCHEMA = re.compile(r'JSON error: Message \{ msg: "(.*)", location: (?:Some\(Location \{ '
+                     r'line: (\d+), column: (\d+) \}\)|None) \}')
 
 
 def one_line(message: object) -> str:
@@ -165,6 +168,11 @@ def one_line(message: object) -> str:
         line, column, problem = pest.groups()
         text = (text[:pest.start()].rstrip(" :") + f": line {line}, column {column}: "
                 + problem.strip())
+    schema = _SCHEMA.search(text)
+    if schema is not None:
+        problem, line, column = schema.groups()
+        where = f"line {line}, column {column}: " if line else ""
+        text = text[:schema.start()] + where + problem + text[schema.end():]
     return " ".join(text.split())
 
 

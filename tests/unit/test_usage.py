@@ -1,0 +1,81 @@
+"""services/usage.py: flags with declared ranges, and one-line errors."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from vistrack.services.usage import FlagError, add_number, check_endpoint, one_line
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="vistrack test")
+    add_number(p, "--fps", lo=0, hi=1000, default=0.0, metavar="F", help="fps, %(allowed)s")
+    add_number(p, "--in-flight", lo=1, hi=16, integer=True, default=2, metavar="N")
+    add_number(p, "--timeout", lo=0, hi=3600, lo_open=True, unit="s", default=None,
+               metavar="S")
+    return p
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--fps", "nan"], "--fps nan is out of range: allowed 0..1000"),
+    (["--fps=-inf"], "--fps -inf is out of range: allowed 0..1000"),
+    (["--fps", "1e400"], "--fps 1e400 is out of range: allowed 0..1000"),  # float: inf
+    (["--fps", "fast"], "--fps 'fast' is not a number: allowed 0..1000"),
+    (["--in-flight", "17"], "--in-flight 17 is out of range: allowed 1..16"),
+    (["--in-flight", "2.0"], "--in-flight '2.0' is not an integer: allowed 1..16"),
+    (["--timeout", "0"], "--timeout 0 is out of range: allowed 0 < S <= 3600 s"),
+    (["--timeout=-1"], "--timeout -1 is out of range: allowed 0 < S <= 3600 s"),
+])
+def test_a_value_outside_its_range_names_flag_value_and_range(argv, message):
+    with pytest.raises(FlagError) as e:
+        parser().parse_args(argv)
+    assert str(e.value) == message
+
+
+def test_values_inside_the_range_are_converted_and_defaults_kept():
+    args = parser().parse_args(["--fps", "1000", "--in-flight", "16", "--timeout", "0.001"])
+    assert (args.fps, args.in_flight, args.timeout) == (1000.0, 16, 0.001)
+    assert isinstance(args.in_flight, int)
+    assert vars(parser().parse_args([])) == {"fps": 0.0, "in_flight": 2, "timeout": None}
+
+
+def test_help_shows_the_declared_range():
+    assert "fps, 0..1000" in " ".join(parser().format_help().split())
+
+
+def test_a_range_is_declared_once_and_checked():
+    with pytest.raises(TypeError, match="no type="):
+        add_number(argparse.ArgumentParser(), "--x", lo=0, hi=1, type=float)
+    with pytest.raises(ValueError, match="not a finite interval"):
+        add_number(argparse.ArgumentParser(), "--x", lo=1, hi=0)
+
+
+@pytest.mark.parametrize(("endpoint", "ok"), [
+    ("tcp/127.0.0.1:7447", True), ("tcp/[::1]:7447", True), ("udp/robot.local:0", True),
+    ("tls/host:7447?iface=eth0", True), ("unixsock-stream//tmp/zenoh.sock", True),
+    ("nonsense", False), ("tcp/", False), ("tcp/127.0.0.1", False), ("tcp/1.2.3", False),
+    ("tcp/127.0.0.1:99999", False), ("tcp/:7447", False),
+])
+def test_endpoints_need_a_protocol_and_for_ip_a_host_and_port(endpoint, ok):
+    if ok:
+        assert check_endpoint("-e", endpoint) == endpoint
+    else:
+        with pytest.raises(FlagError, match=r"^-e '.*' is not a Zenoh endpoint: expected"):
+            check_endpoint("-e", endpoint)
+
+
+@pytest.mark.parametrize(("raw", "line"), [
+    ("zenoh config file c.json5:  --> 1:17\n  |\n1 | { mode: 'peer', \n  |                ^---\n"
+     "  |\n  = expected identifier or string at /root/.cargo/git/x/src/lib.rs:1486.",
+     "zenoh config file c.json5: line 1, column 17: expected identifier or string"),
+    ('zenoh config file c.json5: JSON error: Message { msg: "invalid type: integer `42`", '
+     "location: Some(Location { line: 1, column: 9 }) }",
+     "zenoh config file c.json5: line 1, column 9: invalid type: integer `42`"),
+    ("cannot open zenoh session: invalid port value at /root/.cargo/a/lib.rs:62.",
+     "cannot open zenoh session: invalid port value"),
+    ("two\nlines", "two lines"),
+])
+def test_one_line(raw, line):
+    assert one_line(raw) == line

@@ -34,18 +34,20 @@ import msgpack
 import numpy as np
 import zenoh
 
-from ..common.bus import add_zenoh_args
+from ..common.bus import BusError, add_zenoh_args
 from .camera.scenarios import ScenarioError, load_scenario
 from .camera.sim import Camera, image_truth
 from .launcher import Launcher, LaunchError, LaunchSpec, compile_kernels, default_launch
+from .router import listen_endpoints, router_config
+from .usage import add_number, print_error
 
 TRACKER_FLAGS = ("--subpixel",)  # closed loop needs sub-pixel motion (see README)
 STRIP_FRAMES = 8
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--duration", type=float, default=None, metavar="S",
-                        help="seconds to run (default: the scenario's duration)")
+    add_number(parser, "--duration", lo=1, hi=3600, unit="s", default=None, metavar="S",
+               help="seconds to run, %(allowed)s (default: the scenario's duration)")
     parser.add_argument("--scenario", default="default",
                         help="built-in scenario (default, sideways, approach, steps, still, "
                              "lighting) or a scenario YAML file")
@@ -54,6 +56,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="vistrack-demo", metavar="DIR",
                         help="output folder (default ./vistrack-demo)")
     add_zenoh_args(parser)
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """Before anything starts: the output folder can be made, the scenario and a Zenoh config
+    file can be read (ValueError names what is wrong)."""
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {args.out}: exists and is not a folder")
+    try:
+        load_scenario(args.scenario)
+    except ScenarioError as e:
+        raise ValueError(str(e)) from None
+    if args.config is not None:
+        try:
+            router_config(None, args.config)
+        except BusError as e:
+            raise ValueError(str(e)) from None
 
 
 def _with_flags(launch: LaunchSpec, service: str, *flags: str) -> LaunchSpec:
@@ -265,10 +284,9 @@ def _status_line(rec: Recorder, t0: float) -> str:
 
 def main(args: argparse.Namespace) -> int:
     try:
+        check_args(args)  # again, for callers that did not come through the CLI
         scenario = load_scenario(args.scenario)
         duration = args.duration if args.duration is not None else scenario.duration_s
-        if not 1.0 <= duration <= 3600:
-            raise ValueError(f"--duration {duration:g} is out of range: allowed 1..3600 s")
         launch = default_launch().with_camera(source=f"sim:{args.scenario}", fps=30.0)
         if args.no_control:
             launch = _with_flags(launch, "camera", "--no-control")
@@ -276,8 +294,12 @@ def main(args: argparse.Namespace) -> int:
             launch = _with_flags(launch, name, *TRACKER_FLAGS)
         if args.listen:
             launch = dataclasses.replace(launch, listen=tuple(args.listen))
+        elif args.config is not None and not args.connect:
+            # the config file decides where the router listens, as for vistrack up
+            launch = dataclasses.replace(launch, listen=tuple(listen_endpoints(
+                router_config(None, args.config))))
     except (ScenarioError, LaunchError, ValueError) as e:
-        print(f"vistrack demo: error: {e}", file=sys.stderr)
+        print_error("demo", e)
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -286,7 +308,9 @@ def main(args: argparse.Namespace) -> int:
           "~30 s)...", file=sys.stderr, flush=True)
     compile_kernels()
     with open(out / "services.log", "w") as log, \
-            Launcher(launch, connect=args.connect, out=log) as launcher:
+            Launcher(launch, connect=args.connect, router_config=args.config,
+                     multicast_scouting=not args.no_multicast_scouting, mode=args.mode,
+                     out=log) as launcher:
         print(f"vistrack demo: starting the five services (scenario {scenario.name}, "
               f"{'robot still' if args.no_control else 'closed loop'}); logs in "
               f"{out / 'services.log'}", file=sys.stderr)

@@ -60,12 +60,23 @@ def test_demo_with_the_robot_still_does_not_follow_the_target(tmp_path, free_por
 
 @pytest.mark.parametrize(("flags", "message"), [
     (["--duration", "0"], "--duration 0 is out of range: allowed 1..3600 s"),
-    (["--scenario", "nowhere"], "nowhere"),
+    (["--duration", "nan"], "--duration nan is out of range: allowed 1..3600 s"),
+    (["--scenario", "nowhere"], "'nowhere' is neither a built-in scenario"),
+    (["--out", "FILE"], "exists and is not a folder"),
+    (["-c", "BAD"], "line 1, column 9: invalid type: integer `1`, expected either 'router', "
+                    "'peer' or 'client'"),
+    (["-c", "MISSING"], "missing.json5: not found"),
 ])
 def test_demo_bad_flags_are_one_line_and_exit_2(flags, message, tmp_path):
-    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "demo", "--out",
-                          str(tmp_path / "out"), *flags], capture_output=True, text=True,
-                         timeout=60)
+    (tmp_path / "file").write_text("not a folder")
+    (tmp_path / "bad.json5").write_text("{ mode: 1 }")
+    where = {"FILE": tmp_path / "file", "BAD": tmp_path / "bad.json5",
+             "MISSING": tmp_path / "missing.json5"}
+    flags = [str(where.get(f, f)) for f in flags]
+    if "--out" not in flags:
+        flags += ["--out", str(tmp_path / "out")]
+    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "demo", *flags],
+                         capture_output=True, text=True, timeout=60)
     assert run.returncode == 2
     assert run.stderr.startswith("vistrack demo: error: ") and message in run.stderr
     assert run.stderr.count("\n") == 1, run.stderr

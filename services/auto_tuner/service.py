@@ -274,6 +274,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                 node.keys.estimate: tuner.on_estimate}
     tuner.worker = None if args.no_tune else Worker()  # warms up while the loop runs
     try:
+        node.advertise(node.keys.params, reliable=True)
+        node.advertise(node.keys.report, reliable=True)
         ready(node)
         tuner.announce("start-up (flags)")
         last_announce = time.monotonic()

@@ -162,6 +162,7 @@ def loop(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray] | No
     window = 1 if args.fps > 0 else args.in_flight
     acks = _Acks(node, (node.keys.estimate,) if window == 1
                  else (node.keys.estimate, node.keys.pre_frame))
+    node.advertise(node.keys.frame, reliable=False)
     ready(node)
     try:
         return _run(node, args, frames, acks, window)

@@ -86,6 +86,8 @@ def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
     node.subscribe(node.keys.cmd_vel, latest=False)
     if args.lockstep and not control:
         node.subscribe(node.keys.estimate, latest=True)
+    node.advertise(node.keys.frame, reliable=False)
+    node.advertise(node.keys.pose, reliable=True)
     ready(node)
     cmd = Command()
     t0_ns = time.time_ns()

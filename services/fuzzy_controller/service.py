@@ -81,6 +81,7 @@ def make_controller(args: argparse.Namespace) -> FuzzyController | ProportionalC
 def loop(node: Node, args: argparse.Namespace) -> None:
     ctrl = make_controller(args)
     node.subscribe(node.keys.estimate, latest=True)
+    node.advertise(node.keys.cmd_vel, reliable=True)
     ready(node)
     seq = 0
     last_stop = 0.0

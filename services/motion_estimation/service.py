@@ -44,6 +44,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     tracker = Tracker(state.params)
     node.subscribe(node.keys.params, latest=False)
     node.subscribe(node.keys.pre_frame, latest=True)
+    node.advertise(node.keys.estimate, reliable=False)
     ready(node)
     last_seq = -1
     while not node.stop.is_set():

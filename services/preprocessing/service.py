@@ -32,6 +32,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     warm_up()
     node.subscribe(node.keys.params, latest=False)
     node.subscribe(node.keys.frame, latest=True)
+    node.advertise(node.keys.pre_frame, reliable=False)
     ready(node)
     while not node.stop.is_set():
         item = node.recv(timeout=0.1)

@@ -56,6 +56,9 @@ _N = TypeVar("_N", bound="Node")
 
 #: Reliable payloads a node queues before its Zenoh callback blocks (see ZenohNode).
 DEFAULT_CAPACITY = 1024
+#: How long the set of connected peers must stay the same before a new node's links count as
+#: settled (:meth:`Node.wait_for_subscribers`): they come up within ~10 ms of each other here.
+SETTLE_S = 0.1
 # Longest a blocked recv() sleeps before re-checking ``stop``: bounds the shutdown delay
 # without costing latency (data wake it at once through the condition variable).
 _STOP_POLL_S = 0.05
@@ -426,6 +429,25 @@ class Node(abc.ABC):
             raise BusError(f"node {self.service!r} is closed: cannot publish on {key}")
         self._advertise(key, reliable)
 
+    def has_subscribers(self, key: str, *, reliable: bool = True) -> bool:
+        """Whether a subscriber anywhere on the network matches ``key`` (declares and caches
+        the publisher of ``key``). Always True in memory, where the test is the network."""
+        return self._has_subscribers(key, reliable)
+
+    def wait_for_subscribers(self, key: str, *, reliable: bool, timeout: float) -> bool:
+        """Wait until a subscriber matches ``key``; False after ``timeout`` s or on stop.
+
+        A process that has just joined learns of the subscriptions already declared a moment
+        after its session opens: what it publishes before that reaches nobody. A source that
+        must lose nothing (a file camera) waits for this before its first frame.
+        """
+        deadline = time.monotonic() + timeout
+        while not self.has_subscribers(key, reliable=reliable):
+            if self.stop.wait(0.01) or time.monotonic() >= deadline:
+                return False
+        self._settle(deadline)
+        return True
+
     def publish(self, key: str, payload: bytes, *, reliable: bool) -> None:
         """Publish ``payload`` on ``key``.
 
@@ -464,6 +486,15 @@ class Node(abc.ABC):
     @abc.abstractmethod
     def _advertise(self, key: str, reliable: bool) -> None:
         """Prepare to publish on ``key``."""
+
+    @abc.abstractmethod
+    def _has_subscribers(self, key: str, reliable: bool) -> bool:
+        """Whether a subscriber matches ``key``."""
+
+    @abc.abstractmethod
+    def _settle(self, deadline: float) -> None:
+        """Once a subscriber matches, wait (until ``deadline`` at most) for the transport's
+        links to stop changing."""
 
     @abc.abstractmethod
     def _release(self) -> None:
@@ -535,6 +566,12 @@ class MemoryNode(Node):
     def _advertise(self, key: str, reliable: bool) -> None:
         pass  # in memory there is nothing to declare
 
+    def _has_subscribers(self, key: str, reliable: bool) -> bool:
+        return True
+
+    def _settle(self, deadline: float) -> None:
+        pass  # in memory every subscription is there at once
+
     def _send(self, key: str, payload: bytes, reliable: bool) -> None:
         with self._published_lock:
             self.published.append(Published(key, payload, reliable))
@@ -586,9 +623,22 @@ class ZenohNode(Node):
         return {"service": self.service, "robot": self.robot, "pid": os.getpid(),
                 "uptime_s": self.status.uptime_s, **self.status.as_dict()}
 
-    def has_subscribers(self, key: str, *, reliable: bool = True) -> bool:
-        """Whether a subscriber anywhere on the network matches ``key`` (declares and caches
-        the publisher of ``key``)."""
+    def _settle(self, deadline: float) -> None:
+        # A peer that has just joined opens direct links to the other peers one after the
+        # other, a few ms apart; a key matches as soon as the first link that carries one of
+        # its subscriptions is up, and a sample published then may miss a subscriber whose
+        # link is not (the first frame of a file was lost once in twenty runs). Wait until the
+        # set of connected peers has not changed for SETTLE_S.
+        peers = {str(z) for z in self.session.info.peers_zid()}
+        since = time.monotonic()
+        while time.monotonic() - since < SETTLE_S and time.monotonic() < deadline:
+            if self.stop.wait(0.01):
+                return
+            now = {str(z) for z in self.session.info.peers_zid()}
+            if now != peers:
+                peers, since = now, time.monotonic()
+
+    def _has_subscribers(self, key: str, reliable: bool) -> bool:
         # the 1.x stub says bool, but the binding returns an (always truthy) MatchingStatus
         status = self._publisher(key, reliable).matching_status
         return bool(getattr(status, "matching", status))

@@ -190,6 +190,21 @@ def test_advertise_declares_the_publisher_before_the_first_publish(nodes):
         b.advertise(b.keys.estimate, reliable=False)
 
 
+def test_wait_for_subscribers(nodes):
+    a, b = nodes()
+    t0 = time.monotonic()
+    assert b.wait_for_subscribers(b.keys.frame, reliable=False, timeout=0.3) is False
+    assert time.monotonic() - t0 >= 0.3
+    a.subscribe(a.keys.frame, latest=True)
+    assert b.wait_for_subscribers(b.keys.frame, reliable=False, timeout=DEADLINE_S)
+    b.publish(b.keys.frame, msg(0), reliable=False)  # and the first sample reaches it
+    assert a.recv(timeout=DEADLINE_S) is not None
+    b.stop.set()  # a stopped node does not wait out the timeout
+    t0 = time.monotonic()
+    assert b.wait_for_subscribers(b.keys.pose, reliable=True, timeout=30.0) is False
+    assert time.monotonic() - t0 < 1.0
+
+
 def test_latest_only_keeps_the_newest_and_counts_drops(nodes):
     a, b = nodes()
     # BLOCK on the publisher, so every payload reaches the node: drops are the slot's only

@@ -9,12 +9,14 @@ Sources: ``file:PATH`` (video, image folder or glob), ``device:N``, ``builtin`` 
 textured scene), ``sim[:SCENARIO]`` (the robot simulator, see :mod:`.simcam`).
 
 ``--fps F`` paces frames at F per second. ``--fps 0`` (the default for files) runs "as fast as
-consumers allow" and loses no frame however slow the pipeline: frame n is sent once
-pre-processing has published frame n-1 (it is free again, so nothing overwrites a frame waiting
-at its latest-only input) and motion-estimation has published frame n - ``--in-flight`` (default
-2: pre-processing works on frame n while motion-estimation tracks frame n-1), or after
-``--ack-timeout`` s. A file camera without ``--loop`` exits 0 after its last frame has been
-processed.
+consumers allow": frame n is sent once motion-estimation has published frame n - ``--in-flight``
+and, with more than one in flight, pre-processing has published frame n-1 (it is free again, so
+nothing overwrites a frame waiting at its input), or after ``--ack-timeout`` s. With the default,
+1, a file camera loses no frame however slow the pipeline. With 2, pre-processing works on
+frame n while motion-estimation tracks frame n-1 (about 1.5x the frames a second), but a frame
+can still be overwritten at motion-estimation's latest-only input when that process is slow to
+wake (counted in its ``dropped``): a frame waits there for it while the next is pre-processed.
+A file camera without ``--loop`` exits 0 after its last frame has been processed.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import numpy as np
 
 from ...common.bus import Node
 from ...common.messages import MAX_SIDE, Frame, peek_int
-from ..runtime import add_service_args, ready, serve
+from ..runtime import add_service_args, ready, serve, wait_for_consumers
 from ..usage import add_number, print_error
 from .simcam import make_simulator, run_sim
 from .sources import BUILTIN, SourceError, device_index, open_device, open_files, parse_size
@@ -54,9 +56,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loop", action="store_true", help="replay a file source forever")
     parser.add_argument("--size", metavar="WxH", default=None,
                         help="resize frames (default: native size)")
-    add_number(parser, "--in-flight", lo=1, hi=16, integer=True, default=2, metavar="N",
+    add_number(parser, "--in-flight", lo=1, hi=16, integer=True, default=1, metavar="N",
                help="with --fps 0, most frames sent and not yet estimated, %(allowed)s "
-                    "(default 2: pre-processing and tracking overlap)")
+                    "(default 1: no frame lost; 2: pre-processing and tracking overlap, "
+                    "faster, but a frame may be dropped at motion-estimation's input)")
     add_number(parser, "--ack-timeout", lo=0, hi=3600, lo_open=True, default=1.0, metavar="S",
                help="with --fps 0, longest wait for a frame's estimate, %(allowed)s "
                     "(default 1 s)")
@@ -164,6 +167,10 @@ def loop(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray] | No
                  else (node.keys.estimate, node.keys.pre_frame))
     node.advertise(node.keys.frame, reliable=False)
     ready(node)
+    # a recording loses its first frames if it plays before anyone listens; a live device
+    # is like any camera: its frames are for whoever is there
+    if not args.source.startswith("device:") and not wait_for_consumers(node, node.keys.frame):
+        return 0  # stopped before anyone subscribed
     try:
         return _run(node, args, frames, acks, window)
     except SourceError as e:

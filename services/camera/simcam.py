@@ -17,7 +17,7 @@ import time
 
 from ...common.bus import Node
 from ...common.messages import CmdVel, Estimate, Frame, MessageError, Pose
-from ..runtime import ready
+from ..runtime import ready, wait_for_consumers
 from .scenarios import ScenarioError, load_scenario
 from .sim import CAMERA_SIDES, Camera, Command, Simulator
 from .sources import parse_size
@@ -89,6 +89,10 @@ def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
     node.advertise(node.keys.frame, reliable=False)
     node.advertise(node.keys.pose, reliable=True)
     ready(node)
+    # lockstep runs are reproducible from their first frame; in real time the simulator is a
+    # camera like any other, rendering for whoever is there
+    if args.lockstep and not wait_for_consumers(node, node.keys.frame):
+        return 0  # stopped before anyone subscribed
     cmd = Command()
     t0_ns = time.time_ns()
     next_t = time.perf_counter()

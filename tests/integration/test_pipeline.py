@@ -87,3 +87,28 @@ def test_a_paced_camera_reads_every_estimate_and_counts_no_drop(rubberwhale, fre
     status = msgpack.unpackb(replies[0].payload.to_bytes())
     assert status["received"] >= 30  # the estimates reached the camera
     assert status["dropped"] == 0 and status["rejected"] == 0, status
+
+
+def test_two_in_flight_loses_nothing_uncounted(rubberwhale, free_port):
+    """With --in-flight 2 a frame may be overwritten at motion-estimation's latest-only input;
+    every frame is then either estimated once or counted as dropped, never both, never twice."""
+    with router(free_port) as ep, zenoh.open(zenoh_config(ep)) as session, \
+            services(ep, names=("preprocessing", "motion-estimation")):
+        est = Collector(session, "vistrack/robot/motion/estimate")
+        cam = service("camera", ep, "--source", f"file:{rubberwhale}", "--in-flight", "2")
+        try:
+            assert cam.p.wait(60) == 0
+        finally:
+            cam.stop()
+        statuses = {}
+        for name in ("preprocessing", "motion_estimation"):
+            replies = [r.ok for r in session.get(f"vistrack/robot/{name}/status", timeout=2.0)
+                       if r.ok is not None]
+            statuses[name] = msgpack.unpackb(replies[0].payload.to_bytes())
+        dropped = statuses["motion_estimation"]["dropped"]
+        items = est.wait(lambda items: len(items) + dropped >= 8, timeout=10)
+        seqs = [msgpack.unpackb(p)["seq"] for _, p in items]
+    assert seqs == sorted(set(seqs))  # none processed twice, in order
+    assert statuses["preprocessing"]["dropped"] == 0  # it is always free when a frame comes
+    assert len(seqs) + dropped == 8
+    assert len(seqs) >= 4

@@ -78,20 +78,25 @@ def run(tool: str, args: argparse.Namespace,
         body: Callable[[zenoh.Session, Keys], int]) -> int:
     """Open the Zenoh session of ``args``, run ``body(session, keys)``, close the session.
 
-    Every expected failure becomes one line on stderr and an exit code; a closed stdout
+    Every expected failure becomes one line on stderr and an exit code (2 for bad flags, 1 for
+    a session that does not open, as the services do); a closed stdout
     (``vistrack echo ... | head``) ends the tool quietly with 0.
     """
     try:
         conf = config_from_args(args)
         keys = Keys(args.robot)
+    except BusError as e:  # the flags: a usage error, as for the services
+        error(tool, e)
+        return 2
+    try:
         with open_session(conf) as session:
             return int(body(session, keys) or 0)
     except ToolError as e:
         error(tool, e)
         return e.code
-    except BusError as e:
+    except BusError as e:  # the session did not open (a port in use): a failure, exit 1
         error(tool, e)
-        return 2
+        return 1
     except BrokenPipeError:
         _silence_stdout()
         return 0

@@ -231,11 +231,16 @@ def test_a_video_cut_short_is_tracked_then_reported(d):
     assert run.stderr.count("\n") == 1 and "ends after 3 of the 10 frames" in run.stderr
 
 
-@pytest.mark.parametrize("sub", ["camera", "preprocessing"])
+@pytest.mark.parametrize("sub", ["camera", "preprocessing", "status", "echo"])
 def test_a_session_that_cannot_open_is_one_line_and_exit_1(sub):
     """An endpoint that is well formed but cannot be listened on (an address of no interface
-    here) is a runtime failure: one line naming it, exit 1 (it was a traceback)."""
-    run = vistrack(sub, "-l", "tcp/192.0.2.1:7447", NS)  # TEST-NET-1: never a local address
+    here) is a runtime failure: one line naming it, exit 1 (it was a traceback; the tools
+    exited 2, as for bad flags), for services and tools alike."""
+    if sub == "echo":
+        sub_args: tuple[str, ...] = ("echo", "motion/estimate")
+    else:
+        sub_args = (sub,)
+    run = vistrack(*sub_args, "-l", "tcp/192.0.2.1:7447", NS)  # TEST-NET-1: never local
     assert run.returncode == 1
     assert run.stderr.startswith(f"vistrack {sub}: error: cannot open zenoh session: ")
     assert "tcp/192.0.2.1:7447" in run.stderr and run.stderr.count("\n") == 1, run.stderr

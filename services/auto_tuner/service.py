@@ -46,7 +46,7 @@ from ...common.messages import (
     next_params_id,
     pack,
 )
-from ..runtime import ParamsInForce, add_service_args, ready, serve
+from ..runtime import ParamsInForce, add_service_args, decode_or_reject, ready, serve
 from ..usage import add_number
 from . import triggers as tr
 from .sensitivity import (
@@ -149,22 +149,14 @@ class AutoTuner:
         self.node.publish(self.node.keys.params, msg.encode(), reliable=True)
         return True
 
-    def _decode(self, cls: type, payload: bytes) -> Any:
-        try:
-            return cls.decode(payload)
-        except MessageError as e:
-            self.node.status.reject(e)
-            log.error("rejected %s: %s", cls.KEY, e)
-            return None
-
     def on_params(self, payload: bytes) -> None:
-        msg = self._decode(Params, payload)
+        msg = decode_or_reject(Params, payload, self.node, log)
         if msg is not None and msg.source != "tuner":  # a user's set: in force now
             self.state.apply(payload, self.node, log)
 
     def on_frame(self, payload: bytes) -> None:
         t0 = time.perf_counter()
-        msg = self._decode(Frame, payload)
+        msg = decode_or_reject(Frame, payload, self.node, log)
         if msg is None:
             return
         pixels = np.array(msg.data)  # own the pixels: the payload is reused
@@ -179,7 +171,7 @@ class AutoTuner:
         self.node.status.observe_ms((time.perf_counter() - t0) * 1e3)
 
     def on_estimate(self, payload: bytes) -> None:
-        msg = self._decode(Estimate, payload)
+        msg = decode_or_reject(Estimate, payload, self.node, log)
         if msg is None or self.worker is None:
             return
         self.seen_id = max(self.seen_id, msg.params_id)

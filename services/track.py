@@ -15,8 +15,8 @@ from collections.abc import Callable
 from typing import TextIO
 
 from ..common.params import BOUNDS, SEARCH_KINDS, ParamError, TrackerParams
+from ..common.sources import SourceError, open_files, parse_size
 from ..common.vision import Estimate, Tracker, timing, warm_up
-from .camera.sources import SourceError, open_files, parse_size
 from .usage import add_number, print_error
 
 PARAM_FLAGS = {

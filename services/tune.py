@@ -31,6 +31,7 @@ from typing import TextIO
 import numpy as np
 
 from ..common.params import FACTORS
+from ..common.sources import SourceError, open_files, parse_size
 from .auto_tuner.experiment import DEFAULT_REPEATS, METHODS, RESPONSES, bounce
 from .auto_tuner.sensitivity import (
     BUFFER_RANGE,
@@ -42,7 +43,6 @@ from .auto_tuner.sensitivity import (
     new_seed,
     tune,
 )
-from .camera.sources import SourceError, open_files, parse_size
 from .track import add_search_flag, offline_main, params_from_args
 from .usage import add_number
 

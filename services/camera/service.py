@@ -32,10 +32,17 @@ import numpy as np
 
 from ...common.bus import Node
 from ...common.messages import MAX_SIDE, Frame, peek_int
+from ...common.sources import (
+    BUILTIN,
+    SourceError,
+    device_index,
+    open_device,
+    open_files,
+    parse_size,
+)
 from ..runtime import add_service_args, ready, serve, wait_for_consumers
 from ..usage import add_number, print_error
 from .simcam import make_simulator, run_sim
-from .sources import BUILTIN, SourceError, device_index, open_device, open_files, parse_size
 
 log = logging.getLogger("vistrack.camera")
 

@@ -17,10 +17,10 @@ import time
 
 from ...common.bus import Node
 from ...common.messages import CmdVel, Estimate, Frame, MessageError, Pose
+from ...common.sources import parse_size
 from ..runtime import ready, wait_for_consumers
 from .scenarios import ScenarioError, load_scenario
 from .sim import CAMERA_SIDES, Camera, Command, Simulator
-from .sources import parse_size
 
 log = logging.getLogger("vistrack.camera")
 

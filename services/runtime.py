@@ -26,8 +26,7 @@ from ..common.bus import (
 )
 from ..common.messages import MessageError, Params
 from ..common.params import ParamError, TrackerParams
-from .track import add_param_flags, params_from_args
-from .usage import print_error
+from .usage import add_param_flags, params_from_args, print_error
 
 log = logging.getLogger("vistrack")
 

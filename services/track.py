@@ -14,62 +14,12 @@ import sys
 from collections.abc import Callable
 from typing import TextIO
 
-from ..common.params import BOUNDS, SEARCH_KINDS, ParamError, TrackerParams
+from ..common.params import ParamError
 from ..common.sources import SourceError, open_files, parse_size
 from ..common.vision import Estimate, Tracker, timing, warm_up
-from .usage import add_number, print_error
-
-PARAM_FLAGS = {
-    "max_features": ("--max-features", int, "MAX_FEAT_NUM: most feature points"),
-    "thres_percent": ("--thres-percent", float,
-                      "THRES_PERCENT: %% of pixels, strongest gradient first, kept as candidates"),
-    "search_size": ("--search-size", int, "SEARCH_SIZE: search window width, px"),
-    "corr_size": ("--corr-size", int, "CORR_SIZE: correlation window width, px"),
-    "ungroup_size": ("--ungroup-size", int, "UNGROUP_SIZE: minimum distance between features, px"),
-}
+from .usage import add_param_flags, params_from_args, print_error
 
 CSV_FIELDS = ["seq", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale", "t_ms"]
-
-
-def add_param_flags(parser: argparse.ArgumentParser) -> None:
-    """The five paper parameters as flags (defaults: Table 4 with search 15, correlation 9),
-    checked against :data:`~vistrack.common.params.BOUNDS` as they are parsed."""
-    defaults = TrackerParams()
-    for name, (flag, typ, text) in PARAM_FLAGS.items():
-        lo, hi = BOUNDS[name]
-        add_number(parser, flag, dest=name, lo=lo, hi=hi, integer=typ is int, default=None,
-                   metavar="N", help=f"{text} (%(allowed)s, default {getattr(defaults, name)})")
-    parser.add_argument("--subpixel", action="store_true",
-                        help="refine each match to sub-pixel precision")
-    add_search_flag(parser)
-
-
-def add_search_flag(parser: argparse.ArgumentParser) -> None:
-    """``--search pruned|exhaustive``: how the SSD search of Eq. (1) finds its argmin."""
-    parser.add_argument("--search", choices=SEARCH_KINDS, default=None,
-                        help="SSD search: 'pruned' skips the displacements a bound rules out "
-                             "(default, fast), 'exhaustive' scores every displacement in full "
-                             "as the paper does (cost grows with both window sizes); both "
-                             "give the same positions")
-
-
-def params_from_args(args: argparse.Namespace, base: TrackerParams | None = None
-                     ) -> TrackerParams:
-    """TrackerParams from the parameter flags; a bad value raises ParamError naming the flag."""
-    changes = {name: getattr(args, name) for name in PARAM_FLAGS
-               if getattr(args, name, None) is not None}
-    if getattr(args, "subpixel", False):
-        changes["subpixel"] = True
-    if getattr(args, "search", None) is not None:
-        changes["search"] = args.search
-    try:
-        return (base or TrackerParams()).replace(**changes)
-    except ParamError as e:
-        text = str(e)
-        for name, (flag, _, _) in PARAM_FLAGS.items():
-            if text.startswith(name + "="):
-                text = flag + " " + text[len(name) + 1:]
-        raise ParamError(text) from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

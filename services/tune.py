@@ -43,8 +43,8 @@ from .auto_tuner.sensitivity import (
     new_seed,
     tune,
 )
-from .track import add_search_flag, offline_main, params_from_args
-from .usage import add_number
+from .track import offline_main
+from .usage import add_number, add_search_flag, params_from_args
 
 UNITS = {"t1": "ms", "tf": "ms", "ex": "px", "ey": "px"}
 

@@ -11,6 +11,9 @@ A subcommand module may also define ``check_args(args)``: checks across flags, o
 names (a source, a file), that raise ``ValueError`` with the same kind of message. It runs after
 parsing, before ``main``, in both places.
 
+The tracker's parameter flags (:func:`add_param_flags`, :func:`params_from_args`) live here
+too: every service and the offline commands take them.
+
 Pure argparse: no Zenoh, no OpenCV, so the offline tools import it for free.
 """
 
@@ -23,6 +26,8 @@ import sys
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
+
+from ..common.params import BOUNDS, SEARCH_KINDS, ParamError, TrackerParams
 
 
 class FlagError(ValueError):
@@ -111,6 +116,57 @@ def add_number(parser: Any, *names: str, lo: float, hi: float, integer: bool = F
     action: argparse.Action = parser.add_argument(
         *names, action=_Number, range=Range(lo, hi, integer, lo_open, unit), **kwargs)
     return action
+
+
+PARAM_FLAGS = {
+    "max_features": ("--max-features", int, "MAX_FEAT_NUM: most feature points"),
+    "thres_percent": ("--thres-percent", float,
+                      "THRES_PERCENT: %% of pixels, strongest gradient first, kept as candidates"),
+    "search_size": ("--search-size", int, "SEARCH_SIZE: search window width, px"),
+    "corr_size": ("--corr-size", int, "CORR_SIZE: correlation window width, px"),
+    "ungroup_size": ("--ungroup-size", int, "UNGROUP_SIZE: minimum distance between features, px"),
+}
+
+
+def add_param_flags(parser: argparse.ArgumentParser) -> None:
+    """The five paper parameters as flags (defaults: Table 4 with search 15, correlation 9),
+    checked against :data:`~vistrack.common.params.BOUNDS` as they are parsed."""
+    defaults = TrackerParams()
+    for name, (flag, typ, text) in PARAM_FLAGS.items():
+        lo, hi = BOUNDS[name]
+        add_number(parser, flag, dest=name, lo=lo, hi=hi, integer=typ is int, default=None,
+                   metavar="N", help=f"{text} (%(allowed)s, default {getattr(defaults, name)})")
+    parser.add_argument("--subpixel", action="store_true",
+                        help="refine each match to sub-pixel precision")
+    add_search_flag(parser)
+
+
+def add_search_flag(parser: argparse.ArgumentParser) -> None:
+    """``--search pruned|exhaustive``: how the SSD search of Eq. (1) finds its argmin."""
+    parser.add_argument("--search", choices=SEARCH_KINDS, default=None,
+                        help="SSD search: 'pruned' skips the displacements a bound rules out "
+                             "(default, fast), 'exhaustive' scores every displacement in full "
+                             "as the paper does (cost grows with both window sizes); both "
+                             "give the same positions")
+
+
+def params_from_args(args: argparse.Namespace, base: TrackerParams | None = None
+                     ) -> TrackerParams:
+    """TrackerParams from the parameter flags; a bad value raises ParamError naming the flag."""
+    changes = {name: getattr(args, name) for name in PARAM_FLAGS
+               if getattr(args, name, None) is not None}
+    if getattr(args, "subpixel", False):
+        changes["subpixel"] = True
+    if getattr(args, "search", None) is not None:
+        changes["search"] = args.search
+    try:
+        return (base or TrackerParams()).replace(**changes)
+    except ParamError as e:
+        text = str(e)
+        for name, (flag, _, _) in PARAM_FLAGS.items():
+            if text.startswith(name + "="):
+                text = flag + " " + text[len(name) + 1:]
+        raise ParamError(text) from None
 
 
 def run_checks(module: ModuleType, args: argparse.Namespace) -> None:

@@ -30,9 +30,9 @@ from typing import Any, BinaryIO
 import msgpack
 import zenoh
 
-from ..common.keys import Keys, key_suffix
-from .tools import Inbox, ToolError, add_tool_args, error, resolve_key, run, stop_on_signals
-from .usage import add_number
+from ...common.keys import Keys, key_suffix
+from ..usage import add_number
+from .shared import Inbox, ToolError, add_tool_args, error, resolve_key, run, stop_on_signals
 
 FORMAT = "vistrack-record"
 VERSION = 1

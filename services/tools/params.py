@@ -25,10 +25,11 @@ from typing import Any
 
 import zenoh
 
-from ..common.keys import Keys
-from ..common.messages import MessageError, Params, next_params_id, unpack
-from ..common.params import BOUNDS, FACTORS, ParamError, TrackerParams
-from .tools import (
+from ...common.keys import Keys
+from ...common.messages import MessageError, Params, next_params_id, unpack
+from ...common.params import BOUNDS, FACTORS, ParamError, TrackerParams
+from ..usage import add_number
+from .shared import (
     ServiceState,
     ToolError,
     add_tool_args,
@@ -39,7 +40,6 @@ from .tools import (
     print_json,
     run,
 )
-from .usage import add_number
 
 CONFIRMING_SERVICE = "motion_estimation"
 HEADERS = ("SERVICE", "PARAMS_ID", "SOURCE", *(f.upper() for f in FACTORS), "REASON")

@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from ..common.bus import SeqGap
-from ..common.keys import Keys
-from .tools import Inbox, add_tool_args, print_json, resolve_key, run, stop_on_signals
-from .usage import add_number
+from ...common.bus import SeqGap
+from ...common.keys import Keys
+from ..usage import add_number
+from .shared import Inbox, add_tool_args, print_json, resolve_key, run, stop_on_signals
 
 REPORT_S = 1.0
 

@@ -1,7 +1,7 @@
 """What the command-line tools share (``echo``, ``hz``, ``status``, ``params``, ``record``,
 ``replay``): one-line errors, the session, signals, a sample inbox, service status, tables.
 
-Each tool is its own module under ``vistrack.services`` (``add_arguments(parser)`` and
+Each tool is its own module under ``vistrack.services.tools`` (``add_arguments(parser)`` and
 ``main(args) -> exit code``, as ``cli.py`` expects), modelled on ``ros2 topic`` and dora's CLI
 but smaller. Exit codes: 0 success, 1 a runtime failure (timeout, nothing answered), 2 a usage
 error (bad key, bad value, bad file, bad Zenoh flags), 130 interrupted twice.
@@ -23,7 +23,7 @@ from typing import Any, NamedTuple
 
 import zenoh
 
-from ..common.bus import (
+from ...common.bus import (
     BusError,
     add_zenoh_args,
     alive_services,
@@ -32,8 +32,8 @@ from ..common.bus import (
     open_session,
     query_status,
 )
-from ..common.keys import Keys
-from .usage import print_error
+from ...common.keys import Keys
+from ..usage import print_error
 
 
 class ToolError(Exception):

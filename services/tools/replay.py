@@ -27,9 +27,10 @@ from collections.abc import Iterable
 import msgpack
 import zenoh
 
-from ..common.keys import PREFIX, Keys, key_suffix, validate_robot_id
+from ...common.keys import PREFIX, Keys, key_suffix, validate_robot_id
+from ..usage import add_number
 from .record import Record, RecordError, Recording
-from .tools import (
+from .shared import (
     ToolError,
     add_tool_args,
     error,
@@ -38,7 +39,6 @@ from .tools import (
     stop_on_signals,
     warn,
 )
-from .usage import add_number
 
 # Streams where only the newest sample matters: published with congestion control DROP, as
 # the camera, preprocessing and motion-estimation services do.

@@ -18,9 +18,10 @@ from typing import Any
 import msgpack
 import zenoh
 
-from ..common.keys import Keys
-from ..common.messages import MESSAGE_TYPES, MessageError, decode_any, to_jsonable, unpack
-from .tools import (
+from ...common.keys import Keys
+from ...common.messages import MESSAGE_TYPES, MessageError, decode_any, to_jsonable, unpack
+from ..usage import add_number
+from .shared import (
     Inbox,
     ToolError,
     add_tool_args,
@@ -29,7 +30,6 @@ from .tools import (
     run,
     stop_on_signals,
 )
-from .usage import add_number
 
 # Raw payloads are not validated, but their size still is bounded: a bin or str up to a
 # 4096x4096 frame's candidates, as in common.messages.

@@ -16,10 +16,10 @@ from typing import Any
 
 import zenoh
 
-from ..common.keys import Keys
-from ..common.messages import to_jsonable
-from .tools import ServiceState, add_tool_args, format_table, gather, print_json, run
-from .usage import add_number
+from ...common.keys import Keys
+from ...common.messages import to_jsonable
+from ..usage import add_number
+from .shared import ServiceState, add_tool_args, format_table, gather, print_json, run
 
 HEADERS = ("SERVICE", "STATE", "PID", "UP_S", "RECEIVED", "PUBLISHED", "DROPPED", "REJECTED",
            "P50_MS", "P99_MS", "PARAMS", "EXTRA", "LAST_ERROR")

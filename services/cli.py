@@ -16,8 +16,9 @@ from . import usage
 # name -> (module under vistrack.services, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("demo", "the whole system in closed loop on the robot simulator (main job)"),
-    "track": ("track", "track features over recorded frames, offline (no Zenoh)"),
-    "tune": ("tune", "factorial design, ANOVA, sweep and optimum over recorded frames, offline"),
+    "track": ("offline.track", "track features over recorded frames, offline (no Zenoh)"),
+    "tune": ("offline.tune",
+             "factorial design, ANOVA, sweep and optimum over recorded frames, offline"),
     "bench": ("bench", "benchmarks against OpenCV / raw Zenoh peers, printed as tables"),
     "camera": ("camera.service", "service: publish frames (file camera, device, built-in)"),
     "preprocessing": ("preprocessing.service", "service: filter, gradient, candidates"),

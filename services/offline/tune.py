@@ -30,10 +30,10 @@ from typing import TextIO
 
 import numpy as np
 
-from ..common.params import FACTORS
-from ..common.sources import SourceError, open_files, parse_size
-from .auto_tuner.experiment import DEFAULT_REPEATS, METHODS, RESPONSES, bounce
-from .auto_tuner.sensitivity import (
+from ...common.params import FACTORS
+from ...common.sources import SourceError, open_files, parse_size
+from ..auto_tuner.experiment import DEFAULT_REPEATS, METHODS, RESPONSES, bounce
+from ..auto_tuner.sensitivity import (
     BUFFER_RANGE,
     DEFAULT_STEP,
     DEFAULT_TOLERANCE,
@@ -43,8 +43,8 @@ from .auto_tuner.sensitivity import (
     new_seed,
     tune,
 )
+from ..usage import add_number, add_search_flag, params_from_args
 from .track import offline_main
-from .usage import add_number, add_search_flag, params_from_args
 
 UNITS = {"t1": "ms", "tf": "ms", "ex": "px", "ey": "px"}
 
@@ -259,7 +259,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
             progress.close()
     report = result.to_report()
     if args.out:
-        from .auto_tuner.plots import write_plots  # matplotlib only when plots are asked for
+        from ..auto_tuner.plots import write_plots  # matplotlib only when plots are asked for
 
         try:
             write_plots(report, args.out)

@@ -14,10 +14,10 @@ import sys
 from collections.abc import Callable
 from typing import TextIO
 
-from ..common.params import ParamError
-from ..common.sources import SourceError, open_files, parse_size
-from ..common.vision import Estimate, Tracker, timing, warm_up
-from .usage import add_param_flags, params_from_args, print_error
+from ...common.params import ParamError
+from ...common.sources import SourceError, open_files, parse_size
+from ...common.vision import Estimate, Tracker, timing, warm_up
+from ..usage import add_param_flags, params_from_args, print_error
 
 CSV_FIELDS = ["seq", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale", "t_ms"]
 

@@ -27,7 +27,7 @@ The whole cycle, :func:`tune`, runs the 2^(5-1) design (:mod:`.experiment`), its
 and the sweep on one buffer and returns a :class:`TuneResult` whose :meth:`TuneResult.to_report`
 is the ``tuner/report`` message (CONTRACT, docs/ARCHITECTURE.md).
 
-Budget (``python -m vistrack.services.auto_tuner.bench``): on a 30-frame 256x256 buffer, one
+Budget (``python -m vistrack.services.bench.tuner``): on a 30-frame 256x256 buffer, one
 core, the defaults (3 timing passes, step 2), with the machine's other core busy, a cycle took
 1.2 to 1.75 s with the pruned search: design 0.5 to 0.65 s (16 settings x 3 passes and 8
 untimed references at (50, 30)), sweep 0.7 to 1.0 s (36 settings and the reference x 3

@@ -1,5 +1,5 @@
 """Network benchmark (deselected by default: ``pytest -m bench``; or
-``python -m vistrack.services.bench_net``): latency and frame throughput on loopback and, as
+``python -m vistrack.services.bench.net``): latency and frame throughput on loopback and, as
 root, across network namespaces through a router, over TCP, mutual TLS and the deploy/multi-host
 chain.
 
@@ -14,7 +14,7 @@ import os
 
 import pytest
 
-from vistrack.services.bench_net import bench_net
+from vistrack.services.bench.net import bench_net
 
 pytestmark = pytest.mark.bench
 

@@ -13,7 +13,7 @@ import math
 
 import pytest
 
-from vistrack.services.bench_pipeline import bench_pipeline
+from vistrack.services.bench.pipeline import bench_pipeline
 
 pytestmark = pytest.mark.bench
 

@@ -10,7 +10,7 @@ import math
 
 import pytest
 
-from vistrack.services.bench import bench_tracker
+from vistrack.services.bench.tracker import bench_tracker
 
 pytestmark = pytest.mark.bench
 

@@ -1,5 +1,5 @@
 """Tuning-cycle benchmark (deselected by default: ``pytest -m bench``; or
-``python -m vistrack.services.auto_tuner.bench``).
+``python -m vistrack.services.bench.tuner``).
 
 Prints the table: for each SSD search (pruned, exhaustive), the time of one whole tuning cycle
 (design + sweep) on a 30-frame 256x256 buffer, the optimum's tf against the reference windows
@@ -14,8 +14,8 @@ import math
 
 import pytest
 
-from vistrack.services.auto_tuner.bench import SEARCHES, bench_tuner
 from vistrack.services.auto_tuner.sensitivity import CORR_RANGE, SEARCH_RANGE
+from vistrack.services.bench.tuner import SEARCHES, bench_tuner
 
 pytestmark = pytest.mark.bench
 

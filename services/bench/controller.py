@@ -21,8 +21,13 @@ import numpy as np
 from ...common.params import TrackerParams
 from ...common.vision import Tracker, warm_up
 from ..camera.sim import Command, Simulator
-from .control import FuzzyController, FuzzySurface, ProportionalController, ProportionalGains
-from .service import LIMITS
+from ..fuzzy_controller.control import (
+    FuzzyController,
+    FuzzySurface,
+    ProportionalController,
+    ProportionalGains,
+)
+from ..fuzzy_controller.service import LIMITS
 
 SCENARIOS = ("sideways", "approach", "steps", "default")
 BAND_PX = 2.0
@@ -83,7 +88,7 @@ def metrics(tr: dict[str, np.ndarray]) -> dict[str, float]:
 
 def decision_times() -> dict[str, float]:
     """Microseconds per decision: our fuzzy surface, the P law, scikit-fuzzy compute()."""
-    from .rules import build_control_system
+    from ..fuzzy_controller.rules import build_control_system
 
     out = {}
     rng = np.random.default_rng(0)

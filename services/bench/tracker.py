@@ -1,4 +1,4 @@
-"""``vistrack bench``: measured figures against a peer run in the same process and moment.
+"""``vistrack bench tracker``: the tracker against OpenCV, in the same process and moment.
 
 ``vistrack bench tracker`` times, on the same 256x256 real frames and the same 100 features:
 our SSD tracker at (15, 9); a per-feature ``cv2.matchTemplate`` loop doing the same search;
@@ -7,14 +7,10 @@ our SSD tracker at (15, 9); a per-feature ``cv2.matchTemplate`` loop doing the s
 (pre-processing + tracking + estimate). It prints time per frame, the ratios, and the median
 end-point error of ours and of LK against the Middlebury ground truth.
 Everything runs on one core (OpenCV's threads set to 1; numba kernels are single-threaded).
-
-``vistrack bench pipeline`` (:mod:`.bench_pipeline`) measures the five-process pipeline against
-the same stages in one process and a raw Zenoh round trip.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from collections.abc import Callable
@@ -22,9 +18,9 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from ..common import groundtruth, synthetic
-from ..common.params import TrackerParams
-from ..common.vision import Tracker, preprocess, to_gray, track_ssd, warm_up, window_weights
+from ...common import groundtruth, synthetic
+from ...common.params import TrackerParams
+from ...common.vision import Tracker, preprocess, to_gray, track_ssd, warm_up, window_weights
 
 
 def _best_of(fn: Callable[[], object], *, repeats: int = 7, min_time: float = 0.05) -> float:
@@ -196,44 +192,3 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
     else:
         print("\n(no Middlebury data: accuracy table skipped)", file=out)
     return fig
-
-
-def _pipeline(out=sys.stdout) -> dict[str, float]:
-    from .bench_pipeline import bench_pipeline  # starts processes: imported only when run
-
-    return bench_pipeline(out)
-
-
-def _tuner(out=sys.stdout) -> dict[str, float]:
-    from .auto_tuner.bench import bench_tuner
-
-    return bench_tuner(out=out)
-
-
-def _controller(out=sys.stdout) -> dict[str, float]:
-    from .fuzzy_controller.compare import bench_controller
-
-    return bench_controller(out=out)
-
-
-def _net(out=sys.stdout) -> dict[str, float]:
-    from .bench_net import bench_net  # makes network namespaces when root
-
-    return bench_net(out)
-
-
-BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": bench_tracker,
-                                                       "net": _net,
-                                                       "pipeline": _pipeline,
-                                                       "tuner": _tuner,
-                                                       "controller": _controller}
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("which", nargs="?", default="tracker", choices=sorted(BENCHES),
-                        help="which benchmark (default tracker)")
-
-
-def main(args: argparse.Namespace) -> int:
-    BENCHES[args.which]()
-    return 0

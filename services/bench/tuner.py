@@ -1,4 +1,4 @@
-"""Benchmark of the tuning cycle: ``python -m vistrack.services.auto_tuner.bench``.
+"""Benchmark of the tuning cycle: ``python -m vistrack.services.bench.tuner``.
 
 On a 30-frame 256x256 buffer, on one core (OpenCV's threads set to 1; the numba kernels are
 single-threaded), it times one whole tuning cycle (the 2^(5-1) design with its reference runs,

@@ -41,14 +41,14 @@ from contextlib import ExitStack, contextmanager
 import numpy as np
 import zenoh
 
-from ..common import synthetic
-from ..common.bus import alive_services, loopback_config, query_status
-from ..common.keys import Keys
-from ..common.messages import CmdVel, Frame, PreFrame, peek_int
-from ..common.params import TrackerParams
-from ..common.vision import Tracker, preprocess, warm_up
-from .fuzzy_controller.control import FuzzyController, FuzzySurface
-from .motion_estimation.service import estimate_message
+from ...common import synthetic
+from ...common.bus import alive_services, loopback_config, query_status
+from ...common.keys import Keys
+from ...common.messages import CmdVel, Frame, PreFrame, peek_int
+from ...common.params import TrackerParams
+from ...common.vision import Tracker, preprocess, warm_up
+from ..fuzzy_controller.control import FuzzyController, FuzzySurface
+from ..motion_estimation.service import estimate_message
 
 ECHO_PEER = """
 import json, sys, time, zenoh

@@ -1,6 +1,6 @@
 """bench_net: what crossing machines costs, measured on real network namespaces.
 
-``python -m vistrack.services.bench_net [--seconds S] [--rounds N] [--json]`` (as root, for the
+``python -m vistrack.services.bench.net [--seconds S] [--rounds N] [--json]`` (as root, for the
 namespaces; without root only the loopback rows are measured) prints one table:
 
 * latency: the round trip of a payload between two processes (a pinger and an echo, plain
@@ -29,7 +29,7 @@ netns deployment      the production path of deploy/multi-host: robot client -> 
 
 The certificates are made with :mod:`.certs` in a temporary directory; the namespaces are
 created for the run and deleted at the end, also on failure (Ctrl-C included). Each process is
-``python -m vistrack.services.bench_net --role ROLE CONFIG.json5 ...`` (run under
+``python -m vistrack.services.bench.net --role ROLE CONFIG.json5 ...`` (run under
 ``ip netns exec NS`` for the namespaces). Absolute figures depend on the machine and its load;
 the ratios between rows of one run are what to read.
 """
@@ -203,7 +203,7 @@ def _config(path: Path, mode: str, *, listen: list[str] | None = None,
 
 class _Proc:
     def __init__(self, ns: str | None, role: str, *args: str) -> None:
-        cmd = [sys.executable, "-m", "vistrack.services.bench_net", "--role", role, *args]
+        cmd = [sys.executable, "-m", "vistrack.services.bench.net", "--role", role, *args]
         if ns is not None:
             cmd = ["ip", "netns", "exec", ns, *cmd]
         # stderr to a file: a pipe nobody reads could fill up and block the process
@@ -423,7 +423,7 @@ def bench_net(out: Any = sys.stdout, *, seconds: float = 3.0, rounds: int = 300,
     """Measure every path ``repeat`` times, interleaved (so a burst of load elsewhere on the
     machine hits every path alike), print the table of the medians; return the figures
     (ms, frames/s, MB/s)."""
-    from .certs import issue, make_ca
+    from ..certs import issue, make_ca
 
     why_not = _can_make_namespaces() if namespaces else "--no-netns"
     lat: dict[str, dict[int, list[float]]] = {}
@@ -471,7 +471,7 @@ def bench_net(out: Any = sys.stdout, *, seconds: float = 3.0, rounds: int = 300,
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m vistrack.services.bench_net",
+    parser = argparse.ArgumentParser(prog="python -m vistrack.services.bench.net",
                                      description=(__doc__ or "").split("\n\n")[0])
     parser.add_argument("--role", choices=("router", "echo", "ping", "sink", "source"),
                         help=argparse.SUPPRESS)

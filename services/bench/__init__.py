@@ -1,0 +1,67 @@
+"""``vistrack bench``: measured figures against a peer run in the same process and moment.
+
+One module a benchmark, each also run under pytest by ``tests/bench`` (``-m bench``):
+
+* :mod:`.tracker`: the SSD tracker against ``cv2.matchTemplate`` and pyramidal LK;
+* :mod:`.pipeline`: the five-process pipeline against its stages in one process and a raw
+  Zenoh skeleton of the same processes;
+* :mod:`.net`: latency and throughput over loopback, TCP, mutual TLS and the multi-host chain;
+* :mod:`.tuner`: one tuning cycle of the auto-tuner;
+* :mod:`.controller`: the fuzzy controller against a proportional one and scikit-fuzzy.
+
+Each is imported only when it runs (the pipeline one starts processes, the net one makes
+network namespaces).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+
+
+def _tracker(out=sys.stdout) -> dict[str, float]:
+    from .tracker import bench_tracker
+
+    return bench_tracker(out)
+
+
+def _pipeline(out=sys.stdout) -> dict[str, float]:
+    from .pipeline import bench_pipeline  # starts processes: imported only when run
+
+    return bench_pipeline(out)
+
+
+def _tuner(out=sys.stdout) -> dict[str, float]:
+    from .tuner import bench_tuner
+
+    return bench_tuner(out=out)
+
+
+def _controller(out=sys.stdout) -> dict[str, float]:
+    from .controller import bench_controller
+
+    return bench_controller(out=out)
+
+
+def _net(out=sys.stdout) -> dict[str, float]:
+    from .net import bench_net  # makes network namespaces when root
+
+    return bench_net(out)
+
+
+BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": _tracker,
+                                                       "net": _net,
+                                                       "pipeline": _pipeline,
+                                                       "tuner": _tuner,
+                                                       "controller": _controller}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("which", nargs="?", default="tracker", choices=sorted(BENCHES),
+                        help="which benchmark (default tracker)")
+
+
+def main(args: argparse.Namespace) -> int:
+    BENCHES[args.which]()
+    return 0

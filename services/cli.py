@@ -15,7 +15,7 @@ from . import usage
 
 # name -> (module under vistrack.services, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("demo", "the whole system in closed loop on the robot simulator (main job)"),
+    "demo": ("launch.demo", "the whole system in closed loop on the robot simulator (main job)"),
     "track": ("offline.track", "track features over recorded frames, offline (no Zenoh)"),
     "tune": ("offline.tune",
              "factorial design, ANOVA, sweep and optimum over recorded frames, offline"),
@@ -33,9 +33,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "params": ("tools.params", "get the tracker parameters in force, or set them live"),
     "record": ("tools.record", "record samples of chosen keys to a file"),
     "replay": ("tools.replay", "publish a recording again at its timing"),
-    "up": ("launcher", "start and supervise the five services (and a Zenoh router)"),
-    "router": ("router", "run a Zenoh router for the services and tools to connect to"),
-    "certs": ("certs", "a CA and host certificates for Zenoh's mutual TLS (no Zenoh)"),
+    "up": ("launch.supervisor", "start and supervise the five services (and a Zenoh router)"),
+    "router": ("launch.router", "run a Zenoh router for the services and tools to connect to"),
+    "certs": ("launch.certs", "a CA and host certificates for Zenoh's mutual TLS (no Zenoh)"),
 }
 
 

@@ -423,7 +423,7 @@ def bench_net(out: Any = sys.stdout, *, seconds: float = 3.0, rounds: int = 300,
     """Measure every path ``repeat`` times, interleaved (so a burst of load elsewhere on the
     machine hits every path alike), print the table of the medians; return the figures
     (ms, frames/s, MB/s)."""
-    from ..certs import issue, make_ca
+    from ..launch.certs import issue, make_ca
 
     why_not = _can_make_namespaces() if namespaces else "--no-netns"
     lat: dict[str, dict[int, list[float]]] = {}

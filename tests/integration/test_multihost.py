@@ -49,7 +49,7 @@ import zenoh
 from vistrack.common import synthetic
 from vistrack.common.messages import CmdVel, Params
 from vistrack.common.params import TrackerParams
-from vistrack.services.certs import issue, make_ca
+from vistrack.services.launch.certs import issue, make_ca
 
 pytestmark = pytest.mark.integration
 pytest.importorskip("cryptography", reason="vistrack certs needs the cryptography package")

@@ -16,7 +16,7 @@ import subprocess
 import pytest
 
 from vistrack.services import cli
-from vistrack.services.certs import CertError, inspect, issue, make_ca
+from vistrack.services.launch.certs import CertError, inspect, issue, make_ca
 
 x509 = pytest.importorskip("cryptography.x509", reason="vistrack certs needs cryptography")
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID  # noqa: E402

@@ -53,21 +53,21 @@ from typing import IO, Any
 import yaml
 import zenoh
 
-from ..common.bus import (
+from ...common.bus import (
     BusError,
     add_zenoh_args,
     config_from_args,
     install_signal_handlers,
     open_session,
 )
-from ..common.keys import SERVICES, Keys, validate_robot_id
+from ...common.keys import SERVICES, Keys, validate_robot_id
+from ..usage import FlagError, add_number, check_endpoint, one_line, print_error, run_checks
 from .router import (
     DEFAULT_LISTEN,
     listen_endpoints,
     router_config,
     start_router,
 )
-from .usage import FlagError, add_number, check_endpoint, one_line, print_error, run_checks
 
 #: Restart policies of a service.
 POLICIES = ("never", "on-failure", "always")
@@ -81,7 +81,7 @@ CONSUMES = {"preprocessing": "frame", "motion_estimation": "pre_frame", "auto_tu
 #: Flags the launcher passes to every service itself; a launch file may not set them.
 RESERVED_FLAGS = ("-e", "--connect", "--robot", "--no-multicast-scouting")
 #: Where ``vistrack up`` looks for its default launch file (a source checkout).
-DEFAULT_LAUNCH_PATH = Path(__file__).resolve().parents[1] / "deploy" / "local.yaml"
+DEFAULT_LAUNCH_PATH = Path(__file__).resolve().parents[2] / "deploy" / "local.yaml"
 
 # The built-in default launch file, used when deploy/local.yaml is not installed (a wheel);
 # a test keeps it identical to deploy/local.yaml.
@@ -504,7 +504,7 @@ def check_service_flags(service: str, argv: list[str]) -> str | None:
     so what ``vistrack <service>`` would refuse is found before anything starts rather than as
     a crash loop.
     """
-    from .cli import COMMANDS  # here, not at the top: cli imports this module
+    from ..cli import COMMANDS  # here, not at the top: cli imports this module
 
     module = importlib.import_module(f"vistrack.services.{COMMANDS[service.replace('_', '-')][0]}")
     parser = _CheckingParser(prog=f"vistrack {service}", add_help=False)
@@ -1078,7 +1078,7 @@ def compile_kernels(out: IO[str] = sys.stderr) -> None:
     a time on a small machine (~25 s each alone), and miss the ready timeout; with the cache
     filled they load in under a second.
     """
-    from ..common.vision import warm_up
+    from ...common.vision import warm_up
 
     t0 = time.monotonic()
     warm_up()

@@ -34,12 +34,12 @@ import msgpack
 import numpy as np
 import zenoh
 
-from ..common.bus import BusError, add_zenoh_args
-from .camera.scenarios import ScenarioError, load_scenario
-from .camera.sim import Camera, image_truth
-from .launcher import Launcher, LaunchError, LaunchSpec, compile_kernels, default_launch
+from ...common.bus import BusError, add_zenoh_args
+from ..camera.scenarios import ScenarioError, load_scenario
+from ..camera.sim import Camera, image_truth
+from ..usage import add_number, print_error
 from .router import listen_endpoints, router_config
-from .usage import add_number, print_error
+from .supervisor import Launcher, LaunchError, LaunchSpec, compile_kernels, default_launch
 
 TRACKER_FLAGS = ("--subpixel",)  # closed loop needs sub-pixel motion (see README)
 STRIP_FRAMES = 8

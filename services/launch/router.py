@@ -17,14 +17,14 @@ import threading
 
 import zenoh
 
-from ..common.bus import (
+from ...common.bus import (
     BusError,
     add_zenoh_args,
     config_from_args,
     install_signal_handlers,
     open_session,
 )
-from .usage import print_error
+from ..usage import print_error
 
 #: Where the router listens when neither ``-l`` nor a config file names an endpoint.
 DEFAULT_LISTEN = ("tcp/127.0.0.1:7447",)

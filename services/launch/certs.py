@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .usage import add_number, print_error
+from ..usage import add_number, print_error
 
 CA_CERT = "ca.pem"
 CA_KEY = "ca.key"

@@ -33,7 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "params": ("tools.params", "get the tracker parameters in force, or set them live"),
     "record": ("tools.record", "record samples of chosen keys to a file"),
     "replay": ("tools.replay", "publish a recording again at its timing"),
-    "up": ("launch.supervisor", "start and supervise the five services (and a Zenoh router)"),
+    "up": ("launch.up", "start and supervise the five services (and a Zenoh router)"),
     "router": ("launch.router", "run a Zenoh router for the services and tools to connect to"),
     "certs": ("launch.certs", "a CA and host certificates for Zenoh's mutual TLS (no Zenoh)"),
 }

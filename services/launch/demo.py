@@ -38,8 +38,9 @@ from ...common.bus import BusError, add_zenoh_args
 from ..camera.scenarios import ScenarioError, load_scenario
 from ..camera.sim import Camera, image_truth
 from ..usage import add_number, print_error
+from .launchfile import LaunchError, LaunchSpec, default_launch
 from .router import listen_endpoints, router_config
-from .supervisor import Launcher, LaunchError, LaunchSpec, compile_kernels, default_launch
+from .supervisor import Launcher, compile_kernels
 
 TRACKER_FLAGS = ("--subpixel",)  # closed loop needs sub-pixel motion (see README)
 STRIP_FRAMES = 8

@@ -28,7 +28,7 @@ from vistrack.common.bus import query_status
 from vistrack.common.keys import SERVICES, Keys
 from vistrack.common.messages import Estimate
 from vistrack.services import cli
-from vistrack.services.launch.supervisor import (
+from vistrack.services.launch.launchfile import (
     DEFAULT_LAUNCH,
     DEFAULT_LAUNCH_PATH,
     Backoff,

@@ -1,0 +1,145 @@
+"""up: start the five services as supervised child processes, with an embedded Zenoh router.
+
+``vistrack up [LAUNCH.yaml] [--camera SOURCE] [--fps F] [--size WxH] [--loop] [--duration S]``
+plus the Zenoh flags. The launch file (default ``deploy/local.yaml``) names the robot, the
+router's listen endpoints and, per service, its flags and restart policy; it is validated
+strictly and every error names the file, the line, the key and what is allowed.
+
+* Unless ``-e/--connect`` names an existing router, a Zenoh router runs inside this process,
+  listening on ``tcp/127.0.0.1:7447`` (``-l`` to change); every service connects to it with
+  ``-e ENDPOINT --no-multicast-scouting --robot ID``, and so can any tool.
+  ``-c`` configures the embedded router (with ``-e``: the launcher's own session);
+  ``-m`` sets the services' session mode.
+* Start-up is downstream first (fuzzy-controller, motion-estimation, preprocessing,
+  auto-tuner); the camera starts once their liveliness tokens are up and their inputs have
+  subscribers, so no frame is sent before its consumers exist. ``vistrack up: ready (N
+  services)`` is printed when every token ``vistrack/<robot>/alive/<service>`` is up.
+* Each child's stdout and stderr are printed line by line, prefixed ``[service-name]``.
+* A child that exits is restarted by its policy (``never``, ``on-failure``, ``always``) with
+  exponential back-off, reset once it has run ``reset_after`` seconds.
+* ``--camera SOURCE`` replaces the camera's ``--source`` and drops the launch file's
+  ``--loop`` (give ``--loop`` to keep replaying); ``--fps`` and ``--size`` replace the
+  camera's. A camera that exits 0 under ``never`` or ``on-failure`` (a file source without
+  ``--loop`` has been processed) ends the run, as do ``--duration``, Ctrl-C and SIGTERM.
+* Stopping sends SIGTERM to every child's process group, SIGKILL to what is left after
+  3 s, and closes the router. Children also get SIGTERM if the launcher dies (Linux
+  ``PR_SET_PDEATHSIG``).
+
+Exit codes: 0 clean stop, 1 start-up or run failure, 2 bad command line or launch file.
+The library behind it (:func:`~.launchfile.load_launch`, :class:`~.supervisor.Launcher`) is
+what ``vistrack demo`` uses.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import threading
+import time
+from typing import Any
+
+from ...common.bus import (
+    BusError,
+    add_zenoh_args,
+    install_signal_handlers,
+)
+from ..usage import add_number, print_error
+from .launchfile import LaunchError, LaunchSpec, check_service_flags, default_launch, load_launch
+from .router import (
+    listen_endpoints,
+    router_config,
+)
+from .supervisor import Launcher, compile_kernels
+
+# -- the command line ------------------------------------------------------------------------
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("launch", nargs="?", metavar="LAUNCH.yaml",
+                        help="launch file (default: deploy/local.yaml)")
+    parser.add_argument("--camera", metavar="SOURCE",
+                        help="the camera's source: file:PATH, device:N, builtin or "
+                             "sim[:SCENARIO]; drops the launch file's --loop")
+    parser.add_argument("--fps", type=float, metavar="F",
+                        help="the camera's frames per second (its --fps)")
+    parser.add_argument("--size", metavar="WxH", help="the camera's frame size (its --size)")
+    parser.add_argument("--loop", action="store_true",
+                        help="with --camera: replay a file source forever")
+    add_number(parser, "--duration", lo=0, hi=1e6, lo_open=True, unit="s", metavar="S",
+               help="end the run after S seconds, %(allowed)s")
+    add_number(parser, "--ready-timeout", lo=0, hi=3600, lo_open=True, unit="s", metavar="S",
+               help="longest wait for the services at start-up, %(allowed)s (default: the "
+                    "launch file's ready_timeout)")
+    add_zenoh_args(parser)
+    # None = not given: the launch file's robot then applies
+    parser.set_defaults(robot=None)
+
+
+def launch_from_args(args: argparse.Namespace) -> LaunchSpec:
+    """The launch file of ``args`` with the command line's overrides applied.
+
+    Raises
+    ------
+    LaunchError, BusError
+        A bad launch file or flag combination (exit code 2).
+    """
+    launch = load_launch(args.launch) if args.launch else default_launch()
+    overridden = launch.with_camera(source=args.camera, fps=args.fps, size=args.size,
+                                    loop=args.loop)
+    if overridden is not launch:  # the camera's flags with --camera/--fps/--size applied
+        camera = overridden.service("camera")
+        assert camera is not None
+        problem = check_service_flags("camera", list(camera.flags))
+        if problem:
+            raise LaunchError(problem)
+    launch = overridden
+    changes: dict[str, Any] = {}
+    if args.robot is not None:
+        changes["robot"] = args.robot
+    if args.listen:
+        if args.connect:
+            raise LaunchError("-l/--listen sets the embedded router's endpoints, and "
+                              "-e/--connect replaces that router: give one of them")
+        changes["listen"] = tuple(args.listen)
+        router_config(list(args.listen))  # a malformed endpoint is a usage error
+    if args.ready_timeout is not None:
+        changes["ready_timeout"] = args.ready_timeout
+    if args.config is not None:
+        router_config(None, args.config)  # a missing or invalid file is a usage error
+    if args.config is not None and not args.listen and not args.connect:
+        # the config file decides where the router listens
+        changes["listen"] = tuple(listen_endpoints(router_config(None, args.config)))
+    return dataclasses.replace(launch, **changes)
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        launch = launch_from_args(args)
+    except (LaunchError, BusError) as e:
+        print_error("up", e)
+        return 2
+    stop = threading.Event()
+    restore = install_signal_handlers(stop)
+    try:
+        return _run(launch, args, stop)
+    except (LaunchError, BusError) as e:
+        print_error("up", e)
+        return 1
+    finally:
+        restore()
+
+
+def _run(launch: LaunchSpec, args: argparse.Namespace, stop: threading.Event) -> int:
+    compile_kernels()
+    with Launcher(launch, connect=args.connect, router_config=args.config,
+                  multicast_scouting=not args.no_multicast_scouting, mode=args.mode,
+                  stop_event=stop) as launcher:
+        if not launcher.wait_ready():
+            return 0  # Ctrl-C during start-up
+        launcher.emit(f"vistrack up: ready ({len(launch.services)} services)")
+        deadline = time.monotonic() + args.duration if args.duration else None
+        code = launcher.run_until(deadline=deadline)
+    try:
+        print(f"vistrack up: stopped (exit {code})", flush=True)
+    except OSError:
+        pass  # stdout closed (piped into head): the exit code still tells
+    return code

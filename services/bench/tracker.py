@@ -88,7 +88,8 @@ def _accuracy() -> list[tuple[str, float, float, float, int]]:
         p0 = e0.points.astype(np.float32).reshape(-1, 1, 2)
         lk = []
         for level in (0, 2):
-            p1, st, _ = cv2.calcOpticalFlowPyrLK(a, b, p0, None, winSize=(9, 9), maxLevel=level)
+            p1, st, _ = cv2.calcOpticalFlowPyrLK(a, b, p0, None,  # type: ignore[call-overload]
+                                         winSize=(9, 9), maxLevel=level)
             good = st[:, 0] == 1
             lk.append(float(np.median(groundtruth.endpoint_errors(
                 p0.reshape(-1, 2)[good], p1.reshape(-1, 2)[good], flow))))
@@ -139,7 +140,8 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
 
         def run() -> None:
             for (a, b, _), p0 in zip(raw, pts32, strict=True):
-                cv2.calcOpticalFlowPyrLK(a, b, p0, None, winSize=(9, 9), maxLevel=level)
+                cv2.calcOpticalFlowPyrLK(a, b, p0, None,  # type: ignore[call-overload]
+                                         winSize=(9, 9), maxLevel=level)
         return run
 
     def whole() -> None:

@@ -2,8 +2,9 @@
 pipeline``).
 
 Prints the table: a raw Zenoh round trip, the raw Zenoh skeleton of the five processes (paced
-and unpaced, receiving in Zenoh's callbacks and in RingChannel(1) loops), the stages in one process, and our five processes at 30 fps and unpaced. Asserts
-only that every figure was measured and that the ratios are those of the figures, never a time.
+and unpaced, receiving in Zenoh's callbacks and in RingChannel(1) loops), the stages in one
+process, and our five processes at 30 fps and unpaced. Asserts only that every figure was
+measured and that the ratios are those of the figures, never a time.
 """
 
 from __future__ import annotations

@@ -1,0 +1,273 @@
+"""The contract's messages as ROS 2 messages: types, CDR, schemas and type hashes.
+
+One translation, used wherever vistrack speaks ROS 2: MCAP recordings (``ros2msg`` schemas,
+``cdr`` payloads), the Foxglove live view and the ROS 2 bridge over ``rmw_zenoh``. The type
+system and the CDR codec are ``rosbags``' (its ROS 2 Jazzy store); nothing here encodes CDR by
+hand. vistrack's own types are the ``.msg`` files of ``deploy/ros2/vistrack_msgs/msg`` (a
+colcon-buildable package), installed with the project as ``vistrack.ros2_msgs``.
+
+=====================================  ===========================================
+contract key                            ROS 2 type
+=====================================  ===========================================
+``camera/frame``, ``preprocessing/frame``  ``sensor_msgs/msg/Image`` (``mono8``)
+``control/cmd_vel``                     ``geometry_msgs/msg/Twist`` (no header: ROS's own type)
+``motion/estimate``                     ``vistrack_msgs/msg/Estimate``
+``tuner/params``                        ``vistrack_msgs/msg/Params``
+``tuner/report``                        ``vistrack_msgs/msg/Report``
+=====================================  ===========================================
+
+Header stamps come from the contract's ``stamp_ns``; ``frame_id`` is :data:`FRAME_ID`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import importlib.util
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.store import Typestore
+
+from .messages import CmdVel, Estimate, Frame, Message, Params, PreFrame, Report, to_jsonable
+
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+TWIST = "geometry_msgs/msg/Twist"
+ESTIMATE = "vistrack_msgs/msg/Estimate"
+PARAMS = "vistrack_msgs/msg/Params"
+REPORT = "vistrack_msgs/msg/Report"
+
+#: ``header.frame_id`` of what vistrack publishes: the camera's optical frame.
+FRAME_ID = "camera"
+
+#: Contract key suffix -> the ROS 2 type it is published as.
+ROS_TYPES: dict[str, str] = {
+    Frame.KEY: IMAGE, PreFrame.KEY: IMAGE, CmdVel.KEY: TWIST, Estimate.KEY: ESTIMATE,
+    Params.KEY: PARAMS, Report.KEY: REPORT}
+
+
+def msg_dir() -> Path:
+    """The ``msg`` folder of ``vistrack_msgs``: installed as ``vistrack.ros2_msgs`` (a plain
+    folder, no ``__init__.py``: it stays a ROS 2 package as it is in the repository)."""
+    spec = importlib.util.find_spec("vistrack.ros2_msgs")
+    for location in (spec.submodule_search_locations or []) if spec else []:
+        folder = Path(location) / "msg"
+        if folder.is_dir():
+            return folder
+    raise FileNotFoundError("vistrack_msgs/msg not found: reinstall vistrack "
+                            "(deploy/ros2/vistrack_msgs is installed as vistrack.ros2_msgs)")
+
+
+def msg_files() -> dict[str, str]:
+    """``vistrack_msgs/msg/NAME`` -> the text of its ``.msg`` file."""
+    return {f"vistrack_msgs/msg/{p.stem}": p.read_text(encoding="utf-8")
+            for p in sorted(msg_dir().glob("*.msg"))}
+
+
+@functools.lru_cache(maxsize=1)
+def typestore() -> Typestore:
+    """rosbags' ROS 2 Jazzy type store with ``vistrack_msgs`` registered (built once)."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types: dict[str, Any] = {}
+    for name, text in msg_files().items():
+        types.update(get_types_from_msg(text, name))
+    store.register(types)
+    return store
+
+
+def serialize(obj: Any) -> bytes:
+    """CDR bytes (little endian, with the 4-byte encapsulation header) of a rosbags message."""
+    return bytes(typestore().serialize_cdr(obj, obj.__msgtype__))
+
+
+def deserialize(data: bytes | bytearray | memoryview, typename: str) -> Any:
+    """The rosbags message of CDR ``data`` of ``typename``.
+
+    Raises
+    ------
+    ValueError
+        When ``data`` is not a valid CDR encoding of ``typename`` (rosbags raises assorted
+        exceptions on truncated or foreign bytes; they are all reported as one kind here).
+    """
+    try:
+        return typestore().deserialize_cdr(bytes(data), typename)
+    except Exception as e:  # noqa: BLE001 - rosbags' decoder raises struct/index/unicode errors
+        raise ValueError(f"not a CDR {typename}: {type(e).__name__}: {e}") from None
+
+
+@functools.cache
+def msgdef(typename: str) -> str:
+    """The ``ros2msg`` schema text of ``typename``: its definition followed by those of the
+    types it uses, each after a ``====`` line and ``MSG: pkg/Type`` (the format MCAP, Foxglove
+    and ``ros2 bag`` read)."""
+    text, _ = typestore().generate_msgdef(typename, ros_version=2)
+    return text
+
+
+@functools.cache
+def type_hash(typename: str) -> str:
+    """``RIHS01_<64 hex>``: the ROS 2 type hash of ``typename`` (REP 2011)."""
+    return typestore().hash_rihs01(typename)
+
+
+def _type(typename: str) -> Any:
+    return typestore().types[typename]
+
+
+def stamp(stamp_ns: int) -> Any:
+    """``builtin_interfaces/msg/Time`` of ns since the Unix epoch."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return _type("builtin_interfaces/msg/Time")(sec=sec, nanosec=nanosec)
+
+
+def header(stamp_ns: int, frame_id: str = FRAME_ID) -> Any:
+    return _type("std_msgs/msg/Header")(stamp=stamp(stamp_ns), frame_id=frame_id)
+
+
+def stamp_ns(header_obj: Any) -> int:
+    """ns since the Unix epoch of a ``std_msgs/msg/Header``."""
+    return int(header_obj.stamp.sec) * 1_000_000_000 + int(header_obj.stamp.nanosec)
+
+
+# -- contract -> ROS 2 ----------------------------------------------------------------------
+
+def image(msg: Frame | PreFrame, frame_id: str = FRAME_ID) -> Any:
+    """``sensor_msgs/msg/Image`` (``mono8``, ``step = width``) of a frame."""
+    data = np.ascontiguousarray(msg.data, dtype=np.uint8).reshape(-1)
+    return _type(IMAGE)(header=header(msg.stamp_ns, frame_id), height=msg.height,
+                        width=msg.width, encoding="mono8", is_bigendian=0, step=msg.width,
+                        data=data)
+
+
+def twist(msg: CmdVel) -> Any:
+    """``geometry_msgs/msg/Twist`` of a command (robot frame: x forward, y left, z up)."""
+    vec = _type("geometry_msgs/msg/Vector3")
+    return _type(TWIST)(linear=vec(x=msg.vx, y=msg.vy, z=0.0), angular=vec(x=0.0, y=0.0,
+                                                                           z=msg.wz))
+
+
+def estimate(msg: Estimate, frame_id: str = FRAME_ID) -> Any:
+    feature = _type("vistrack_msgs/msg/Feature")
+    valid = getattr(msg, "valid", msg.npi > 0)
+    return _type(ESTIMATE)(
+        header=header(msg.stamp_ns, frame_id), seq=msg.seq, valid=bool(valid), npi=msg.npi,
+        xc=msg.xc, yc=msg.yc, xe=msg.xe, ye=msg.ye, dx=msg.dx, dy=msg.dy, scale=msg.scale,
+        t_ms=msg.t_ms, first=msg.first, params_id=msg.params_id,
+        features=[feature(id=int(i), x=float(x), y=float(y)) for i, x, y in msg.features])
+
+
+def params(msg: Params, frame_id: str = FRAME_ID) -> Any:
+    return _type(PARAMS)(
+        header=header(msg.stamp_ns, frame_id), seq=msg.seq, max_features=msg.max_features,
+        thres_percent=msg.thres_percent, search_size=msg.search_size, corr_size=msg.corr_size,
+        ungroup_size=msg.ungroup_size, params_id=msg.params_id, source=msg.source,
+        reason=msg.reason)
+
+
+def _strings(values: Any) -> list[str]:
+    return [str(v) for v in values] if isinstance(values, (list, tuple)) else []
+
+
+def report(msg: Report, frame_id: str = FRAME_ID) -> Any:
+    """``vistrack_msgs/msg/Report``: the design, per-response values, effects and significant
+    terms as typed fields, and the whole report as JSON in ``json``."""
+    terms: list[str] = []
+    for eff in msg.effects.values():
+        if isinstance(eff, dict):
+            terms += [str(t) for t in eff if str(t) not in terms]
+    response = _type("vistrack_msgs/msg/Response")
+    responses = []
+    for name, values in msg.responses.items():
+        eff = msg.effects.get(name, {})
+        sig = msg.significant.get(name, {})
+        responses.append(response(
+            name=str(name),
+            values=np.array([float(v) for v in values], np.float64),
+            effects=np.array([float(eff.get(t, np.nan)) if isinstance(eff, dict) else np.nan
+                              for t in terms], np.float64),
+            significant_99=_strings(sig.get("99", [])) if isinstance(sig, dict) else [],
+            significant_95=_strings(sig.get("95", [])) if isinstance(sig, dict) else []))
+    opt = msg.optimum
+    optimum = _type(PARAMS)(
+        header=header(msg.stamp_ns, frame_id), seq=msg.seq,
+        max_features=int(opt.get("max_features", 0)),
+        thres_percent=float(opt.get("thres_percent", 0.0)),
+        search_size=int(opt.get("search_size", 0)), corr_size=int(opt.get("corr_size", 0)),
+        ungroup_size=int(opt.get("ungroup_size", 0)), params_id=int(opt.get("params_id", 0)),
+        source=str(opt.get("source", "tuner")), reason=str(opt.get("reason", "")))
+    design = np.array(msg.design, np.int8).reshape(-1)
+    return _type(REPORT)(
+        header=header(msg.stamp_ns, frame_id), seq=msg.seq, factors=_strings(msg.factors),
+        design=design, order=np.array(msg.order, np.uint32), terms=terms,
+        responses=responses, optimum=optimum, json=json.dumps(to_jsonable(msg)))
+
+
+def to_ros(msg: Message, frame_id: str = FRAME_ID) -> Any:
+    """The ROS 2 message of a contract message (see the table above).
+
+    Raises
+    ------
+    TypeError
+        For ``sim/pose``, which has no ROS 2 counterpart here.
+    """
+    if isinstance(msg, (Frame, PreFrame)):
+        return image(msg, frame_id)
+    if isinstance(msg, CmdVel):
+        return twist(msg)
+    if isinstance(msg, Estimate):
+        return estimate(msg, frame_id)
+    if isinstance(msg, Params):
+        return params(msg, frame_id)
+    if isinstance(msg, Report):
+        return report(msg, frame_id)
+    raise TypeError(f"{type(msg).__name__} has no ROS 2 type")
+
+
+# -- ROS 2 -> contract ----------------------------------------------------------------------
+
+def frame_of_image(obj: Any, *, seq: int) -> Frame:
+    """The ``camera/frame`` of a ``mono8`` ``sensor_msgs/msg/Image`` (other encodings are the
+    ROS 2 camera source's job)."""
+    if obj.encoding != "mono8":
+        raise ValueError(f"image encoding {obj.encoding!r}: expected 'mono8'")
+    data = np.asarray(obj.data, np.uint8)
+    if obj.step < obj.width or data.size != obj.step * obj.height:
+        raise ValueError(f"image data is {data.size} bytes: expected step * height = "
+                         f"{obj.step} * {obj.height} with step >= width {obj.width}")
+    rows = data.reshape(obj.height, obj.step)[:, :obj.width]
+    return Frame.from_image(np.ascontiguousarray(rows), seq=seq, stamp_ns=stamp_ns(obj.header))
+
+
+def cmd_vel_of_twist(obj: Any, *, seq: int, stamp_ns_: int, stale: bool = False) -> CmdVel:
+    return CmdVel(seq=seq, stamp_ns=stamp_ns_, vx=obj.linear.x, vy=obj.linear.y,
+                  wz=obj.angular.z, stale=stale)
+
+
+def estimate_of_ros(obj: Any) -> Estimate:
+    fields = {f.name for f in dataclasses.fields(Estimate)}
+    values: dict[str, Any] = dict(
+        seq=obj.seq, stamp_ns=stamp_ns(obj.header), npi=obj.npi, xc=obj.xc, yc=obj.yc,
+        xe=obj.xe, ye=obj.ye, dx=obj.dx, dy=obj.dy, scale=obj.scale, t_ms=obj.t_ms,
+        first=obj.first, params_id=obj.params_id,
+        features=[[int(f.id), float(f.x), float(f.y)] for f in obj.features])
+    if "valid" in fields:
+        values["valid"] = bool(obj.valid)
+    return Estimate(**values)
+
+
+def params_of_ros(obj: Any) -> Params:
+    return Params(seq=obj.seq, stamp_ns=stamp_ns(obj.header), max_features=obj.max_features,
+                  thres_percent=obj.thres_percent, search_size=obj.search_size,
+                  corr_size=obj.corr_size, ungroup_size=obj.ungroup_size,
+                  params_id=obj.params_id, source=obj.source, reason=obj.reason)
+
+
+def report_of_ros(obj: Any) -> Report:
+    """The ``tuner/report`` carried whole in the message's ``json`` field."""
+    m = json.loads(obj.json)
+    names = [f.name for f in dataclasses.fields(Report)]
+    return Report(**{n: m[n] for n in names if n in m})

@@ -536,12 +536,11 @@ def test_report_has_the_contract_fields_as_plain_types(small_frames):
 def test_algorithm_modules_import_neither_zenoh_nor_msgpack():
     for path in ("auto_tuner/experiment.py", "auto_tuner/sensitivity.py", "auto_tuner/plots.py",
                  "bench/tuner.py"):
-        name = path
         tree = ast.parse((ROOT / "services" / path).read_text())
         for node in ast.walk(tree):
             mods = ([a.name for a in node.names] if isinstance(node, ast.Import) else
                     [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
-            assert not any(m.split(".")[0] in ("zenoh", "msgpack") for m in mods), name
+            assert not any(m.split(".")[0] in ("zenoh", "msgpack") for m in mods), path
 
 
 # ------------------------------------------------------------------------------ real frames

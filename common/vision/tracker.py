@@ -41,7 +41,8 @@ class Estimate:
     ----------
     seq : frame number (0 for the first frame of the run unless given).
     npi : number of feature points in the image (the paper's NPI).
-    xc, yc, xe, ye : Eq. (2) centroid and scatter, px.
+    xc, yc, xe, ye : Eq. (2) centroid and scatter, px; with no feature the image centre and 0
+        (every number of an estimate is finite).
     dx, dy : robust image motion accumulated since the first frame, px.
     scale : robust apparent scale accumulated since the first frame (> 1: closer).
     t_ms : wall time to process this frame, ms.
@@ -146,7 +147,13 @@ class Tracker:
             if len(self._pos) < p.redetect_fraction * p.max_features:
                 self._add_features(pre, frame.shape)
         self._prev = frame
-        xc, yc, xe, ye = centroid_scatter(self._pos)
+        if len(self._pos):
+            xc, yc, xe, ye = centroid_scatter(self._pos)
+        else:
+            # no feature, no centroid: the image centre and no scatter, so that every number
+            # of the estimate is finite (a NaN cannot be sent, nor written as JSON)
+            xc, yc = (frame.shape[1] - 1) / 2.0, (frame.shape[0] - 1) / 2.0
+            xe = ye = 0.0
         est = Estimate(
             seq=self._frame if seq is None else int(seq), npi=len(self._pos),
             xc=xc, yc=yc, xe=xe, ye=ye, dx=self._acc_dx, dy=self._acc_dy,
@@ -251,7 +258,8 @@ def track_frames(frames: Iterable[np.ndarray], params: TrackerParams | None = No
 
 
 def timing(estimates: list[Estimate]) -> tuple[float, float]:
-    """The paper's t1 (first frame) and tf (mean of the following frames), in ms."""
+    """The paper's t1 (first frame) and tf (mean of the following frames), in ms; NaN where
+    there is no such frame (no frames, or only one)."""
     if not estimates:
         return float("nan"), float("nan")
     t1 = estimates[0].t_ms

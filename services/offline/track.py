@@ -64,7 +64,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         if args.format == "table":
             print(_table_row(e), file=out)
         elif args.format == "jsonl":
-            print(json.dumps(e.as_dict()), file=out)
+            print(json.dumps(e.as_dict(), allow_nan=False), file=out)
         else:
             assert writer is not None
             writer.writerow([getattr(e, k) for k in CSV_FIELDS])
@@ -72,7 +72,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         raise SourceError("no frame was read")
     if args.format == "table":
         t1, tf = timing(estimates)
-        print(f"# frames={len(estimates)} t1={t1:.3f} ms tf={tf:.3f} ms "
+        tf_text = f"{tf:.3f} ms" if len(estimates) > 1 else "- (one frame)"
+        print(f"# frames={len(estimates)} t1={t1:.3f} ms tf={tf_text} "
               f"lost={tracker.lost_total} redetections={tracker.redetections}", file=out)
     return 0
 

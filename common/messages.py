@@ -29,7 +29,7 @@ import msgpack
 import numpy as np
 
 from vistrack.common.keys import key_suffix
-from vistrack.common.params import FACTORS, ParamError, TrackerParams
+from vistrack.common.params import FACTORS, MIN_VALID_NPI, ParamError, TrackerParams
 
 SCHEMA_VERSION = 1
 
@@ -514,6 +514,10 @@ class Estimate(_Message):
     features : ``[[id, x, y], ...]``, pixel coordinates in this frame; an id is kept while the
         feature is tracked.
     params_id : ``params_id`` of the parameters used.
+    valid : False when NPI is below :data:`~vistrack.common.params.MIN_VALID_NPI`, too few
+        features for a meaningful centroid and scatter: nothing should act on the estimate.
+        Its numbers are finite all the same (see the README's CONTRACT). None (the default,
+        and a message from a publisher that predates the field) derives it from ``npi``.
     """
 
     KEY: ClassVar[str] = "motion/estimate"
@@ -536,6 +540,19 @@ class Estimate(_Message):
     first: bool
     features: list = field(default_factory=list)
     params_id: int
+    valid: bool | None = None
+
+    def _validate(self) -> None:
+        valid = self.npi >= MIN_VALID_NPI if self.valid is None else self.valid
+        object.__setattr__(self, "valid", _bool(self.KEY, "valid", valid))
+
+    @classmethod
+    def _from_map(cls, m: dict[str, Any]) -> Estimate:
+        if "valid" not in m:  # an older publisher's: derived from npi in _validate
+            m = {**m, "valid": None}
+        elif m["valid"] is None:  # None means "derive" to the constructor only
+            raise _error(cls.KEY, "valid", "must be true or false", None)
+        return super()._from_map(m)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -53,6 +53,11 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "redetect_fraction": (0.0, 1.0),
 }
 
+#: Fewest features for a meaningful estimate (``valid`` of ``motion/estimate``): the centroid
+#: and scatter of one or two points are those points, not the target's, and the robust motion's
+#: outlier rejection needs three pairs to outvote one mismatch.
+MIN_VALID_NPI = 3
+
 #: The paper's five factors, in Table 2's order (A..E of the 2^(5-1) design).
 FACTORS = ("max_features", "thres_percent", "search_size", "corr_size", "ungroup_size")
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numba as nb
 import numpy as np
 
-from ..params import TrackerParams
+from ..params import MIN_VALID_NPI, TrackerParams
 from .features import select_features
 from .motion import _incremental_motion, centroid_scatter
 from .preprocess import Preprocessed, preprocess
@@ -47,6 +47,8 @@ class Estimate:
     scale : robust apparent scale accumulated since the first frame (> 1: closer).
     t_ms : wall time to process this frame, ms.
     first : True for the first frame of a run (its t_ms is the paper's t1).
+    valid : False when NPI is below ``MIN_VALID_NPI`` (3): too few features for a meaningful
+        centroid and scatter, so nothing should act on this estimate.
     ids : (npi,) int64 feature ids; points : (npi, 2) float64 x, y in px.
     """
 
@@ -61,6 +63,7 @@ class Estimate:
     scale: float
     t_ms: float
     first: bool
+    valid: bool
     ids: np.ndarray = field(repr=False)
     points: np.ndarray = field(repr=False)
 
@@ -75,7 +78,8 @@ class Estimate:
         """The contract's ``motion/estimate`` / ``track --format jsonl`` fields."""
         return {"seq": self.seq, "npi": self.npi, "xc": self.xc, "yc": self.yc, "xe": self.xe,
                 "ye": self.ye, "dx": self.dx, "dy": self.dy, "scale": self.scale,
-                "t_ms": self.t_ms, "first": self.first, "features": self.features()}
+                "t_ms": self.t_ms, "first": self.first, "valid": self.valid,
+                "features": self.features()}
 
 
 class Tracker:
@@ -158,7 +162,7 @@ class Tracker:
             seq=self._frame if seq is None else int(seq), npi=len(self._pos),
             xc=xc, yc=yc, xe=xe, ye=ye, dx=self._acc_dx, dy=self._acc_dy,
             scale=self._acc_scale, t_ms=(time.perf_counter() - t0) * 1e3, first=first,
-            ids=self._ids.copy(), points=self._pos.copy())
+            valid=len(self._pos) >= MIN_VALID_NPI, ids=self._ids.copy(), points=self._pos.copy())
         self._frame += 1
         return est
 

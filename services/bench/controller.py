@@ -58,10 +58,10 @@ def closed_loop(scenario: str, law: str | None) -> dict[str, np.ndarray]:
         est = tracker.process(sim.render())
         cmd = Command()
         if ctrl is not None:
-            if xc0 is None:
+            if xc0 is None and est.valid:
                 xc0 = est.xc
-            c = ctrl.update(xc0 + est.dx, est.scale, k / FPS + 1.0, sim.camera.width,
-                            npi=est.npi)
+            c = ctrl.update((est.xc if xc0 is None else xc0) + est.dx, est.scale,
+                            k / FPS + 1.0, sim.camera.width, npi=est.npi, valid=est.valid)
             cmd = Command(vx=c.vx, vy=c.vy, wz=c.wz)
         vx.append(cmd.vx)
         vy.append(cmd.vy)

@@ -213,7 +213,8 @@ def in_process(frames: list[np.ndarray]) -> float:
         t0 = time.perf_counter()
         for k, f in enumerate(frames):
             est = tracker.update(preprocess(f, tracker.params))
-            ctrl.update(est.xc, est.scale, k / 30.0 + 1.0 + _ * 100, f.shape[1], npi=est.npi)
+            ctrl.update(est.xc, est.scale, k / 30.0 + 1.0 + _ * 100, f.shape[1], npi=est.npi,
+                        valid=est.valid)
         best = min(best, (time.perf_counter() - t0) / len(frames))
     return best
 

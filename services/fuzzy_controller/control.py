@@ -508,7 +508,7 @@ class _ImageServo:
 
     # -- the loop ----------------------------------------------------------------------------
     def update(self, xc: float, scale: float, t: float, width: float, *,
-               npi: int | None = None) -> Command:
+               npi: int | None = None, valid: bool = True) -> Command:
         """Take one motion estimate and return the command for it.
 
         Parameters
@@ -520,6 +520,8 @@ class _ImageServo:
         width : image width, px.
         npi : number of tracked features; below ``config.min_npi`` the estimate is not trusted
             and the command is a stale stop. None skips the check.
+        valid : the estimate's ``valid``; False (too few features for a meaningful centroid
+            and scatter, see ``motion/estimate``) is not trusted either: a stale stop.
 
         Returns
         -------
@@ -542,7 +544,7 @@ class _ImageServo:
             raise ValueError(f"width={width!r} must be > 0")
         if self._t is not None and t <= self._t:
             raise ValueError(f"t={t!r} is not after the previous estimate's t={self._t!r}")
-        if npi is not None and npi < self.config.min_npi:
+        if not valid or (npi is not None and npi < self.config.min_npi):
             # Too few features: the centroid and scatter are not the target's any more. Stop,
             # and restart the rates afterwards, because re-detected features have a different
             # centroid and a difference across the gap would kick the rate terms.

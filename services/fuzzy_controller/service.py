@@ -3,7 +3,8 @@ apparent motion (keeps the target centred and at the reference distance).
 
 Reads   ``vistrack/<robot>/motion/estimate``  (latest only)
 Writes  ``vistrack/<robot>/control/cmd_vel``  (reliable; zero with ``stale: true`` while the
-        estimates are older than the watchdog bound or too few features are tracked)
+        estimates are older than the watchdog bound, not ``valid``, or too few features are
+        tracked)
 
 The set point (centroid and scale) is captured from the first estimate of each track, unless
 ``--x-ref`` fixes it. The law is the fuzzy rule base of ``rules.py`` compiled into a control surface
@@ -107,11 +108,14 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                                  "step, or a bad stamp")
             if est.first or xc0 is None:  # a new track: new features, so a new set point
                 ctrl.reset()
-                xc0 = est.xc
+                # from the track's first valid estimate: an invalid one's xc is no target's
+                xc0 = est.xc if est.valid else None
             # the centroid followed through the robust motion of the matched features, not the
-            # raw xc, which jumps whenever features are lost or re-detected (Table 1b)
-            cmd = ctrl.update(xc0 + est.dx, est.scale, est.stamp_ns * 1e-9,
-                              args.image_width, npi=est.npi)
+            # raw xc, which jumps whenever features are lost or re-detected (Table 1b); an
+            # invalid estimate stops the robot
+            cmd = ctrl.update((est.xc if xc0 is None else xc0) + est.dx, est.scale,
+                              est.stamp_ns * 1e-9, args.image_width, npi=est.npi,
+                              valid=est.valid)
         except (MessageError, ValueError) as e:
             node.status.reject(e)
             log.error("rejected motion/estimate: %s", e)

@@ -34,7 +34,7 @@ def estimate_message(e, *, seq: int, stamp_ns: int, params_id: int) -> Estimate:
     """The ``motion/estimate`` message of a library estimate."""
     return Estimate(seq=seq, stamp_ns=stamp_ns, npi=e.npi, xc=e.xc, yc=e.yc, xe=e.xe, ye=e.ye,
                     dx=e.dx, dy=e.dy, scale=e.scale, t_ms=e.t_ms, first=e.first,
-                    features=e.features(), params_id=params_id)
+                    valid=e.valid, features=e.features(), params_id=params_id)
 
 
 def loop(node: Node, args: argparse.Namespace) -> None:

@@ -19,7 +19,7 @@ from ...common.sources import SourceError, open_files, parse_size
 from ...common.vision import Estimate, Tracker, timing, warm_up
 from ..usage import add_param_flags, params_from_args, print_error
 
-CSV_FIELDS = ["seq", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale", "t_ms"]
+CSV_FIELDS = ["seq", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale", "t_ms", "valid"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -35,8 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _table_row(e: Estimate) -> str:
+    valid = "yes" if e.valid else "no"
     return (f"{e.seq:5d} {e.npi:4d} {e.xc:8.2f} {e.yc:8.2f} {e.xe:9.1f} {e.ye:9.1f} "
-            f"{e.dx:8.2f} {e.dy:8.2f} {e.scale:7.4f} {e.t_ms:8.3f}")
+            f"{e.dx:8.2f} {e.dy:8.2f} {e.scale:7.4f} {e.t_ms:8.3f} {valid:>5s}")
 
 
 def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
@@ -54,7 +55,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
               f"corr_size={params.corr_size} ungroup_size={params.ungroup_size} "
               f"subpixel={params.subpixel} search={params.search}", file=out)
         print("#   seq  NPI       xc       yc        xe        ye       dx       dy   scale"
-              "     t_ms", file=out)
+              "     t_ms valid", file=out)
     elif args.format == "csv":
         writer = csv.writer(out, lineterminator="\n")
         writer.writerow(CSV_FIELDS)

@@ -310,6 +310,19 @@ def test_watchdog_stops_on_npi_collapse(surface, make):
     assert c.errors[1] == 0.0  # the rate restarted across the collapse
 
 
+@pytest.mark.parametrize("make", CONTROLLERS)
+def test_an_invalid_estimate_does_not_move_the_robot(surface, make):
+    """``valid: false`` (too few features for a meaningful centroid) stops the robot, even
+    with the NPI check off, until a valid estimate comes."""
+    c = make(surface, x_ref=128.0, scale_ref=1.0, min_npi=0)
+    assert not c.update(200.0, 1.2, 0.0, WIDTH, npi=40).stale
+    stop = c.update(200.0, 1.2, 0.03, WIDTH, npi=0, valid=False)
+    assert stop == Command(0.0, 0.0, 0.0, True)
+    assert c.command_at(0.04).stale
+    back = c.update(200.0, 1.2, 0.06, WIDTH, npi=40)
+    assert not back.stale and back.vy < 0 and c.errors[1] == 0.0
+
+
 def test_bad_estimates_rejected(surface):
     c = _fuzzy(surface)
     c.update(128.0, 1.0, 1.0, WIDTH)

@@ -189,14 +189,41 @@ def test_decode_accepts_bytearray_and_memoryview():
 
 # -- rejections ---------------------------------------------------------------------------
 
+# fields added to the contract later: a message from an older publisher lacks them
+OPTIONAL = {(Estimate, "valid")}
+
+
 @pytest.mark.parametrize(("cls", "name"), [
     (cls, f.name) for cls in ALL for f in dataclasses.fields(cls)
+    if (cls, f.name) not in OPTIONAL
 ], ids=lambda x: x if isinstance(x, str) else x.__name__)
 def test_missing_field_is_named(cls, name):
     m = raw_map(make(cls))
     del m[name]
     err = expect_error(cls, repack(m), name)
     assert "missing" in str(err)
+
+
+@pytest.mark.parametrize(("npi", "valid"), [(0, False), (2, False), (3, True), (40, True)])
+def test_an_estimate_without_valid_from_an_older_publisher_decodes(npi, valid):
+    """``valid`` came later: a message without it decodes, valid when NPI reaches 3."""
+    m = raw_map(make(Estimate))
+    del m["valid"]
+    m["npi"] = npi
+    assert Estimate.decode(repack(m)).valid is valid
+
+
+def test_estimate_valid_is_sent_and_checked():
+    m = raw_map(make(Estimate))
+    assert m["valid"] is False  # npi 2: too few for a centroid and scatter that mean anything
+    m["valid"] = True  # what the publisher says is taken as said
+    assert Estimate.decode(repack(m)).valid is True
+    for bad in (None, 1, "yes"):
+        m["valid"] = bad
+        expect_error(Estimate, repack(m), "valid")
+    fields = {k: v for k, v in dataclasses.asdict(make(Estimate)).items() if k != "valid"}
+    assert Estimate(**{**fields, "npi": 3}).valid is True  # derived when not given
+    assert Estimate(**{**fields, "npi": 3}, valid=False).valid is False
 
 
 @pytest.mark.parametrize("cls", ALL, ids=lambda c: c.__name__)

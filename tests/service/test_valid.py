@@ -1,0 +1,119 @@
+"""``valid`` end to end in-process (the MemoryNode seam): motion-estimation says when an
+estimate has too few features to mean anything, and the fuzzy controller does not move the
+robot on it."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+
+from vistrack.common import synthetic
+from vistrack.common.bus import MemoryNode
+from vistrack.common.messages import CmdVel, Estimate, PreFrame
+from vistrack.common.params import TrackerParams
+from vistrack.common.vision import preprocess
+from vistrack.services import cli
+
+
+def parse(command: str, *argv: str):
+    return cli.build_parser(command).parse_args([command, *argv])
+
+
+def wait_for(condition, timeout=10.0, what="condition"):
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.002)
+
+
+class Running:
+    """A service loop on a MemoryNode in a thread, stopped on exit."""
+
+    def __init__(self, service: str, loop, args) -> None:
+        self.node = MemoryNode(service)
+        self.thread = threading.Thread(target=loop, args=(self.node, args))
+
+    def __enter__(self) -> MemoryNode:
+        self.node.__enter__()
+        self.thread.start()
+        return self.node
+
+    def __exit__(self, *exc) -> None:
+        self.node.stop.set()
+        self.thread.join(10)
+        self.node.__exit__(*exc)
+
+
+def pre_frame(image: np.ndarray, seq: int) -> bytes:
+    pre = preprocess(image, TrackerParams())
+    return PreFrame(seq=seq, stamp_ns=time.time_ns(), width=image.shape[1],
+                    height=image.shape[0], data=pre.filtered, candidates=pre.candidates,
+                    strength=pre.strength, params_id=0).encode()
+
+
+def test_motion_estimation_marks_an_estimate_without_features_invalid():
+    """Textured frames give valid estimates; a frame too small for any feature gives one
+    that says so, with every number finite, and the service goes on."""
+    from vistrack.services.motion_estimation.service import loop
+
+    textured = synthetic.sequence(3, size=(128, 128))
+    frames = [*textured, np.full((6, 6), 90, np.uint8), textured[0]]
+    with Running("motion_estimation", loop, parse("motion-estimation")) as node:
+        def estimates() -> list[Estimate]:
+            return [Estimate.decode(p) for p in node.published_on(node.keys.estimate)]
+
+        for seq, image in enumerate(frames):
+            payload = pre_frame(image, seq)
+            wait_for(lambda payload=payload: node.feed(node.keys.pre_frame, payload),
+                     what="a subscription")
+            wait_for(lambda seq=seq: len(estimates()) > seq, what=f"estimate {seq}")
+        got = estimates()
+    assert [e.valid for e in got] == [True, True, True, False, True]
+    assert all(e.npi >= 10 for e in got if e.valid)
+    tiny = got[3]
+    assert tiny.npi == 0 and tiny.features == []
+    assert (tiny.xc, tiny.yc, tiny.xe, tiny.ye) == (2.5, 2.5, 0.0, 0.0)
+    for e in got:
+        assert all(math.isfinite(getattr(e, k))
+                   for k in ("xc", "yc", "xe", "ye", "dx", "dy", "scale", "t_ms"))
+
+
+def test_the_controller_does_not_move_the_robot_on_an_invalid_estimate():
+    """An invalid first estimate neither moves the robot nor sets the set point; an invalid
+    one later stops it; valid ones move it again."""
+    from vistrack.services.fuzzy_controller.service import loop
+
+    def estimate(seq: int, xc: float, npi: int, valid: bool) -> bytes:
+        return Estimate(seq=seq, stamp_ns=time.time_ns(), npi=npi, xc=xc,
+                        yc=128.0, xe=400.0 if valid else 0.0, ye=400.0 if valid else 0.0,
+                        dx=0.0, dy=0.0, scale=1.0, t_ms=1.0, first=seq == 0, valid=valid,
+                        features=[], params_id=0).encode()
+
+    # the first estimate has no features: its xc is the image centre, no target's; the
+    # publisher's verdict is followed even where NPI alone would pass the controller's check
+    script = [(0, 127.5, 0, False), (1, 90.0, 40, True), (2, 90.0, 40, True),
+              (3, 127.5, 10, False), (4, 90.0, 40, True)]
+    with Running("fuzzy_controller", loop, parse("fuzzy-controller")) as node:
+        def commands() -> list[CmdVel]:
+            return [CmdVel.decode(p) for p in node.published_on(node.keys.cmd_vel)]
+
+        answered: list[CmdVel] = []
+        for seq, xc, npi, valid in script:
+            payload = estimate(seq, xc, npi, valid)
+            stamp = Estimate.decode(payload).stamp_ns
+            wait_for(lambda payload=payload: node.feed(node.keys.estimate, payload),
+                     what="a subscription")
+            wait_for(lambda stamp=stamp: any(c.stamp_ns == stamp for c in commands()),
+                     what=f"the command of estimate {seq}")
+            answered.append(next(c for c in commands() if c.stamp_ns == stamp))
+    stale = [c.stale for c in answered]
+    assert stale == [True, False, False, True, False]
+    for c in answered:
+        if c.stale:
+            assert (c.vx, c.vy, c.wz) == (0.0, 0.0, 0.0)
+    # the set point came from the first valid estimate (xc 90), so the target is centred on it
+    # and the robot is not sent towards the image centre of the invalid one
+    assert abs(answered[1].vy) < 1e-9 and abs(answered[2].vy) < 1e-9

@@ -11,7 +11,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from . import usage
+from . import threads, usage
 
 # name -> (module under vistrack.services, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -67,6 +67,12 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        # before anything imports numpy: the numeric libraries size their pools when they load
+        threads.configure()
+    except ValueError as e:
+        print(f"vistrack: error: {usage.one_line(e)}", file=sys.stderr, flush=True)
+        return 2
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser(command if command in COMMANDS else "")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 
 import pytest
 
@@ -79,3 +80,23 @@ def test_endpoints_need_a_protocol_and_for_ip_a_host_and_port(endpoint, ok):
 ])
 def test_one_line(raw, line):
     assert one_line(raw) == line
+
+
+@pytest.mark.parametrize("value", ["0", "65", "two", ""])
+def test_a_bad_numeric_thread_count_is_one_line_and_exit_2(value, monkeypatch, capsys):
+    from vistrack.services import cli
+
+    monkeypatch.setenv("VISTRACK_NUMERIC_THREADS", value)
+    assert cli.main(["status", "--help"]) == 2
+    assert capsys.readouterr().err == (f"vistrack: error: VISTRACK_NUMERIC_THREADS={value!r} "
+                                       "is out of range: allowed 1..64\n")
+
+
+def test_the_thread_pool_variables_are_set_for_every_library(monkeypatch):
+    from vistrack.services import threads
+
+    for var in threads.POOL_VARS:
+        monkeypatch.setenv(var, "8")  # a shell's setting does not win
+    monkeypatch.setenv("VISTRACK_NUMERIC_THREADS", "1")
+    assert threads.configure() == 1
+    assert {os.environ[var] for var in threads.POOL_VARS} == {"1"}

@@ -168,7 +168,9 @@ class Status:
     dropped : payloads lost: latest-only payloads overwritten before being consumed, plus
         gaps in the publishers' ``seq``.
     rejected : bad inputs (counted by the service through :meth:`reject`).
-    last_error : text of the last rejection or error, "" if none.
+    failed : inputs whose handling raised (a fault of ours, counted through :meth:`fail`):
+        the input was skipped and the service went on.
+    last_error : text of the last rejection, failure or error, "" if none.
     params : the parameters in force (set by the service).
     extra : service-specific values (e.g. frames, npi), msgpack-encodable; reported as is.
         Mutate from the service loop's thread only.
@@ -182,6 +184,7 @@ class Status:
         self.published = 0
         self.dropped = 0
         self.rejected = 0
+        self.failed = 0
         self.last_error = ""
         self.params: dict[str, Any] = {}
         self.extra: dict[str, Any] = {}
@@ -205,6 +208,13 @@ class Status:
         with self._lock:
             self.rejected += 1
             self.last_error = str(error)
+
+    def fail(self, error: BaseException | str) -> int:
+        """Count an input whose handling failed and remember why; return the count."""
+        with self._lock:
+            self.failed += 1
+            self.last_error = str(error)
+            return self.failed
 
     def error(self, error: BaseException | str) -> None:
         """Remember an error that is not a rejected input."""
@@ -231,7 +241,7 @@ class Status:
     def as_dict(self) -> dict[str, Any]:
         """A msgpack/JSON-friendly snapshot.
 
-        Keys: received, published, dropped, rejected, last_error, p50_ms, p90_ms, p99_ms
+        Keys: received, published, dropped, rejected, failed, last_error, p50_ms, p90_ms, p99_ms
         (None before the first observation), samples (processing times in the window),
         params, extra, started.
         """
@@ -239,7 +249,7 @@ class Status:
             times = np.fromiter(self._times_ms, dtype=float, count=len(self._times_ms))
             snap: dict[str, Any] = {
                 "received": self.received, "published": self.published,
-                "dropped": self.dropped, "rejected": self.rejected,
+                "dropped": self.dropped, "rejected": self.rejected, "failed": self.failed,
                 "last_error": self.last_error, "params": dict(self.params),
                 "extra": dict(self.extra), "started": self.started,
             }
@@ -313,6 +323,7 @@ class _Inbox:
         # dict order = order in which slots became pending; an overwrite keeps the position
         self._latest: dict[str, bytes] = {}
         self._closed = False
+        self.taken = 0  # payloads handed out by get()
 
     def put(self, key: str, payload: bytes, *, latest: bool, block: bool) -> bool:
         """Queue a payload; return True if it overwrote a pending latest-only payload.
@@ -346,9 +357,11 @@ class _Inbox:
                 if self._reliable:
                     item = self._reliable.popleft()
                     self._not_full.notify()
+                    self.taken += 1
                     return item
                 if self._latest:
                     key = next(iter(self._latest))
+                    self.taken += 1
                     return key, self._latest.pop(key)
                 remaining = deadline - time.monotonic()
                 if self._closed or stop.is_set() or remaining <= 0:
@@ -360,6 +373,11 @@ class _Inbox:
             self._closed = True
             self._not_empty.notify_all()
             self._not_full.notify_all()
+
+    def pending(self) -> int:
+        """Payloads queued and not yet taken."""
+        with self._lock:
+            return len(self._reliable) + len(self._latest)
 
 
 # -- nodes --------------------------------------------------------------------------------
@@ -398,6 +416,10 @@ class Node(abc.ABC):
         self._inbox = _Inbox(capacity)
         self._subscriptions: dict[str, bool] = {}
         self._closed = False
+        # when the loop last came back from waiting (recv, sleep); None while it waits and
+        # before it first does: see busy_s
+        self._busy_since: float | None = None
+        self._waiting_after = 0  # inbox.taken when the loop last began to wait
 
     # -- the service-facing API ---------------------------------------------------------------
     def subscribe(self, key: str, *, latest: bool) -> None:
@@ -420,7 +442,30 @@ class Node(abc.ABC):
     def recv(self, timeout: float) -> tuple[str, bytes] | None:
         """The next ``(key, payload)`` from any subscribed key, or None after ``timeout`` s
         (or once ``stop`` is set or the node is closed, with nothing pending)."""
-        return self._inbox.get(timeout, self.stop)
+        self._waiting_after = self._inbox.taken  # everything taken so far has been handled
+        self._busy_since = None
+        item = self._inbox.get(timeout, self.stop)
+        self._busy_since = time.monotonic()
+        return item
+
+    def sleep(self, seconds: float) -> bool:
+        """Wait ``seconds`` (a loop's pacing) or until ``stop`` is set; True if it was.
+        Time spent here is waiting, not work, for :attr:`busy_s`."""
+        self._waiting_after = self._inbox.taken
+        self._busy_since = None
+        try:
+            return self.stop.wait(seconds)
+        finally:
+            self._busy_since = time.monotonic()
+
+    @property
+    def busy_s(self) -> float:
+        """Seconds the loop has been working since it last waited (in :meth:`recv`,
+        :meth:`sleep` or :meth:`wait_for_subscribers`); 0 while it waits and before its first
+        wait. Reported in the status: a loop stuck on one input shows here while Zenoh's
+        threads still answer the status query."""
+        since = self._busy_since
+        return 0.0 if since is None else max(0.0, time.monotonic() - since)
 
     def advertise(self, key: str, *, reliable: bool) -> None:
         """Declare the publisher of ``key`` now, before the loop is ready: declaring it on the
@@ -442,11 +487,15 @@ class Node(abc.ABC):
         must lose nothing (a file camera) waits for this before its first frame.
         """
         deadline = time.monotonic() + timeout
-        while not self.has_subscribers(key, reliable=reliable):
-            if self.stop.wait(0.01) or time.monotonic() >= deadline:
-                return False
-        self._settle(deadline)
-        return True
+        self._busy_since = None
+        try:
+            while not self.has_subscribers(key, reliable=reliable):
+                if self.stop.wait(0.01) or time.monotonic() >= deadline:
+                    return False
+            self._settle(deadline)
+            return True
+        finally:
+            self._busy_since = time.monotonic()
 
     def publish(self, key: str, payload: bytes, *, reliable: bool) -> None:
         """Publish ``payload`` on ``key``.
@@ -560,6 +609,18 @@ class MemoryNode(Node):
         with self._published_lock:
             return [p.payload for p in self.published if p.key == key]
 
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until every fed payload has been taken and the loop (in another thread) is
+        waiting in :meth:`recv` or :meth:`sleep` again: what it did with them is done. False
+        after ``timeout`` s."""
+        deadline = time.monotonic() + timeout
+        while (self._inbox.pending() or self._busy_since is not None
+               or self._waiting_after != self._inbox.taken):
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.0005)
+        return True
+
     def _declare(self, key: str, latest: bool, deliver: Callable[[str, bytes], None]) -> None:
         self._deliver[key] = (zenoh.KeyExpr(key), deliver)
 
@@ -585,7 +646,7 @@ class ZenohNode(Node):
 
     Opening declares the liveliness token ``vistrack/<robot>/alive/<service>`` and a
     queryable on ``vistrack/<robot>/<service>/status`` that replies a msgpack map ``{v: 1,
-    service, robot, pid, uptime_s, **status.as_dict()}``. Always use it as a context manager
+    service, robot, pid, uptime_s, busy_s, **status.as_dict()}``. Always use it as a context manager
     (or call :meth:`close`): a session with callback subscribers left open hangs the
     interpreter at exit.
 
@@ -621,7 +682,8 @@ class ZenohNode(Node):
     def status_reply(self) -> dict[str, Any]:
         """The map the status queryable replies."""
         return {"service": self.service, "robot": self.robot, "pid": os.getpid(),
-                "uptime_s": self.status.uptime_s, **self.status.as_dict()}
+                "uptime_s": self.status.uptime_s, "busy_s": self.busy_s,
+                **self.status.as_dict()}
 
     def _settle(self, deadline: float) -> None:
         # A peer that has just joined opens direct links to the other peers one after the

@@ -3,9 +3,10 @@
 Lists the services whose liveliness token is present or that answer their status queryable
 (``vistrack/<robot>/<service>/status``), with: state (``ok``; ``no reply`` when the service is
 alive but does not answer, e.g. stuck in a long computation), pid, uptime, received,
-published, dropped, rejected (bad inputs), p50/p99 processing time, the params_id in force,
-service-specific extras, and the last error. ``--json`` prints one JSON object per service:
-``{"service", "state", "alive", "answered", **status reply}``.
+published, dropped, rejected (bad inputs), failed (inputs whose handling failed: skipped),
+busy (s the loop has been working on its current input), p50/p99 processing time, the
+params_id in force, service-specific extras, and the last error. ``--json`` prints one JSON
+object per service: ``{"service", "state", "alive", "answered", **status reply}``.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from ..usage import add_number
 from .shared import ServiceState, add_tool_args, format_table, gather, print_json, run
 
 HEADERS = ("SERVICE", "STATE", "PID", "UP_S", "RECEIVED", "PUBLISHED", "DROPPED", "REJECTED",
-           "P50_MS", "P99_MS", "PARAMS", "EXTRA", "LAST_ERROR")
+           "FAILED", "BUSY_S", "P50_MS", "P99_MS", "PARAMS", "EXTRA", "LAST_ERROR")
 _MAX_ERROR = 80  # characters of last_error in the table (--json has it all)
 
 
@@ -59,8 +60,8 @@ def table_row(state: ServiceState) -> list[object]:
         last_error = last_error[:_MAX_ERROR - 3] + "..."
     return [state.service, state.state, s.get("pid"), _num(s.get("uptime_s"), 0),
             s.get("received"), s.get("published"), s.get("dropped"), s.get("rejected"),
-            _num(s.get("p50_ms")), _num(s.get("p99_ms")), params_text, extra or None,
-            last_error or None]
+            s.get("failed"), _num(s.get("busy_s")), _num(s.get("p50_ms")), _num(s.get("p99_ms")),
+            params_text, extra or None, last_error or None]
 
 
 def _num(value: Any, digits: int = 2) -> Any:

@@ -1,18 +1,27 @@
-"""What every service process shares: flags, logging, the session, parameters in force.
+"""What every service process shares: flags, logging, the session, parameters in force, and
+what happens when something goes wrong.
 
-A service module defines ``loop(node, args)`` (the dora-style loop over ``node.recv``) and calls
-:func:`serve` from its ``main``; this keeps each ``service.py`` to its loop.
+A service module defines ``loop(node, args)`` and calls :func:`serve` from its ``main``; this
+keeps each ``service.py`` to its loop. A loop that consumes inputs hands them to
+:func:`dispatch`, a map from key to handler: an exception raised while handling one input is
+caught there (:class:`Faults`), counted in the status (``failed``), logged with the key and
+``seq``, and the loop goes on to the next input. Anything else that raises ends the process
+at once (:func:`serve`), and the launcher restarts it.
 """
 
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import gc
 import logging
+import os
+import signal
 import sys
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Any, NoReturn, TypeVar
 
 import cv2
 
@@ -24,13 +33,22 @@ from ..common.bus import (
     config_from_args,
     install_signal_handlers,
 )
-from ..common.messages import MessageError, Params
+from ..common.keys import key_suffix
+from ..common.messages import MessageError, Params, peek_seq
 from ..common.params import ParamError, TrackerParams
+from . import threads
 from .usage import add_param_flags, params_from_args, print_error
 
 log = logging.getLogger("vistrack")
 
 LOG_FORMAT = "%(asctime)s.%(msecs)03d %(levelname)s %(name)s: %(message)s"
+
+#: Longest wait for the Zenoh session to close when the process ends, s: past it the process
+#: ends anyway and the operating system closes its sockets (peers see the links drop).
+CLOSE_S = 0.3
+#: Longest time from a stop request (SIGTERM, SIGINT) to the loop's return, s: past it the
+#: process ends without waiting for the loop (stuck in a long computation, say).
+STOP_DEADLINE_S = 0.5
 
 
 def setup_logging(level: str = "info") -> None:
@@ -48,10 +66,25 @@ def add_service_args(parser: argparse.ArgumentParser, *, tracker_params: bool = 
 
 
 def serve(service: str, args: argparse.Namespace,
-          loop: Callable[[Node, argparse.Namespace], int | None]) -> int:
-    """Open the service's Zenoh node, run ``loop`` until it returns or SIGINT/SIGTERM, and
-    close the session (always: a callback subscriber left open hangs the interpreter)."""
+          loop: Callable[[Node, argparse.Namespace], int | None]) -> NoReturn:
+    """Open the service's Zenoh node, run ``loop`` until it returns or SIGINT/SIGTERM, close
+    the session, and end the process with the loop's exit code.
+
+    The process ends promptly whatever happens (the launcher's restart waits for it):
+
+    * an exception ``loop`` lets out (a fault outside the per-message path: inputs are
+      isolated by :func:`dispatch`) is logged with its traceback and the exit code is 1;
+    * a stop request ends the process within :data:`STOP_DEADLINE_S` + :data:`CLOSE_S` s even
+      if the loop does not return (it is watched from a thread woken by the signal itself,
+      so a loop inside a long computation does not delay it);
+    * a fatal signal (SIGSEGV, SIGABRT, ...) prints every thread's Python stack
+      (:mod:`faulthandler`) and the default action ends the process;
+    * the session is closed, but for :data:`CLOSE_S` s at most, and the interpreter's own
+      teardown is skipped (:func:`end_process`): freeing numba's and LLVM's objects took 0.3
+      to 2.6 s, and a crash was seen to take 5 s to end under load.
+    """
     setup_logging(args.log_level)
+    faulthandler.enable()
     logger = logging.getLogger(f"vistrack.{service}")
     # One thread of OpenCV per service: the pipeline's parallelism is its processes. OpenCV's
     # own pool splits a 256x256 filter across threads that then spin waiting for work, which
@@ -64,20 +97,176 @@ def serve(service: str, args: argparse.Namespace,
         conf = config_from_args(args)
     except (BusError, ParamError) as e:
         print_error(command, e)
-        return 2
+        end_process(2)
     try:
         node = ZenohNode(service, conf, args.robot)
     except BusError as e:  # the session did not open: a port in use, an absent interface
         print_error(command, e)
-        return 1
-    with node:
-        restore = install_signal_handlers(node.stop)
-        try:
-            rc = loop(node, args)
-        finally:
-            restore()
+        end_process(1)
+    restore = install_signal_handlers(node.stop)
+    returned = threading.Event()
+    _watch_stop_requests(node, returned, logger)
+    try:
+        rc = int(loop(node, args) or 0)
+    except KeyboardInterrupt:  # a second Ctrl-C: the user wants it gone
+        rc = 130
+    except BaseException:
+        logger.critical("%s failed outside the per-message path: exiting", command,
+                        exc_info=True)
+        rc = 1
+    returned.set()
+    restore()
+    close_within(node, CLOSE_S, logger)
     logger.info("stopped")
-    return int(rc or 0)
+    end_process(rc)
+
+
+def end_process(code: int) -> NoReturn:
+    """Flush the logs and standard streams and end the process now with ``code``, without
+    the interpreter's teardown (nothing a service holds needs it: its session is closed)."""
+    try:
+        logging.shutdown()
+        for stream in (sys.stdout, sys.stderr):
+            stream.flush()
+    except BaseException:  # noqa: BLE001 - a closed pipe (the launcher is gone): go anyway
+        pass
+    finally:
+        os._exit(code)
+
+
+def close_within(node: Node, seconds: float, logger: logging.Logger) -> bool:
+    """Close ``node`` from a helper thread, waiting ``seconds`` at most; False if it did not
+    finish (a Zenoh callback blocked, a peer that does not answer): the caller goes on."""
+    closer = threading.Thread(target=node.close, name="close-session", daemon=True)
+    closer.start()
+    closer.join(seconds)
+    if closer.is_alive():
+        logger.warning("the Zenoh session did not close within %g s: exiting without it",
+                       seconds)
+        return False
+    return True
+
+
+def _watch_stop_requests(node: Node, returned: threading.Event, logger: logging.Logger
+                         ) -> None:
+    """End the process :data:`STOP_DEADLINE_S` s after SIGINT or SIGTERM if the loop has not
+    returned by then.
+
+    Python runs signal handlers on the main thread between bytecodes, so a loop inside a long
+    call (a numba kernel) would not even see the request; the C-level handler writes the
+    signal number to a wake-up pipe at once, which this thread reads.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+
+    def watch() -> None:
+        while True:
+            signum = os.read(r, 1)
+            if signum and signum[0] in (signal.SIGINT, signal.SIGTERM):
+                break
+        node.stop.set()
+        if returned.wait(STOP_DEADLINE_S):
+            return
+        try:
+            logger.error("the loop did not return within %g s of the stop request: exiting",
+                         STOP_DEADLINE_S)
+            close_within(node, CLOSE_S, logger)
+        finally:
+            end_process(1)
+
+    threading.Thread(target=watch, name="stop-deadline", daemon=True).start()
+
+
+# -- inputs: decoding, rejection and per-message fault isolation -----------------------------
+
+Handler = Callable[[bytes], Any]
+
+
+class Faults:
+    """Per-message fault isolation: what a loop does when handling one input raised.
+
+    The input is skipped: the failure is counted in the status (``failed``), its text kept as
+    ``last_error``, and logged once, with the key and the input's ``seq`` (the traceback the
+    first time a given exception is raised at a given line, so a bug can be found without
+    flooding the log); then ``recover`` (if any) puts the service's state back in order, e.g.
+    a new track after a frame that failed half-way through the tracker. A fault in ``recover``
+    itself is not isolated: the state cannot be trusted, and the process ends.
+
+    :func:`dispatch` is the loop built on it; :meth:`call` runs any other one-input step.
+    """
+
+    MAX_SITES = 64  # distinct failure sites whose traceback is logged
+
+    def __init__(self, node: Node, logger: logging.Logger,
+                 recover: Callable[[], Any] | None = None) -> None:
+        self.node, self.logger, self.recover = node, logger, recover
+        self._sites: set[tuple[str, str, int]] = set()
+
+    def call(self, key: str, seq: int | None, step: Callable[..., Any], *args: Any) -> bool:
+        """``step(*args)``, the handling of input ``seq`` of ``key``, isolated; False if it
+        raised (counted, logged, recovered from)."""
+        try:
+            step(*args)
+            return True
+        except Exception as e:  # noqa: BLE001 - the isolation itself: counted, logged
+            self.failed(key, seq, e)
+            return False
+
+    def failed(self, key: str, seq: int | None, error: Exception) -> None:
+        """Count, log and recover from the failure ``error`` of the input ``seq`` on ``key``."""
+        where = f"{key_suffix(key)} seq {'?' if seq is None else seq}"
+        text = f"{type(error).__name__}: {error}"
+        n = self.node.status.fail(f"{where}: {text}")
+        tb = error.__traceback__
+        while tb is not None and tb.tb_next is not None:
+            tb = tb.tb_next
+        site = (type(error).__name__, tb.tb_frame.f_code.co_filename if tb else "",
+                tb.tb_lineno if tb else 0)
+        first = site not in self._sites and len(self._sites) < self.MAX_SITES
+        if first:
+            self._sites.add(site)
+        self.logger.error("failed on %s: %s (input skipped, %d failed so far)", where, text, n,
+                          exc_info=error if first else None)
+        if self.recover is not None:
+            self.recover()
+
+
+def dispatch(node: Node, handlers: Mapping[str, Handler], logger: logging.Logger, *,
+             timeout: float = 0.1, tick: Callable[[], Any] | None = None,
+             recover: Callable[[], Any] | None = None) -> None:
+    """The input loop of a service: until ``node.stop`` is set, receive the next input and
+    call ``handlers[key](payload)``, isolated (:class:`Faults`: a failure is counted, logged
+    with the key and ``seq``, ``recover`` runs, and the loop goes on).
+
+    ``tick()`` runs before every receive (at least every ``timeout`` s): periodic work
+    between inputs. It is not isolated: a fault there is not one input's, and ends the
+    process (:func:`serve`).
+
+    The isolation costs a ``try`` block (free in CPython 3.11 unless it raises) and nothing
+    is allocated per input beyond what ``recv`` returns.
+    """
+    faults = Faults(node, logger, recover)
+    recv, stop = node.recv, node.stop
+    while not stop.is_set():
+        if tick is not None:
+            tick()
+        item = recv(timeout)
+        if item is None:
+            continue
+        key, payload = item
+        try:
+            handlers[key](payload)
+        except Exception as e:  # noqa: BLE001 - the isolation itself: counted, logged
+            faults.failed(key, peek_seq(payload), e)
+
+
+def reject(node: Node, logger: logging.Logger, what: str, error: BaseException | str) -> None:
+    """Count a bad input in the status and log why (the loop goes on)."""
+    node.status.reject(error)
+    logger.error("rejected %s: %s", what, error)
 
 
 M = TypeVar("M")
@@ -90,8 +279,7 @@ def decode_or_reject(cls: type[M], payload: bytes, node: Node, logger: logging.L
     try:
         return cls.decode(payload)  # type: ignore[attr-defined, no-any-return]
     except MessageError as e:
-        node.status.reject(e)
-        logger.error("rejected %s: %s", getattr(cls, "KEY", cls.__name__), e)
+        reject(node, logger, getattr(cls, "KEY", cls.__name__), e)
         return None
 
 
@@ -106,8 +294,12 @@ def ready(node: Node) -> None:
     """
     gc.collect()
     gc.freeze()
-    logging.getLogger(f"vistrack.{node.service}").info(
-        "ready (robot %s, liveliness token %s)", node.robot, node.keys.alive(node.service))
+    logger = logging.getLogger(f"vistrack.{node.service}")
+    # every library the warm-up loaded (numba loads scipy's BLAS) is known by now
+    logger.info("numeric thread pools: %s; opencv %d", threads.describe(threads.limit_loaded()),
+                cv2.getNumThreads())
+    logger.info("ready (robot %s, liveliness token %s)", node.robot,
+                node.keys.alive(node.service))
 
 
 def wait_for_consumers(node: Node, key: str, *, reliable: bool = False) -> bool:

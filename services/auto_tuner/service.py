@@ -46,7 +46,14 @@ from ...common.messages import (
     next_params_id,
     pack,
 )
-from ..runtime import ParamsInForce, add_service_args, decode_or_reject, ready, serve
+from ..runtime import (
+    ParamsInForce,
+    add_service_args,
+    decode_or_reject,
+    dispatch,
+    ready,
+    serve,
+)
 from ..usage import add_number
 from . import triggers as tr
 from .sensitivity import (
@@ -265,21 +272,24 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     handlers = {node.keys.params: tuner.on_params, node.keys.frame: tuner.on_frame,
                 node.keys.estimate: tuner.on_estimate}
     tuner.worker = None if args.no_tune else Worker()  # warms up while the loop runs
+    last_announce = 0.0
+
+    def tick() -> None:
+        """Between inputs: remind the parameters in force, collect and start tunings."""
+        nonlocal last_announce
+        now = time.monotonic()
+        if now - last_announce >= REMIND_S:
+            tuner.announce()
+            last_announce = now
+        tuner.tick(now)
+
     try:
         node.advertise(node.keys.params, reliable=True)
         node.advertise(node.keys.report, reliable=True)
         ready(node)
         tuner.announce("start-up (flags)")
         last_announce = time.monotonic()
-        while not node.stop.is_set():
-            now = time.monotonic()
-            if now - last_announce >= REMIND_S:
-                tuner.announce()
-                last_announce = now
-            tuner.tick(now)
-            item = node.recv(timeout=0.1)
-            if item is not None:
-                handlers[item[0]](item[1])
+        dispatch(node, handlers, log, tick=tick)
     finally:
         if tuner.worker is not None:
             tuner.worker.close()

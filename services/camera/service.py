@@ -40,7 +40,7 @@ from ...common.sources import (
     open_files,
     parse_size,
 )
-from ..runtime import add_service_args, ready, serve, wait_for_consumers
+from ..runtime import Faults, add_service_args, ready, serve, wait_for_consumers
 from ..usage import add_number, print_error
 from .simcam import make_simulator, run_sim
 
@@ -193,7 +193,7 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
     period = 1.0 / args.fps if args.fps > 0 else 0.0
     next_t = time.perf_counter()
     sent: collections.deque[int] = collections.deque(maxlen=window)  # stamps of the last sent
-    stamp = 0
+    faults = Faults(node, log)
     for seq, image in enumerate(frames):
         if node.stop.is_set():
             return 0
@@ -201,7 +201,7 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
             next_t += period
             delay = next_t - time.perf_counter()
             if delay > 0:
-                node.stop.wait(delay)
+                node.sleep(delay)
             else:
                 next_t = time.perf_counter()  # late: do not burst to catch up
         elif sent:
@@ -213,17 +213,22 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
                 extra["ack_timeouts"] = extra.get("ack_timeouts", 0) + 1
                 sent.clear()  # lost downstream (a service restarted): go on
         stamp = time.time_ns()
-        acks.sent = stamp
-        node.publish(keys.frame, Frame.from_image(image, seq=seq, stamp_ns=stamp).encode(),
-                     reliable=False)
         node.status.extra["frames"] = seq + 1
+        if not faults.call(keys.frame, seq, _publish, node, image, seq, stamp):
+            continue  # skipped (counted in failed): nothing to wait for
+        acks.sent = stamp
         sent.append(stamp)
         if period:
             acks.drain()
-    if stamp and not node.stop.is_set():
-        acks.wait({keys.estimate: stamp}, max(args.ack_timeout, 1.0))
+    if acks.sent >= 0 and not node.stop.is_set():
+        acks.wait({keys.estimate: acks.sent}, max(args.ack_timeout, 1.0))
     log.info("end of %s after %d frames", args.source, node.status.extra.get("frames", 0))
     return 0
+
+
+def _publish(node: Node, image: np.ndarray, seq: int, stamp: int) -> None:
+    node.publish(node.keys.frame, Frame.from_image(image, seq=seq, stamp_ns=stamp).encode(),
+                 reliable=False)
 
 
 def check_args(args: argparse.Namespace) -> None:

@@ -18,7 +18,7 @@ import time
 from ...common.bus import Node
 from ...common.messages import CmdVel, Estimate, Frame, MessageError, Pose
 from ...common.sources import parse_size
-from ..runtime import ready, wait_for_consumers
+from ..runtime import Faults, ready, wait_for_consumers
 from .scenarios import ScenarioError, load_scenario
 from .sim import CAMERA_SIDES, Camera, Command, Simulator
 
@@ -79,6 +79,15 @@ def _drain_commands(node: Node) -> CmdVel | None:
     return latest
 
 
+def _publish(node: Node, sim: Simulator, seq: int, stamp: int) -> None:
+    """Render the current view and publish it with the ground truth."""
+    frame = sim.render()
+    node.publish(node.keys.frame, Frame.from_image(frame, seq=seq, stamp_ns=stamp).encode(),
+                 reliable=False)
+    node.publish(node.keys.pose, Pose(seq=seq, stamp_ns=stamp, **sim.pose()).encode(),
+                 reliable=True)
+
+
 def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
     fps = args.fps if args.fps > 0 else 30.0
     dt = 1.0 / fps
@@ -94,6 +103,7 @@ def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
     if args.lockstep and not wait_for_consumers(node, node.keys.frame):
         return 0  # stopped before anyone subscribed
     cmd = Command()
+    faults = Faults(node, log)
     t0_ns = time.time_ns()
     next_t = time.perf_counter()
     seq = 0
@@ -103,28 +113,26 @@ def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
                 log.info("scenario %s finished after %d frames", sim.scenario.name, seq)
                 return 0
             sim.reset()
-        frame = sim.render()
         # the capture time is when the frame exists, as for a file or device camera: the
         # render (about 2 ms of warpPerspective) is the simulator's cost, not the pipeline's;
         # lockstep stamps run on the simulated clock, so they are reproducible
         stamp = t0_ns + round(seq * dt * 1e9) if args.lockstep else time.time_ns()
-        node.publish(node.keys.frame, Frame.from_image(frame, seq=seq, stamp_ns=stamp).encode(),
-                     reliable=False)
-        p = sim.pose()
-        node.publish(node.keys.pose, Pose(seq=seq, stamp_ns=stamp, **p).encode(), reliable=True)
+        sent = faults.call(node.keys.frame, seq, _publish, node, sim, seq, stamp)
         node.status.extra["frames"] = seq + 1
-        if args.lockstep:
+        if args.lockstep and sent:
             got = _wait_answer(node, stamp, control, args.ack_timeout)
+        elif args.lockstep:
+            got = None
         else:
             next_t += dt
             delay = next_t - time.perf_counter()
             if delay > 0:
-                node.stop.wait(delay)
+                node.sleep(delay)
             else:
                 next_t = time.perf_counter()
             got = _drain_commands(node)
         if control and got is not None:
             cmd = Command(vx=got.vx, vy=got.vy, wz=got.wz)
-        sim.step(cmd if control else Command(), dt)
+        faults.call(node.keys.cmd_vel, seq, sim.step, cmd if control else Command(), dt)
         seq += 1
     return 0

@@ -18,8 +18,8 @@ import logging
 import time
 
 from ...common.bus import Node
-from ...common.messages import MAX_SIDE, CmdVel, Estimate, MessageError
-from ..runtime import add_service_args, ready, serve
+from ...common.messages import MAX_SIDE, CmdVel, Estimate
+from ..runtime import add_service_args, decode_or_reject, dispatch, ready, reject, serve
 from ..usage import add_number
 from .control import (
     MIN_NPI_RANGE,
@@ -83,49 +83,66 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     ctrl = make_controller(args)
     node.subscribe(node.keys.estimate, latest=True)
     node.advertise(node.keys.cmd_vel, reliable=True)
-    ready(node)
     seq = 0
     last_stop = 0.0
     xc0: float | None = None  # xc of the track's first estimate
-    while not node.stop.is_set():
-        item = node.recv(timeout=STALE_REPEAT_S / 2)
+
+    def send(stamp_ns: int, vx: float, vy: float, wz: float, stale: bool) -> None:
+        nonlocal seq
+        node.publish(node.keys.cmd_vel, CmdVel(seq=seq, stamp_ns=stamp_ns, vx=vx, vy=vy, wz=wz,
+                                                stale=stale).encode(), reliable=True)
+        seq += 1
+
+    def watchdog() -> None:
+        """Repeat the stop while the estimates are stale (none for a while, or too old)."""
+        nonlocal last_stop
         now = time.time()
-        if item is None:
-            cmd = ctrl.command_at(now)
-            if cmd.stale and now - last_stop >= STALE_REPEAT_S and ctrl.x_ref is not None:
-                node.publish(node.keys.cmd_vel, CmdVel(seq=seq, stamp_ns=time.time_ns(), vx=0.0,
-                             vy=0.0, wz=0.0, stale=True).encode(), reliable=True)
-                seq += 1
-                last_stop = now
-            continue
+        if now - last_stop >= STALE_REPEAT_S and ctrl.x_ref is not None \
+                and ctrl.command_at(now).stale:
+            send(time.time_ns(), 0.0, 0.0, 0.0, True)
+            last_stop = now
+
+    def on_estimate(payload: bytes) -> None:
+        nonlocal last_stop, xc0
         t0 = time.perf_counter()
+        now = time.time()
+        est = decode_or_reject(Estimate, payload, node, log)
+        if est is None:
+            return
+        ahead = est.stamp_ns * 1e-9 - now
+        if ahead > MAX_AHEAD_S:
+            reject(node, log, Estimate.KEY, f"stamp_ns {est.stamp_ns} is {ahead:.3g} s ahead "
+                   f"of this host's clock (allowed: {MAX_AHEAD_S:g} s): clocks out of step, "
+                   "or a bad stamp")
+            return
+        if est.first or xc0 is None:  # a new track: new features, so a new set point
+            ctrl.reset()
+            # from the track's first valid estimate: an invalid one's xc is no target's
+            xc0 = est.xc if est.valid else None
+        # the centroid followed through the robust motion of the matched features, not the
+        # raw xc, which jumps whenever features are lost or re-detected (Table 1b); an
+        # invalid estimate stops the robot
         try:
-            est = Estimate.decode(item[1])
-            ahead = est.stamp_ns * 1e-9 - now
-            if ahead > MAX_AHEAD_S:
-                raise ValueError(f"stamp_ns {est.stamp_ns} is {ahead:.3g} s ahead of this "
-                                 f"host's clock (allowed: {MAX_AHEAD_S:g} s): clocks out of "
-                                 "step, or a bad stamp")
-            if est.first or xc0 is None:  # a new track: new features, so a new set point
-                ctrl.reset()
-                # from the track's first valid estimate: an invalid one's xc is no target's
-                xc0 = est.xc if est.valid else None
-            # the centroid followed through the robust motion of the matched features, not the
-            # raw xc, which jumps whenever features are lost or re-detected (Table 1b); an
-            # invalid estimate stops the robot
             cmd = ctrl.update((est.xc if xc0 is None else xc0) + est.dx, est.scale,
                               est.stamp_ns * 1e-9, args.image_width, npi=est.npi,
                               valid=est.valid)
-        except (MessageError, ValueError) as e:
-            node.status.reject(e)
-            log.error("rejected motion/estimate: %s", e)
-            continue
+        except ValueError as e:  # out of order or a duplicate: the input's fault, not ours
+            reject(node, log, Estimate.KEY, e)
+            return
         if cmd is STOP or cmd.stale:
             last_stop = now
-        node.publish(node.keys.cmd_vel, CmdVel(seq=seq, stamp_ns=est.stamp_ns, vx=cmd.vx,
-                     vy=cmd.vy, wz=cmd.wz, stale=cmd.stale).encode(), reliable=True)
+        send(est.stamp_ns, cmd.vx, cmd.vy, cmd.wz, cmd.stale)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
-        seq += 1
+
+    def recover() -> None:
+        # an estimate that failed half-way: a new set point from the next one
+        nonlocal xc0
+        ctrl.reset()
+        xc0 = None
+
+    ready(node)
+    dispatch(node, {node.keys.estimate: on_estimate}, log, timeout=STALE_REPEAT_S / 2,
+             tick=watchdog, recover=recover)
 
 
 def main(args: argparse.Namespace) -> int:

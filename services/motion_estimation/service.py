@@ -21,7 +21,14 @@ import numpy as np
 from ...common.bus import Node
 from ...common.messages import Estimate, PreFrame
 from ...common.vision import Preprocessed, Tracker, warm_up
-from ..runtime import ParamsInForce, add_service_args, decode_or_reject, ready, serve
+from ..runtime import (
+    ParamsInForce,
+    add_service_args,
+    decode_or_reject,
+    dispatch,
+    ready,
+    serve,
+)
 
 log = logging.getLogger("vistrack.motion_estimation")
 
@@ -45,21 +52,18 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     node.subscribe(node.keys.params, latest=False)
     node.subscribe(node.keys.pre_frame, latest=True)
     node.advertise(node.keys.estimate, reliable=False)
-    ready(node)
     last_seq = -1
-    while not node.stop.is_set():
-        item = node.recv(timeout=0.1)
-        if item is None:
-            continue
-        key, payload = item
-        if key == node.keys.params:
-            if state.apply(payload, node, log):
-                tracker.set_params(state.params)
-            continue
+
+    def on_params(payload: bytes) -> None:
+        if state.apply(payload, node, log):
+            tracker.set_params(state.params)
+
+    def on_frame(payload: bytes) -> None:
+        nonlocal last_seq
         t0 = time.perf_counter()
         msg = decode_or_reject(PreFrame, payload, node, log)
         if msg is None:
-            continue
+            return
         # decoded arrays are read-only views of the payload; numba would compile (and cache)
         # a second specialisation of every kernel for read-only inputs, 40 ms on frame one
         pre = Preprocessed(np.array(msg.data), msg.candidates, msg.strength)
@@ -79,6 +83,14 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
         node.status.extra.update(npi=est.npi, lost=tracker.lost_total,
                                  redetections=tracker.redetections)
+
+    def recover() -> None:
+        # a frame that failed may have left the track half-updated: start a new one
+        tracker.reset()
+
+    ready(node)
+    dispatch(node, {node.keys.params: on_params, node.keys.pre_frame: on_frame}, log,
+             recover=recover)
 
 
 def main(args: argparse.Namespace) -> int:

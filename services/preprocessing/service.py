@@ -17,7 +17,14 @@ import time
 from ...common.bus import Node
 from ...common.messages import Frame, PreFrame
 from ...common.vision import preprocess, warm_up
-from ..runtime import ParamsInForce, add_service_args, decode_or_reject, ready, serve
+from ..runtime import (
+    ParamsInForce,
+    add_service_args,
+    decode_or_reject,
+    dispatch,
+    ready,
+    serve,
+)
 
 log = logging.getLogger("vistrack.preprocessing")
 
@@ -33,25 +40,22 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     node.subscribe(node.keys.params, latest=False)
     node.subscribe(node.keys.frame, latest=True)
     node.advertise(node.keys.pre_frame, reliable=False)
-    ready(node)
-    while not node.stop.is_set():
-        item = node.recv(timeout=0.1)
-        if item is None:
-            continue
-        key, payload = item
-        if key == node.keys.params:
-            state.apply(payload, node, log)
-            continue
+
+    def on_frame(payload: bytes) -> None:
         t0 = time.perf_counter()
         frame = decode_or_reject(Frame, payload, node, log)
         if frame is None:
-            continue
+            return
         pre = preprocess(frame.data, state.params)
         out = PreFrame(seq=frame.seq, stamp_ns=frame.stamp_ns, width=frame.width,
                        height=frame.height, data=pre.filtered, candidates=pre.candidates,
                        strength=pre.strength, params_id=state.params_id)
         node.publish(node.keys.pre_frame, out.encode(), reliable=False)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
+
+    ready(node)
+    dispatch(node, {node.keys.params: lambda payload: state.apply(payload, node, log),
+                    node.keys.frame: on_frame}, log)
 
 
 def main(args: argparse.Namespace) -> int:

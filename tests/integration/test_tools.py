@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import random
+import re
 import signal
 import socket
 import subprocess
@@ -246,14 +247,33 @@ def test_status_lists_every_service_and_a_silent_one(pipeline, endpoint, session
     for name in SERVICE_NAMES:
         r = rows[name]
         assert r["state"] == "ok" and r["alive"] and r["answered"]
-        for field in ("received", "published", "dropped", "rejected", "pid"):
+        for field in ("received", "published", "dropped", "rejected", "failed", "pid"):
             assert type(r[field]) is int, (name, field)
+        assert type(r["busy_s"]) is float and r["busy_s"] >= 0, name
         assert {"last_error", "p50_ms", "p99_ms", "params", "extra"} <= r.keys()
     assert rows["motion_estimation"]["published"] > 0
     assert rows["motion_estimation"]["params"]["params_id"] >= 1
     assert table.returncode == 0 and table.stdout.startswith("SERVICE")
     assert all(name in table.stdout for name in SERVICE_NAMES)
     assert "no reply" in table.stdout
+
+
+def test_services_run_by_hand_run_numeric_libraries_on_one_thread(pipeline, endpoint):
+    """Each service's log says how many threads each numeric library it loaded has: one,
+    also when the shell asks for more (numpy's OpenBLAS busy-waited a core away)."""
+    extra = Proc(["fuzzy-controller", "-e", endpoint, NS, "--robot", "threads"],
+                 env={"OPENBLAS_NUM_THREADS": "2", "OMP_NUM_THREADS": "2",
+                      "MKL_NUM_THREADS": "2"})
+    try:
+        lines = {name: proc.wait_for("numeric thread pools: ", 30)
+                 for name, proc in {**pipeline, "extra": extra}.items()}
+    finally:
+        extra.stop()
+    for name, line in lines.items():
+        pools = re.search(r"numeric thread pools: (.*); opencv (\d+)$", line)
+        assert pools, line
+        threads = re.findall(r" (\d+) \(", pools[1])  # "openblas 1 (libscipy_openblas), ..."
+        assert "openblas" in pools[1] and set(threads) == {"1"} and pools[2] == "1", (name, line)
 
 
 # -- params --------------------------------------------------------------------------------
@@ -399,16 +419,23 @@ def test_params_out_of_range_while_frames_flow(pipeline, session):
         == {in_force}
 
 
+def send_frame_until(session: zenoh.Session, frame: dict, done: Callable[[], bool],
+                     what: str) -> None:
+    """Publish ``frame`` (stamped now) until ``done()``: a latest-only input may be
+    overwritten by a camera frame before it is read."""
+    deadline = time.monotonic() + 15
+    while not done():
+        assert time.monotonic() < deadline, what
+        session.put(f"{ROOT}/camera/frame", msgpack.packb({**frame, "stamp_ns": time.time_ns()}))
+        time.sleep(0.1)
+
+
 def test_a_frame_of_another_size_restarts_the_track_and_estimates_go_on(pipeline, session):
     small = {**GOOD["camera/frame"], "seq": 10**6, "data": bytes(range(256)) * 12}
     with collecting(session, f"{ROOT}/motion/estimate") as est:
-        # a latest-only input may be overwritten by a camera frame: send until one gets through
-        deadline = time.monotonic() + 15
-        while not any(msgpack.unpackb(p)["seq"] == 10**6 for _, p in est.items):
-            assert time.monotonic() < deadline, "no estimate of the 64x48 frame"
-            session.put(f"{ROOT}/camera/frame", msgpack.packb({**small,
-                                                              "stamp_ns": time.time_ns()}))
-            time.sleep(0.1)
+        send_frame_until(session, small, lambda: any(msgpack.unpackb(p)["seq"] == 10**6
+                                                     for _, p in est.items),
+                         "no estimate of the 64x48 frame")
         start = len(est.items)
         est.wait(lambda items: len(items) >= start + 5, timeout=20)
     got = [msgpack.unpackb(p) for _, p in est.items]
@@ -417,6 +444,28 @@ def test_a_frame_of_another_size_restarts_the_track_and_estimates_go_on(pipeline
     assert any(m["first"] for m in got[odd + 1:])  # and again for the camera's own size
     for name, proc in pipeline.items():
         assert proc.p.poll() is None, f"{name} died"
+
+
+def test_a_featureless_8x8_frame_costs_one_input_not_a_service(pipeline, session):
+    """Issue 13: 8x8 zero bytes, a frame a starting camera could send, passed pre-processing
+    and gave motion-estimation an estimate with xc = NaN, which its own validation refused: an
+    uncaught exception ended the process. Now nothing ends, and estimates go on."""
+    seq = 10**6 + 13
+    black = {**GOOD["camera/frame"], "seq": seq, "width": 8, "height": 8, "data": bytes(64)}
+    before = status_of(session, "motion_estimation")
+    with collecting(session, f"{ROOT}/motion/estimate") as est:
+        # through once there is an estimate of it, or a failure counted for it
+        send_frame_until(session, black, lambda: (
+            any(msgpack.unpackb(p)["seq"] == seq for _, p in est.items)
+            or status_of(session, "motion_estimation")["failed"] > before["failed"]),
+            "the 8x8 frame never reached motion-estimation")
+        start = len(est.items)
+        est.wait(lambda items: len(items) >= start + 5, timeout=20)
+    after = status_of(session, "motion_estimation")
+    assert after["pid"] == before["pid"]
+    assert after["failed"] == before["failed"] or "seq 1000013" in after["last_error"]
+    for name, proc in pipeline.items():
+        assert proc.p.poll() is None, f"{name} died:\n" + "\n".join(proc.lines[-20:])
 
 
 def test_an_estimate_from_the_future_is_refused_and_commands_go_on(pipeline, session):

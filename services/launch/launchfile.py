@@ -2,9 +2,9 @@
 
 The format is :data:`DEFAULT_LAUNCH` (identical to ``deploy/local.yaml``): the robot id, the
 embedded router's listen endpoints, the ready timeout and, per service, its flags, restart
-policy and back-off. :func:`load_launch` validates strictly: every error names the file, the
-line, the key and what is allowed, and a service's flags are checked by that service's own
-parser (:func:`check_service_flags`) before anything starts.
+policy, back-off and hang timeout. :func:`load_launch` validates strictly: every error names
+the file, the line, the key and what is allowed, and a service's flags are checked by that
+service's own parser (:func:`check_service_flags`) before anything starts.
 """
 
 from __future__ import annotations
@@ -59,6 +59,9 @@ ready_timeout: 30
 #   backoff: restart delays in seconds: the first is `initial`, each next one doubles up to
 #            `max`, and they start over once the service has run `reset_after` seconds
 #            (default {initial: 0.5, max: 10, reset_after: 10})
+#   hang_timeout: seconds a running service may go without answering its status query, with
+#            its loop stuck on one input, or without its liveliness token, before it is
+#            killed and restarted by its policy (default 5; 0: never)
 services:
   camera:
     # the built-in generated sequence, replayed forever at 30 frames per second
@@ -70,6 +73,7 @@ services:
     restart: on-failure
   motion-estimation:
     restart: on-failure
+    hang_timeout: 5
   auto-tuner:
     restart: on-failure
   fuzzy-controller:
@@ -112,14 +116,30 @@ class Backoff:
         return min(self.max, self.initial * 2.0 ** min(failures, 60))
 
 
+#: Default ``hang_timeout``, s: a few status queries (one a second) gone unanswered.
+DEFAULT_HANG_TIMEOUT = 5.0
+#: Allowed ``hang_timeout``: 0 (never) or this range, s (a status query takes up to 1 s).
+HANG_TIMEOUT_RANGE = (1.0, 3600.0)
+
+
+def check_hang_timeout(value: float) -> float:
+    """``value`` if it is 0 or within :data:`HANG_TIMEOUT_RANGE`, else LaunchError."""
+    lo, hi = HANG_TIMEOUT_RANGE
+    if value != 0 and not lo <= value <= hi:
+        raise LaunchError(f"{value:g} is out of range: allowed 0 (never) or {lo:g}..{hi:g} s")
+    return value
+
+
 @dataclass(frozen=True)
 class ServiceSpec:
-    """One service of a launch: its name (as in keys), flags, restart policy and back-off."""
+    """One service of a launch: its name (as in keys), flags, restart policy, back-off and
+    hang timeout (s; 0: never judged hung)."""
 
     name: str
     flags: tuple[str, ...] = ()
     restart: str = "on-failure"
     backoff: Backoff = field(default_factory=Backoff)
+    hang_timeout: float = DEFAULT_HANG_TIMEOUT
 
     def __post_init__(self) -> None:
         if self.name not in SERVICES:
@@ -127,6 +147,10 @@ class ServiceSpec:
         if self.restart not in POLICIES:
             raise LaunchError(f"{self.cli_name}: unknown restart policy {self.restart!r}; "
                               f"allowed: {', '.join(POLICIES)}")
+        try:
+            check_hang_timeout(self.hang_timeout)
+        except LaunchError as e:
+            raise LaunchError(f"{self.cli_name}: hang_timeout {e}") from None
 
     @property
     def cli_name(self) -> str:
@@ -348,7 +372,7 @@ def _services(reader: _Reader, node: yaml.Node) -> tuple[ServiceSpec, ...]:
     return tuple(specs)
 
 
-_SERVICE_KEYS = ("flags", "restart", "backoff")
+_SERVICE_KEYS = ("flags", "restart", "backoff", "hang_timeout")
 
 
 def _is_null(node: yaml.Node) -> bool:
@@ -371,6 +395,14 @@ def _service(reader: _Reader, name: str, node: yaml.Node | None, path: str,
         spec["restart"] = policy
     if "backoff" in fields:
         spec["backoff"] = _backoff(reader, fields["backoff"][1], f"{path}.backoff")
+    if "hang_timeout" in fields:
+        value_node = fields["hang_timeout"][1]
+        value = float(reader.scalar(value_node, f"{path}.hang_timeout", (int, float),
+                                    "a number of seconds"))
+        try:
+            spec["hang_timeout"] = check_hang_timeout(value)
+        except LaunchError as e:
+            raise reader.error(value_node, f"{path}.hang_timeout", str(e)) from None
     if "flags" in fields:
         spec["flags"] = _flags(reader, name, fields["flags"][1], f"{path}.flags")
     return ServiceSpec(**spec)

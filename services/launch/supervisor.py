@@ -3,8 +3,9 @@
 :class:`Launcher` starts the services of a :class:`~.launchfile.LaunchSpec` as child
 processes (downstream first, the camera once its consumers are ready and subscribed), with an
 embedded Zenoh router unless it connects to one; it watches their liveliness tokens, prefixes
-their output with their names, restarts them by policy with exponential back-off, and stops
-them all (SIGTERM, then SIGKILL) leaving no process behind.
+their output with their names, restarts them by policy with exponential back-off, kills and
+restarts (by the same policy) a service that hangs, and stops them all (SIGTERM, then
+SIGKILL) leaving no process behind.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from ...common.bus import (
     open_session,
 )
 from ...common.keys import Keys
+from ...common.messages import MessageError, unpack
 from .launchfile import LaunchError, LaunchSpec, ServiceSpec
 from .router import (
     start_router,
@@ -51,6 +53,8 @@ KILL_WAIT_S = 1.0
 # Period of the supervision loop: how soon an exit is noticed when nothing else wakes it.
 TICK_S = 0.1
 PR_SET_PDEATHSIG = 1
+#: How often each running service is asked for its status (hang detection), s.
+STATUS_PERIOD_S = 1.0
 
 # -- child processes -----------------------------------------------------------------------
 
@@ -121,6 +125,18 @@ class _Child:
         return not self.running and self.restart_at is None and not self.held
 
 
+@dataclass
+class _Watch:
+    """What the launcher has seen of one process of a service (hang detection)."""
+
+    pid: int
+    since: float  # when it was first seen ready (monotonic)
+    asked_at: float = 0.0
+    answered_at: float = 0.0
+    busy_s: float = 0.0
+    killed: bool = False
+
+
 # -- the launcher ----------------------------------------------------------------------------
 
 class Launcher:
@@ -168,6 +184,8 @@ class Launcher:
         self._out_lock = threading.Lock()
         self._cond = threading.Condition()
         self._tokens: dict[str, float] = {}  # service -> when its token appeared (monotonic)
+        self._tokens_lost: dict[str, float] = {}  # service -> when its token went (monotonic)
+        self._watches: dict[str, _Watch] = {}  # service -> its process's hang watch
         order = {name: i for i, name in enumerate(LAUNCH_ORDER)}
         self._children = [_Child(s) for s in sorted(launch.services, key=lambda s: order[s.name])]
         self._session: zenoh.Session | None = None
@@ -317,8 +335,10 @@ class Launcher:
         with self._cond:
             if sample.kind == zenoh.SampleKind.PUT:
                 self._tokens[service] = time.monotonic()
+                self._tokens_lost.pop(service, None)
             else:
                 self._tokens.pop(service, None)
+                self._tokens_lost[service] = time.monotonic()
             self._cond.notify_all()
 
     def _close_session(self) -> None:
@@ -345,6 +365,7 @@ class Launcher:
                 if not child.ready and child.running and \
                         self._tokens.get(child.spec.name, -1.0) >= child.started_at:
                     child.ready = True
+        self._watch_hangs(now)
         for child in self._children:
             if child.running and child.proc is not None and child.proc.poll() is not None:
                 self._on_exit(child, child.proc.returncode, now, startup)
@@ -393,6 +414,67 @@ class Launcher:
                 probe.undeclare()
             except zenoh.ZError:
                 pass  # the session is closing
+
+    # -- hang detection ----------------------------------------------------------------------
+    def _watch_hangs(self, now: float) -> None:
+        """Ask every ready service for its status once a second, and SIGKILL one that has not
+        answered for its ``hang_timeout``, answers that its loop has been busy on one input
+        that long, or whose liveliness token has been gone that long while its process lives;
+        its exit is then handled like any other (restart by policy)."""
+        for child in self._children:
+            timeout = child.spec.hang_timeout
+            if not (timeout and child.ready and child.running and child.proc is not None):
+                continue
+            pid = child.proc.pid
+            name = child.spec.name
+            with self._cond:
+                watch = self._watches.get(name)
+                if watch is None or watch.pid != pid:
+                    watch = self._watches[name] = _Watch(pid, since=now)
+                lost = self._tokens_lost.get(name)
+                answered, busy = max(watch.since, watch.answered_at), watch.busy_s
+            if watch.killed:
+                continue
+            if now - watch.asked_at >= STATUS_PERIOD_S:
+                watch.asked_at = now
+                self._ask_status(name, pid)
+            if now - answered > timeout:
+                seen = f"no answer to its status query for {now - answered:.1f} s"
+            elif busy > timeout:
+                seen = f"its loop has been busy on one input for {busy:.1f} s"
+            elif lost is not None and lost >= watch.since and now - lost > timeout:
+                seen = f"its liveliness token has been gone for {now - lost:.1f} s"
+            else:
+                continue
+            watch.killed = True
+            self._log(f"{child.spec.cli_name} (pid {pid}) is hung: {seen}; killing it")
+            try:
+                os.killpg(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass  # it exited meanwhile
+
+    def _ask_status(self, service: str, pid: int) -> None:
+        """Query ``service``'s status; the answer of process ``pid`` updates its watch."""
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is None:
+                return
+            try:
+                status = unpack(reply.ok.payload.to_bytes())
+            except MessageError:
+                return  # not a status map: not an answer
+            busy = status.get("busy_s", 0.0)
+            with self._cond:
+                watch = self._watches.get(service)
+                if watch is not None and status.get("pid") == pid == watch.pid:
+                    watch.answered_at = time.monotonic()
+                    watch.busy_s = float(busy) if isinstance(busy, (int, float)) else 0.0
+
+        if self._session is None:
+            return
+        try:
+            self._session.get(self.keys.status(service), on_reply, timeout=STATUS_PERIOD_S)
+        except zenoh.ZError:
+            pass  # the session is closing: the run is ending
 
     def _on_exit(self, child: _Child, code: int, now: float, startup: bool) -> None:
         child.returncode = code

@@ -244,6 +244,58 @@ def test_killed_service_is_restarted_alone_and_estimates_again(procs, tmp_path, 
     assert up.output.count("restarting in") == 1
 
 
+def test_a_stopped_service_is_killed_and_replaced_within_15_s(procs, tmp_path, free_port):
+    """A service whose process lives but does nothing (SIGSTOP: its loop and Zenoh's threads
+    alike) stops answering its status query: after hang_timeout (default 5 s) the launcher
+    says what it saw, kills it and restarts it by its policy, and estimates flow again from
+    the new process, within 15 s of the stop; no other service is touched."""
+    robot = f"t{uuid.uuid4().hex[:8]}"
+    keys = Keys(robot)
+    up = start_up(procs, tmp_path, free_port, robot)
+    # every service, started by the launcher, runs its numeric libraries on one thread
+    up.wait_line(r"^\[camera\] .* numeric thread pools: ", 10)  # logged once warmed up
+    pools = re.findall(r"^\[([a-z-]+)\] .* numeric thread pools: (.*); opencv (\d+)$",
+                       up.output, re.M)
+    assert {name for name, _, _ in pools} == {s.replace("_", "-") for s in SERVICES}
+    for name, text, opencv in pools:
+        threads = re.findall(r" (\d+) \(", text)  # "openblas 1 (libscipy_openblas), ..."
+        assert threads and set(threads) == {"1"} and opencv == "1", (name, text)
+    with client_session(free_port) as session:
+        before = wait_for(lambda: status_pids(session, keys), 10,
+                          "a status reply from every service")
+        estimates: list[float] = []
+        sub = session.declare_subscriber(keys.estimate,
+                                         lambda sample: estimates.append(time.monotonic()))
+        wait_for(lambda: estimates, 20, "an estimate before the stop")
+        stopped = before["motion_estimation"]
+        os.kill(stopped, signal.SIGSTOP)
+        t0 = time.monotonic()
+        try:
+            hung = up.wait_line(rf"^\[launcher\] motion-estimation \(pid {stopped}\) is hung: no "
+                                r"answer to its status query for (\d+\.\d) s; killing it$", 15)
+            killed_at = time.monotonic()
+            assert float(hung[1]) >= 5.0  # not before its hang_timeout
+            up.wait_line(r"^\[launcher\] motion-estimation exited with -9, restarting in "
+                         r"0\.2 s$", 5)
+            wait_for(lambda: any(t > killed_at for t in estimates), 15 - (killed_at - t0),
+                     "an estimate from the new motion-estimation")
+            flowing_at = time.monotonic()
+        finally:
+            try:
+                os.kill(stopped, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+        sub.undeclare()
+        after = wait_for(lambda: status_pids(session, keys), 10,
+                         "a status reply from every service")
+    assert flowing_at - t0 < 15.0
+    assert not alive(stopped)
+    assert after["motion_estimation"] != stopped
+    for service in set(SERVICES) - {"motion_estimation"}:
+        assert after[service] == before[service], f"{service} was restarted"
+    assert up.output.count("is hung") == 1 and up.output.count("restarting in") == 1
+
+
 def test_sigint_stops_everything_within_5_s(procs, tmp_path, free_port):
     up = start_up(procs, tmp_path, free_port, f"t{uuid.uuid4().hex[:8]}")
     children = child_pids(up.proc.pid)
@@ -357,6 +409,12 @@ BAD_LAUNCH_FILES = {
     "camera source missing": ("services:\n  camera:\n    flags: {--source: file:/no/such}\n",
                               r"line 3: services\.camera\.flags: /no/such: no such file or "
                               r"folder$"),
+    "hang timeout out of range": ("services:\n  motion-estimation:\n    hang_timeout: 0.5\n",
+                                  r"line 3: services\.motion-estimation\.hang_timeout: 0\.5 is "
+                                  r"out of range: allowed 0 \(never\) or 1\.\.3600 s$"),
+    "hang timeout not a number": ("services:\n  camera:\n    hang_timeout: soon\n",
+                                  r"line 3: services\.camera\.hang_timeout: expected a number "
+                                  r"of seconds, got 'soon'$"),
     "scale band": ("services:\n  auto-tuner:\n    flags: [--scale-band, '1.1', '1.5']\n",
                    r"line 3: services\.auto-tuner\.flags: --scale-band 1\.1 1\.5 is out of "
                    r"range: allowed 0 < LO < 1 < HI$"),
@@ -414,6 +472,8 @@ def test_deploy_local_yaml_is_the_built_in_default_and_valid():
         "camera": "never", "preprocessing": "on-failure", "motion_estimation": "on-failure",
         "auto_tuner": "on-failure", "fuzzy_controller": "on-failure"}
     assert built_in.listen == ("tcp/127.0.0.1:7447",)
+    assert {s.hang_timeout for s in built_in.services} == {5.0}
+    assert load_launch("services: {camera: {hang_timeout: 0}}\n").services[0].hang_timeout == 0
 
 
 def test_flag_list_and_mapping_forms_and_camera_overrides():

@@ -2,9 +2,18 @@
 
 from __future__ import annotations
 
+import os
 import socket
 
 import pytest
+from hypothesis import settings
+
+# Property-based tests (hypothesis): no per-example deadline (a shared 2-core machine has slow
+# moments; time is measured in benchmarks, not here), and in CI the examples are derived from
+# each test's name, so a CI run is reproducible; a developer's runs explore new examples.
+settings.register_profile("default", deadline=None)
+settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True)
+settings.load_profile("ci" if os.environ.get("CI") else "default")
 
 
 @pytest.fixture(scope="session", autouse=True)

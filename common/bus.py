@@ -54,6 +54,8 @@ log = logging.getLogger(__name__)
 
 _N = TypeVar("_N", bound="Node")
 
+_monotonic = time.monotonic  # bound once: recv stamps every input with it
+
 #: Reliable payloads a node queues before its Zenoh callback blocks (see ZenohNode).
 DEFAULT_CAPACITY = 1024
 #: How long the set of connected peers must stay the same before a new node's links count as
@@ -419,7 +421,6 @@ class Node(abc.ABC):
         # when the loop last came back from waiting (recv, sleep); None while it waits and
         # before it first does: see busy_s
         self._busy_since: float | None = None
-        self._waiting_after = 0  # inbox.taken when the loop last began to wait
 
     # -- the service-facing API ---------------------------------------------------------------
     def subscribe(self, key: str, *, latest: bool) -> None:
@@ -442,16 +443,14 @@ class Node(abc.ABC):
     def recv(self, timeout: float) -> tuple[str, bytes] | None:
         """The next ``(key, payload)`` from any subscribed key, or None after ``timeout`` s
         (or once ``stop`` is set or the node is closed, with nothing pending)."""
-        self._waiting_after = self._inbox.taken  # everything taken so far has been handled
         self._busy_since = None
         item = self._inbox.get(timeout, self.stop)
-        self._busy_since = time.monotonic()
+        self._busy_since = _monotonic()
         return item
 
     def sleep(self, seconds: float) -> bool:
         """Wait ``seconds`` (a loop's pacing) or until ``stop`` is set; True if it was.
         Time spent here is waiting, not work, for :attr:`busy_s`."""
-        self._waiting_after = self._inbox.taken
         self._busy_since = None
         try:
             return self.stop.wait(seconds)
@@ -585,6 +584,7 @@ class MemoryNode(Node):
     def __init__(self, service: str = "test", robot: str = "robot", *,
                  capacity: int = DEFAULT_CAPACITY) -> None:
         super().__init__(service, robot, capacity=capacity)
+        self._waiting_after = 0  # inbox.taken when the loop last began to wait (wait_idle)
         self.published: list[Published] = []
         self._deliver: dict[str, tuple[zenoh.KeyExpr, Callable[[str, bytes], None]]] = {}
         self._published_lock = threading.Lock()
@@ -608,6 +608,14 @@ class MemoryNode(Node):
         """Payloads published on ``key``, in order."""
         with self._published_lock:
             return [p.payload for p in self.published if p.key == key]
+
+    def recv(self, timeout: float) -> tuple[str, bytes] | None:
+        self._waiting_after = self._inbox.taken  # everything taken so far has been handled
+        return super().recv(timeout)
+
+    def sleep(self, seconds: float) -> bool:
+        self._waiting_after = self._inbox.taken
+        return super().sleep(seconds)
 
     def wait_idle(self, timeout: float) -> bool:
         """Wait until every fed payload has been taken and the loop (in another thread) is

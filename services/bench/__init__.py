@@ -7,7 +7,11 @@ One module a benchmark, each also run under pytest by ``tests/bench`` (``-m benc
   Zenoh skeleton of the same processes;
 * :mod:`.net`: latency and throughput over loopback, TCP, mutual TLS and the multi-host chain;
 * :mod:`.tuner`: one tuning cycle of the auto-tuner;
-* :mod:`.controller`: the fuzzy controller against a proportional one and scikit-fuzzy.
+* :mod:`.controller`: the fuzzy controller against a proportional one and scikit-fuzzy;
+* :mod:`.idle`: the CPU each process of ``vistrack up`` takes at 30 fps, from /proc;
+* :mod:`.faults`: hostile and extreme input on the live system, crash and hang to a new
+  process ready, and the cost of the per-message fault isolation;
+* :mod:`.soak`: the full pipeline unpaced for a minute: memory, drops, nothing else lost.
 
 Each is imported only when it runs (the pipeline one starts processes, the net one makes
 network namespaces).
@@ -50,11 +54,32 @@ def _net(out=sys.stdout) -> dict[str, float]:
     return bench_net(out)
 
 
+def _idle(out=sys.stdout) -> dict[str, float]:
+    from .idle import bench_idle  # starts vistrack up
+
+    return bench_idle(out)
+
+
+def _faults(out=sys.stdout) -> dict[str, float]:
+    from .faults import bench_faults  # starts vistrack up
+
+    return bench_faults(out)
+
+
+def _soak(out=sys.stdout) -> dict[str, float]:
+    from .soak import bench_soak  # starts the five services
+
+    return bench_soak(out)
+
+
 BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": _tracker,
                                                        "net": _net,
                                                        "pipeline": _pipeline,
                                                        "tuner": _tuner,
-                                                       "controller": _controller}
+                                                       "controller": _controller,
+                                                       "idle": _idle,
+                                                       "faults": _faults,
+                                                       "soak": _soak}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

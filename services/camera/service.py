@@ -196,6 +196,7 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
     faults = Faults(node, log)
     for seq, image in enumerate(frames):
         if node.stop.is_set():
+            log.info("stopped after %d frames", seq)
             return 0
         if period:
             next_t += period

@@ -158,8 +158,9 @@ def pre_frame(image: np.ndarray, seq: int) -> bytes:
 
 def test_motion_estimation_survives_a_featureless_8x8_frame_and_tracks_again():
     """The frame of issue 13: 8x8 zero bytes gave an estimate with xc = NaN, which our own
-    message validation refused: an uncaught exception ended the process. Now the frame costs
-    at most that one input, and tracking resumes on the next textured frames."""
+    message validation refused: an uncaught exception ended the process. The isolation costs
+    at most that one input (and the tracker now answers it with a finite, invalid estimate),
+    and tracking resumes on the next textured frames."""
     from vistrack.services.motion_estimation.service import loop
 
     textured = builtin_sequence(3)

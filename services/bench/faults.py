@@ -13,8 +13,9 @@ services, the auto-tuner tuning):
    rejected and failed counts, and whether estimates still flow;
 2. crash to a new process ready: motion-estimation is sent SIGSEGV (as a crash in a kernel
    would) and the times to the launcher's restart, the new process's ready line and its first
-   estimate are measured (target under 3 s); the peer is the service's own cold start in the
-   same run (the launcher's start line to its ready line) and a bare import of its modules;
+   estimate are measured (target under 3 s); the peers are the service's own cold start in the
+   same run (the launcher's start line to its ready line) and a bare import of its modules (a
+   restart becomes the launcher's warmed-up spare, which has both behind it);
 3. hang to a new process ready: motion-estimation is sent SIGSTOP; the launcher must notice
    (hang_timeout, 5 s by default), kill and restart it (target under 15 s);
 4. the cost of the per-message isolation: :func:`runtime.dispatch`'s try block and the loop's
@@ -191,8 +192,10 @@ def flood(up: UpRun, out: TextIO) -> dict[str, float]:
                              "estimates_after_hz": flowing / 2.0,
                              "pids_unchanged": float({n: s["pid"] for n, s in after.items()}
                                                      == pids)}
+    # (dropped is left out: the forged messages' seq jump ahead of the camera's, which the
+    # per-key gap count takes for lost messages)
     for name, s in after.items():
-        for counter in ("rejected", "failed", "dropped"):
+        for counter in ("rejected", "failed"):
             fig[f"{name}_{counter}"] = float(s[counter] - before[name][counter])
     return fig
 
@@ -223,7 +226,7 @@ def restart_after(up: UpRun, sig: int, timeout: float) -> dict[str, float]:
     t0 = time.monotonic()
     os.kill(old, sig)
     try:
-        started, _ = up.wait_line(r"^\[launcher\] started motion-estimation \(pid \d+\)$",
+        started, _ = up.wait_line(r"^\[launcher\] started motion-estimation \(pid \d+",
                                   timeout, after=t0)
         ready, _ = up.wait_line(r"^\[motion-estimation\] .* ready \(robot", timeout, after=t0)
         deadline = time.monotonic() + timeout
@@ -317,6 +320,9 @@ def bench_faults(out: TextIO = sys.stdout, crashes: int = 3, hangs: int = 2
     fig["import_s"] = import_time()
     with UpRun() as up:
         up.pids()
+        started, _ = up.wait_line(r"^\[launcher\] started motion-estimation \(pid \d+\)$", 1)
+        ready, _ = up.wait_line(r"^\[motion-estimation\] .* ready \(robot", 1)
+        fig["cold_start_s"] = ready - started  # the same service's first start, this run
         fig.update(flood(up, out))
         crash_runs = []
         for i in range(crashes):
@@ -343,10 +349,10 @@ def _print(out: TextIO, fig: dict[str, float], crash_runs: list[dict[str, float]
           f"{'met' if fig['exits'] == 0 and fig['pids_unchanged'] else 'NOT met'}), "
           f"estimates after: {fig['estimates_after_hz']:.1f} a second", file=out)
     names = sorted({k.rsplit("_", 1)[0] for k in fig if k.endswith("_rejected")})
-    print(f"{'service':20s} {'rejected':>9s} {'failed':>7s} {'dropped':>8s}", file=out)
+    print(f"{'service':20s} {'rejected':>9s} {'failed':>7s}", file=out)
     for name in names:
-        print(f"{name:20s} {fig[name + '_rejected']:9.0f} {fig[name + '_failed']:7.0f} "
-              f"{fig[name + '_dropped']:8.0f}", file=out)
+        print(f"{name:20s} {fig[name + '_rejected']:9.0f} {fig[name + '_failed']:7.0f}",
+              file=out)
     print(f"{'signal to:':28s} {'restart':>8s} {'ready':>7s} {'estimate':>9s} {'start-up':>9s}",
           file=out)
     for label, runs in (("crash (SIGSEGV)", crash_runs), ("hang (SIGSTOP)", hang_runs)):
@@ -357,8 +363,10 @@ def _print(out: TextIO, fig: dict[str, float], crash_runs: list[dict[str, float]
     print(f"target: crash to new process ready < {CRASH_TARGET_S:g} s: worst {crash:.2f} s "
           f"({'met' if crash < CRASH_TARGET_S else 'NOT met'}); hang < {HANG_TARGET_S:g} s: "
           f"worst {hang:.2f} s ({'met' if hang < HANG_TARGET_S else 'NOT met'})", file=out)
-    print(f"peer: importing motion-estimation's modules in a fresh interpreter: "
-          f"{fig['import_s']:.2f} s", file=out)
+    print(f"peers: motion-estimation's cold start in this run (started to ready) "
+          f"{fig['cold_start_s']:.2f} s; importing its modules in a fresh interpreter "
+          f"{fig['import_s']:.2f} s (a restart becomes the launcher's warmed-up spare)",
+          file=out)
     print(f"isolation: {fig['isolation_isolated_ns']:.0f} ns a message with the try block, "
           f"{fig['isolation_bare_ns']:.0f} ns without (dict lookup and call of a no-op "
           f"handler); recv with the busy-time bookkeeping {fig['isolation_recv_node_ns']:.0f} "

@@ -8,7 +8,7 @@ import math
 
 import msgpack
 import numpy as np
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vistrack.common.messages import (
@@ -55,6 +55,7 @@ def _good_maps() -> dict[str, dict]:
 
 GOOD = _good_maps()
 KEYS = sorted(GOOD)
+EXAMPLES = settings(max_examples=60)  # x 4 tests: a few seconds of the suite
 
 # Any value msgpack can carry, nested a little; ints over msgpack's whole range.
 SCALARS = st.one_of(
@@ -106,6 +107,7 @@ def _decodes_only_to_a_valid_message_or_message_error(key: str, payload: bytes) 
     assert again.seq == msg.seq and again.stamp_ns == msg.stamp_ns
 
 
+@EXAMPLES
 @given(edited_maps())
 def test_every_decoder_raises_only_message_error_on_edited_maps(case):
     key, payload = case
@@ -117,6 +119,7 @@ def test_every_decoder_raises_only_message_error_on_edited_maps(case):
     assert peek_seq(payload) is None or peek_seq(payload) >= 0
 
 
+@EXAMPLES
 @given(st.sampled_from(KEYS), st.binary(max_size=300))
 def test_every_decoder_raises_only_message_error_on_any_bytes(key, payload):
     _decodes_only_to_a_valid_message_or_message_error(key, payload)
@@ -125,12 +128,14 @@ def test_every_decoder_raises_only_message_error_on_any_bytes(key, payload):
         assert value is None or (type(value) is int and value >= 0)
 
 
+@EXAMPLES
 @given(st.sampled_from(KEYS), VALUES)
 def test_every_decoder_raises_only_message_error_on_any_value(key, value):
     _decodes_only_to_a_valid_message_or_message_error(
         key, msgpack.packb(value, use_bin_type=True))
 
 
+@EXAMPLES
 @given(st.sampled_from(KEYS), st.data())
 def test_truncated_and_corrupted_payloads_raise_only_message_error(key, data):
     payload = bytearray(msgpack.packb(GOOD[key], use_bin_type=True))

@@ -212,7 +212,10 @@ def _publish_until_confirmed(session: zenoh.Session, keys: Keys, publisher: zeno
             next_put = now + REPEAT_S
         seen = _service_params(session, keys, CONFIRMING_SERVICE, timeout=0.5) or seen
         found = seen.get("params_id")
-        if found == params_id:
+        # ours, not a tuning that happened to take the same params_id (the service then keeps
+        # the tuner's and refuses ours as stale: not confirmed)
+        if found == params_id and seen.get("source") == "user" and \
+                all(seen.get(f) == getattr(new, f) for f in FACTORS):
             return seen
         if isinstance(found, int) and found > params_id:
             raise ToolError(f"params_id {params_id} was superseded by {found} from "
@@ -220,7 +223,8 @@ def _publish_until_confirmed(session: zenoh.Session, keys: Keys, publisher: zeno
                             "confirmed")
         if time.monotonic() >= deadline:
             raise ToolError(f"{CONFIRMING_SERVICE} did not confirm params_id {params_id} "
-                            f"(still runs params_id {found}); the set may have been lost")
+                            f"(still runs params_id {found} from {seen.get('source')}); the "
+                            "set may have been lost")
         time.sleep(POLL_S)
 
 

@@ -17,6 +17,12 @@ contract key                            ROS 2 type
 =====================================  ===========================================
 
 Header stamps come from the contract's ``stamp_ns``; ``frame_id`` is :data:`FRAME_ID`.
+
+Each estimate is also drawn over its camera frame as two ``visualization_msgs/msg/ImageMarker``
+overlays (:data:`OVERLAYS`), which Foxglove's Image panel (and ROS 2's ``rqt_image_overlay``)
+draw: the tracked features as points (``camera/features``) and the centroid as a circle whose
+radius is the features' mean distance from it (``camera/centroid``). They are derived topics,
+not contract keys: nothing publishes them on Zenoh.
 """
 
 from __future__ import annotations
@@ -32,7 +38,17 @@ import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from .messages import CmdVel, Estimate, Frame, Message, Params, PreFrame, Report, to_jsonable
+from .messages import (
+    CmdVel,
+    Estimate,
+    Frame,
+    Message,
+    MessageError,
+    Params,
+    PreFrame,
+    Report,
+    to_jsonable,
+)
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
@@ -40,6 +56,7 @@ TWIST = "geometry_msgs/msg/Twist"
 ESTIMATE = "vistrack_msgs/msg/Estimate"
 PARAMS = "vistrack_msgs/msg/Params"
 REPORT = "vistrack_msgs/msg/Report"
+IMAGE_MARKER = "visualization_msgs/msg/ImageMarker"
 
 #: ``header.frame_id`` of what vistrack publishes: the camera's optical frame.
 FRAME_ID = "camera"
@@ -271,3 +288,115 @@ def report_of_ros(obj: Any) -> Report:
     m = json.loads(obj.json)
     names = [f.name for f in dataclasses.fields(Report)]
     return Report(**{n: m[n] for n in names if n in m})
+
+
+def of_ros(suffix: str, obj: Any, *, seq: int, stamp_ns_: int) -> Message:
+    """The contract message of key ``suffix`` rebuilt from its ROS 2 message ``obj``.
+
+    ``seq`` and ``stamp_ns_`` fill what the ROS 2 type does not carry: an Image has no
+    sequence number, a Twist neither a stamp nor ``stale`` (rebuilt as False).
+
+    Raises
+    ------
+    TypeError
+        For a key whose ROS 2 type does not carry the contract message whole
+        (``preprocessing/frame``: an Image has no candidates) or has no ROS 2 type.
+    ValueError
+        When ``obj`` is not a valid message of that key (:class:`MessageError` is one).
+    """
+    if suffix == Frame.KEY:
+        return frame_of_image(obj, seq=seq)
+    if suffix == CmdVel.KEY:
+        return cmd_vel_of_twist(obj, seq=seq, stamp_ns_=stamp_ns_)
+    if suffix == Estimate.KEY:
+        return estimate_of_ros(obj)
+    if suffix == Params.KEY:
+        return params_of_ros(obj)
+    if suffix == Report.KEY:
+        try:
+            return report_of_ros(obj)
+        except (json.JSONDecodeError, TypeError) as e:  # a json field that is no report
+            raise MessageError(f"{Report.KEY}: field 'json' is not a report ({e})") from None
+    raise TypeError(f"{suffix} cannot be rebuilt from its ROS 2 message")
+
+
+#: Contract keys :func:`of_ros` rebuilds whole from their ROS 2 message.
+REBUILT = (Frame.KEY, CmdVel.KEY, Estimate.KEY, Params.KEY, Report.KEY)
+
+
+def schema_problem(typename: str, text: str) -> str | None:
+    """Why the ``ros2msg`` schema ``text`` of ``typename`` (as recorded in a file) does not
+    describe the same messages as ours, or None when it does.
+
+    Field names, types and order count; comments, constants' layout and formatting do not, so
+    a schema written by ``ros2 bag`` from the installed ``.msg`` files matches too.
+    """
+    try:
+        theirs = get_types_from_msg(text, typename)
+    except Exception as e:  # noqa: BLE001 - rosbags' parser raises its own error kinds
+        return f"its schema does not parse as ros2msg ({type(e).__name__}: {e})"
+    ours = typestore().fielddefs
+    for name, (_, fields) in theirs.items():
+        if name in ours and ours[name][1] != fields:
+            theirs_, ours_ = _field_list(fields), _field_list(ours[name][1])
+            if theirs_ == ours_:
+                return f"the field types of its {name} differ from this vistrack's"
+            return f"its {name} is ({theirs_}), this vistrack's is ({ours_})"
+    if typename not in theirs:
+        return f"its schema does not define {typename}"
+    return None
+
+
+def _field_list(fields: Any) -> str:
+    return ", ".join(f"{name}" for name, _ in fields)
+
+
+# -- overlays: an estimate drawn over its frame -------------------------------------------
+
+def _color(r: float, g: float, b: float, a: float = 1.0) -> Any:
+    return _type("std_msgs/msg/ColorRGBA")(r=r, g=g, b=b, a=a)
+
+
+def _point(x: float, y: float) -> Any:
+    return _type("geometry_msgs/msg/Point")(x=float(x), y=float(y), z=0.0)
+
+
+#: Colours of the overlays (RGBA, 0..1): features green, centroid orange.
+FEATURE_COLOR = (0.2, 1.0, 0.2, 1.0)
+CENTROID_COLOR = (1.0, 0.5, 0.0, 1.0)
+#: Diameter of a feature's dot, px.
+FEATURE_DOT_PX = 3.0
+
+
+def _marker(msg: Estimate, frame_id: str, *, ns: str, kind: int, position: Any, scale: float,
+            color: tuple[float, ...], points: list[Any]) -> Any:
+    duration = _type("builtin_interfaces/msg/Duration")
+    return _type(IMAGE_MARKER)(
+        header=header(msg.stamp_ns, frame_id), ns=ns, id=0, type=kind, action=0,
+        position=position, scale=scale, outline_color=_color(*color), filled=0,
+        fill_color=_color(0.0, 0.0, 0.0, 0.0), lifetime=duration(sec=0, nanosec=0),
+        points=points, outline_colors=[])
+
+
+def feature_marker(msg: Estimate, frame_id: str = FRAME_ID) -> Any:
+    """``ImageMarker`` ``POINTS``: the tracked features of an estimate, in the pixel
+    coordinates of its frame (pixel centres at integers, as OpenCV and ROS's image tools
+    draw), stamped with the frame's ``stamp_ns`` so a viewer can match it to its image."""
+    return _marker(msg, frame_id, ns="features", kind=4, position=_point(0.0, 0.0),
+                   scale=FEATURE_DOT_PX, color=FEATURE_COLOR,
+                   points=[_point(x, y) for _, x, y in msg.features])
+
+
+def centroid_marker(msg: Estimate, frame_id: str = FRAME_ID) -> Any:
+    """``ImageMarker`` ``CIRCLE`` at the centroid (xc, yc) of Eq. 2, of radius the mean
+    absolute deviation of the features about it, (xe + ye) / (2 NPI) px (at least 1 px);
+    transparent when no feature is tracked."""
+    npi = max(msg.npi, 1)
+    radius = max((msg.xe + msg.ye) / (2.0 * npi), 1.0)
+    color = CENTROID_COLOR if msg.npi > 0 else (0.0, 0.0, 0.0, 0.0)
+    return _marker(msg, frame_id, ns="centroid", kind=0, position=_point(msg.xc, msg.yc),
+                   scale=radius, color=color, points=[])
+
+
+#: Derived topic suffix (under ``vistrack/<robot>/``) -> how it is drawn from an estimate.
+OVERLAYS = {"camera/features": feature_marker, "camera/centroid": centroid_marker}

@@ -1,11 +1,15 @@
 """``vistrack record FILE [KEY ...]``: record timestamped samples to a file, for ``replay``.
 
+Two formats: ``FILE.mcap`` (or ``--format mcap``) writes MCAP with ROS 2 message schemas, which
+Foxglove, PlotJuggler and ``ros2 bag`` open (:mod:`.mcapio` describes it); any other name (or
+``--format vtr``) writes vistrack's own ``.vtr`` format, below.
+
 Without KEY, records every key of the robot (``vistrack/<robot>/**``; status replies and
 liveliness tokens are not samples and are not recorded). Runs until Ctrl-C/SIGTERM,
 ``--duration`` or ``--count``, then flushes and closes the file (it is also flushed every
 second, so a killed recorder loses at most the last second).
 
-File format (version 1): a stream of msgpack maps, nothing else, so it can be read with any
+The ``.vtr`` format (version 1): a stream of msgpack maps, nothing else, so it can be read with any
 msgpack library and written without knowing its length in advance:
 
 * first a header ``{"format": "vistrack-record", "version": 1, "robot": ID, "keys": [key
@@ -23,7 +27,6 @@ import argparse
 import sys
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -32,7 +35,19 @@ import zenoh
 
 from ...common.keys import Keys, key_suffix
 from ..usage import add_number
-from .shared import Inbox, ToolError, add_tool_args, error, resolve_key, run, stop_on_signals
+from .mcapio import McapRecording, McapWriter, is_mcap
+from .shared import (
+    Inbox,
+    Record,
+    RecordError,
+    ToolError,
+    add_tool_args,
+    error,
+    resolve_key,
+    run,
+    stop_on_signals,
+    warn,
+)
 
 FORMAT = "vistrack-record"
 VERSION = 1
@@ -41,33 +56,6 @@ _CHUNK = 1 << 20
 # A record holds one sample; the largest a service accepts is a 4096x4096 frame's candidates.
 _MAX_RECORD = 64 << 20
 _UNPACK_ERRORS = (ValueError, TypeError, msgpack.UnpackException)
-
-
-class RecordError(Exception):
-    """A recording is not readable from some byte on.
-
-    Attributes
-    ----------
-    path : the file.
-    offset : byte offset of the first record (or header) that could not be read; None when
-        the file itself cannot be read.
-    """
-
-    def __init__(self, path: str | Path, offset: int | None, problem: str) -> None:
-        where = "" if offset is None else f" at byte offset {offset}"
-        super().__init__(f"{path}{where}: {problem}")
-        self.path = str(path)
-        self.offset = offset
-
-
-@dataclass(frozen=True)
-class Record:
-    """One recorded sample (see the module docstring)."""
-
-    t_ns: int
-    key: str
-    payload: bytes
-    offset: int  # where it starts in the file
 
 
 class RecordWriter:
@@ -79,7 +67,8 @@ class RecordWriter:
         If the file cannot be created.
     """
 
-    def __init__(self, path: str | Path, *, robot: str, keys: list[str]) -> None:
+    def __init__(self, path: str | Path, *, robot: str, keys: list[str],
+                 tool: str = "vistrack record", start_ns: int | None = None) -> None:
         self.path = Path(path)
         try:
             self._file: BinaryIO = open(path, "wb")  # closed by close()
@@ -87,21 +76,25 @@ class RecordWriter:
             raise ToolError(f"cannot write {str(path) or repr(str(path))}: {e.strerror}",
                             code=2) from None
         self._packer = msgpack.Packer(use_bin_type=True)
-        self.start_ns = time.time_ns()
+        self.start_ns = time.time_ns() if start_ns is None else int(start_ns)
         self._start_mono = time.monotonic_ns()
         self.count = 0
         self.keys_seen: set[str] = set()
         self._file.write(self._packer.pack({"format": FORMAT, "version": VERSION,
                                             "robot": robot, "keys": keys,
                                             "start_ns": self.start_ns,
-                                            "tool": "vistrack record"}))
+                                            "tool": tool}))
 
-    def write(self, key: str, payload: bytes, mono_ns: int) -> None:
+    def write(self, key: str, payload: bytes, mono_ns: int) -> bool:
         """Append one sample that arrived at ``mono_ns`` (``time.monotonic_ns``)."""
-        t_ns = self.start_ns + (mono_ns - self._start_mono)
+        return self.write_at(key, payload, self.start_ns + (mono_ns - self._start_mono))
+
+    def write_at(self, key: str, payload: bytes, t_ns: int) -> bool:
+        """Append one sample that arrived at ``t_ns`` (ns since the Unix epoch)."""
         self._file.write(self._packer.pack({"t_ns": t_ns, "key": key, "payload": payload}))
         self.count += 1
         self.keys_seen.add(key)
+        return True
 
     def flush(self) -> None:
         self._file.flush()
@@ -227,6 +220,53 @@ def _is_concrete_key(key: str) -> bool:
     return True
 
 
+# -- either format ---------------------------------------------------------------------------
+
+FORMATS = ("mcap", "vtr")
+Writer = RecordWriter | McapWriter
+
+
+def format_of(path: str | Path, fmt: str | None = None) -> str:
+    """The format to write ``path`` in: ``fmt`` if given, else ``mcap`` for a ``.mcap``
+    name and ``vtr`` for any other."""
+    if fmt is not None:
+        return fmt
+    return "mcap" if Path(path).suffix.lower() == ".mcap" else "vtr"
+
+
+def open_writer(path: str | Path, fmt: str | None, *, robot: str, keys: list[str],
+                tool: str = "vistrack record", start_ns: int | None = None) -> Writer:
+    """A writer of ``path`` in :func:`format_of` ``(path, fmt)`` (ToolError, code 2, if the
+    file cannot be created)."""
+    if format_of(path, fmt) == "mcap":
+        return McapWriter(path, robot=robot, keys=keys, tool=tool, start_ns=start_ns)
+    return RecordWriter(path, robot=robot, keys=keys, tool=tool, start_ns=start_ns)
+
+
+def open_recording(path: str | Path) -> Recording | McapRecording:
+    """A recording opened for reading, MCAP or ``.vtr`` by its content (RecordError if it is
+    neither: saying why it is no MCAP file when it is named ``.mcap``)."""
+    if is_mcap(path):
+        return McapRecording(path)
+    try:
+        return Recording(path)
+    except RecordError:
+        if Path(path).suffix.lower() == ".mcap":
+            return McapRecording(path)  # raises, naming what is wrong for an MCAP file
+        raise
+
+
+def not_written(writer: Writer) -> list[str]:
+    """One line per key whose samples an MCAP writer left out, saying why (none for .vtr)."""
+    if not isinstance(writer, McapWriter):
+        return []
+    lines = [f"{n} samples of {key} not written: it has no ROS 2 type (record to .vtr to "
+             "keep them)" for key, n in sorted(writer.skipped.items())]
+    lines += [f"{n} samples of {key} not written: not valid messages (last: "
+              f"{writer.last_error[key]})" for key, n in sorted(writer.rejected.items())]
+    return lines
+
+
 # -- the command ------------------------------------------------------------------------------
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -238,6 +278,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                metavar="S", help="stop after S seconds, %(allowed)s")
     add_number(parser, "--count", lo=1, hi=10**12, integer=True, default=None, metavar="N",
                help="stop after N samples, %(allowed)s")
+    parser.add_argument("--format", choices=FORMATS, default=None,
+                        help="mcap (ROS 2 messages, for Foxglove, PlotJuggler, ros2 bag) or vtr "
+                             "(vistrack's msgpack stream); default: mcap for a .mcap FILE, "
+                             "else vtr")
     add_tool_args(parser)
 
 
@@ -250,7 +294,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         keys = Keys(args.robot)
         exprs = sorted({resolve_key(keys, k) for k in args.keys}) or [f"{keys.root}/**"]
-        writer = RecordWriter(args.file, robot=args.robot, keys=exprs)
+        writer = open_writer(args.file, args.format, robot=args.robot, keys=exprs)
     except ToolError as e:
         error("record", e)
         return e.code
@@ -258,7 +302,7 @@ def main(args: argparse.Namespace) -> int:
         return run("record", args, lambda session, _keys: record(session, writer, exprs, args))
 
 
-def record(session: zenoh.Session, writer: RecordWriter, exprs: list[str],
+def record(session: zenoh.Session, writer: Writer, exprs: list[str],
            args: argparse.Namespace) -> int:
     inbox = Inbox(capacity=100_000)
     start = time.monotonic()
@@ -283,10 +327,17 @@ def record(session: zenoh.Session, writer: RecordWriter, exprs: list[str],
         finally:
             for sub in subs:
                 sub.undeclare()
+            # what had arrived is written too (a second Ctrl-C interrupts this)
+            while (args.count is None or writer.count < args.count) \
+                    and (item := inbox.get(timeout=0.0)) is not None:
+                if _recorded(item.key):
+                    writer.write(item.key, item.payload, item.mono_ns)
             writer.flush()
     if inbox.overflow:
         print(f"vistrack record: warning: {inbox.overflow} samples lost (disk too slow)",
               file=sys.stderr)
+    for line in not_written(writer):
+        warn("record", line)
     print(f"vistrack record: {writer.count} samples of {len(writer.keys_seen)} keys in "
           f"{time.monotonic() - start:.2f} s written to {writer.path}", file=sys.stderr)
     return 0

@@ -1,4 +1,11 @@
-"""``vistrack replay FILE``: publish a recording (``vistrack record``) again, at its timing.
+"""``vistrack replay FILE [KEY ...]``: publish a recording (``vistrack record``) again, at its
+timing.
+
+FILE is a ``.vtr`` or an MCAP recording (told apart by content). An MCAP file's messages are
+turned back into the contract's (see :mod:`.mcapio`: ``preprocessing/frame``, the overlays and
+topics of other programs are not replayed, and the replay says so). KEY (``camera/frame``, a
+full key, a wildcard) replays only the matching samples: a recorded run's frames into a live
+pipeline that makes its own estimates.
 
 Samples are published in file order, each at its recorded time since the first sample, divided
 by ``--speed`` (``--fast``: no waiting at all). Frames, estimates and poses are published like
@@ -7,6 +14,11 @@ newest); parameters, reports and commands reliably (BLOCK). So a recorded ``came
 stream drives the pipeline as a camera would. Before the first sample the replay waits up to
 ``--wait`` s for a subscriber of its key, since what is published before the subscription is
 known is lost.
+
+``--in-flight N`` also holds each ``camera/frame`` until motion-estimation has published the
+estimate of the frame N before it (or ``--ack-timeout`` s have passed), as the camera does with
+``--fps 0``: with ``--fast``, the pipeline's own pace with no frame lost; at the recorded pace,
+never faster than the pipeline. The replay then also waits for the last frame's estimate.
 
 ``--remap-robot ID`` publishes ``vistrack/<recorded robot>/...`` as ``vistrack/<ID>/...``;
 ``--restamp`` replaces each message's ``stamp_ns`` by the time it is published, for consumers
@@ -19,6 +31,7 @@ replay ends with a warning and a one-line error naming the file and the byte off
 from __future__ import annotations
 
 import argparse
+import collections
 import sys
 import threading
 import time
@@ -28,13 +41,16 @@ import msgpack
 import zenoh
 
 from ...common.keys import PREFIX, Keys, key_suffix, validate_robot_id
+from ...common.messages import peek_int
 from ..usage import add_number
-from .record import Record, RecordError, Recording
+from .mcapio import McapRecording, key_of
+from .record import Record, RecordError, Recording, open_recording
 from .shared import (
     ToolError,
     add_tool_args,
     error,
     has_subscriber,
+    resolve_key,
     run,
     stop_on_signals,
     warn,
@@ -53,7 +69,11 @@ def _robot(value: str) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", metavar="FILE", help="a recording made by vistrack record")
+    parser.add_argument("file", metavar="FILE",
+                        help="a recording made by vistrack record (.vtr or MCAP)")
+    parser.add_argument("keys", nargs="*", metavar="KEY",
+                        help="replay only these keys: camera/frame, estimate, '**', full keys "
+                             "(default: every recorded sample)")
     pace = parser.add_mutually_exclusive_group()
     add_number(pace, "--speed", lo=0.01, hi=1000, default=1.0, metavar="X",
                help="playback speed, a multiple of the recorded one, %(allowed)s (default 1)")
@@ -66,6 +86,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_number(parser, "--wait", lo=0, hi=3600, unit="s", default=5.0, metavar="S",
                help="longest wait for a subscriber before the first sample, %(allowed)s; 0: "
                     "do not wait (default 5 s)")
+    add_number(parser, "--in-flight", lo=1, hi=16, integer=True, default=None, metavar="N",
+               help="hold frame n until motion-estimation has published frame n-N, "
+                    "%(allowed)s (default: do not wait for the pipeline)")
+    add_number(parser, "--ack-timeout", lo=0, hi=3600, lo_open=True, default=1.0, metavar="S",
+               help="with --in-flight, longest wait for a frame's estimate, %(allowed)s "
+                    "(default 1 s)")
     add_tool_args(parser)
 
 
@@ -92,22 +118,107 @@ def restamp(payload: bytes, stamp_ns: int) -> bytes:
 
 def main(args: argparse.Namespace) -> int:
     try:
-        recording = Recording(args.file)  # a file that is no recording fails before Zenoh
+        # a file that is no recording fails before Zenoh
+        recording = open_recording(args.file)
+        selected = [_key_filter(Keys(args.robot), k) for k in args.keys]
     except RecordError as e:
         error("replay", e)
         return 2
-    return run("replay", args, lambda session, keys: replay(session, keys, recording, args))
+    except ToolError as e:
+        error("replay", e)
+        return e.code
+    return run("replay", args,
+               lambda session, keys: replay(session, keys, recording, selected, args))
+
+
+def _key_filter(keys: Keys, key: str) -> zenoh.KeyExpr:
+    """The key expression KEY selects among recorded keys: a contract name (``camera/frame``,
+    ``estimate``) matches it under any robot id, a full key or wildcard as written."""
+    expr = resolve_key(keys, key)
+    if not key.startswith(f"{PREFIX}/"):
+        expr = f"{PREFIX}/*/{expr.split('/', 2)[2]}"
+    return zenoh.KeyExpr(expr)
+
+
+class _Selection:
+    """Whether a recorded key is among the KEY arguments (all keys without any)."""
+
+    def __init__(self, exprs: list[zenoh.KeyExpr]) -> None:
+        self._exprs = exprs
+        self._known: dict[str, bool] = {}
+
+    def __call__(self, key: str) -> bool:
+        if not self._exprs:
+            return True
+        chosen = self._known.get(key)
+        if chosen is None:
+            try:
+                concrete = zenoh.KeyExpr(key)
+            except zenoh.ZError:  # a topic of another program that is no Zenoh key
+                chosen = False
+            else:
+                chosen = any(e.intersects(concrete) for e in self._exprs)
+            self._known[key] = chosen
+        return chosen
+
+
+class _Acks:
+    """The newest ``stamp_ns`` published on each watched ``motion/estimate`` key (the camera's
+    pacing with ``--fps 0``: an estimate of frame k acknowledges every frame up to k)."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self._session = session
+        self._cond = threading.Condition()
+        self._newest: dict[str, int] = {}
+        self._subs: list[zenoh.Subscriber] = []
+        self.timeouts = 0
+
+    def watch(self, key: str) -> None:
+        if key in self._newest:
+            return
+        self._newest[key] = -1
+
+        def on_estimate(sample: zenoh.Sample) -> None:
+            stamp = peek_int(sample.payload.to_bytes(), "stamp_ns")
+            if stamp is not None:
+                with self._cond:
+                    self._newest[key] = max(self._newest[key], stamp)
+                    self._cond.notify_all()
+        self._subs.append(self._session.declare_subscriber(key, on_estimate))
+
+    def reset(self) -> None:
+        """Forget what was acknowledged (a new pass replays the same stamps)."""
+        with self._cond:
+            self._newest = dict.fromkeys(self._newest, -1)
+
+    def wait(self, key: str, stamp: int, timeout: float, stop: threading.Event) -> bool:
+        """Until ``key`` has acknowledged ``stamp``; False after ``timeout`` s or on stop."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._newest[key] < stamp:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or stop.is_set():
+                    return False
+                self._cond.wait(min(remaining, 0.1))
+        return True
+
+    def close(self) -> None:
+        for sub in self._subs:  # a callback subscriber left declared hangs the exit
+            sub.undeclare()
+        self._subs.clear()
 
 
 class _Player:
     """Publishers per key, declared on first use, and the pacing of one pass."""
 
     def __init__(self, session: zenoh.Session, args: argparse.Namespace,
-                 stop: threading.Event) -> None:
+                 stop: threading.Event, selected: _Selection) -> None:
         self.session = session
         self.args = args
         self.stop = stop
+        self.selected = selected
         self.published = 0
+        self.acks = _Acks(session) if args.in_flight else None
         self._publishers: dict[str, zenoh.Publisher] = {}
 
     def publisher(self, key: str) -> zenoh.Publisher:
@@ -138,8 +249,14 @@ class _Player:
         """Publish one pass; False if stopped by a signal or if there was nothing to play."""
         t0: int | None = None
         start = time.monotonic()
+        in_flight: dict[str, collections.deque[int]] = {}  # ack key -> stamps of frames sent
+        if self.acks is not None:
+            self.acks.reset()
         for rec in records:
+            if not self.selected(rec.key):
+                continue
             key = remap(rec.key, self.args.remap_robot)
+            ack_key = self._ack_key(key)
             if t0 is None:
                 t0 = rec.t_ns
                 if self.published == 0 and self.args.wait > 0:
@@ -149,15 +266,43 @@ class _Player:
                 delay = start + (rec.t_ns - t0) / 1e9 / self.args.speed - time.monotonic()
                 if delay > 0 and self.stop.wait(delay):
                     return False
+            sent = None
+            if ack_key is not None:
+                sent = in_flight.setdefault(ack_key, collections.deque())
+                if len(sent) >= self.args.in_flight:
+                    self._wait_ack(ack_key, sent.popleft(), sent)
             if self.stop.is_set():
                 return False
             payload = restamp(rec.payload, time.time_ns()) if self.args.restamp \
                 else rec.payload
             self.publisher(key).put(payload)
             self.published += 1
+            stamp = peek_int(payload, "stamp_ns")
+            if sent is not None and stamp is not None:
+                sent.append(stamp)
+        for ack_key, sent in in_flight.items():  # the last frames through the pipeline too
+            if sent and not self.stop.is_set():
+                self._wait_ack(ack_key, sent[-1], sent)
         return t0 is not None
 
+    def _ack_key(self, key: str) -> str | None:
+        """The estimate key that acknowledges a frame published on ``key`` (None: no pacing)."""
+        if self.acks is None or key_suffix(key) != "camera/frame":
+            return None
+        ack_key = key[:-len("camera/frame")] + "motion/estimate"
+        self.acks.watch(ack_key)
+        return ack_key
+
+    def _wait_ack(self, ack_key: str, stamp: int, sent: collections.deque[int]) -> None:
+        assert self.acks is not None
+        if not self.acks.wait(ack_key, stamp, self.args.ack_timeout, self.stop):
+            if not self.stop.is_set():
+                self.acks.timeouts += 1
+                sent.clear()  # lost downstream (a service restarted): go on
+
     def close(self) -> None:
+        if self.acks is not None:
+            self.acks.close()
         for pub in self._publishers.values():
             try:
                 pub.undeclare()
@@ -166,11 +311,12 @@ class _Player:
         self._publishers.clear()
 
 
-def replay(session: zenoh.Session, keys: Keys, recording: Recording,
-           args: argparse.Namespace) -> int:
+def replay(session: zenoh.Session, keys: Keys, recording: Recording | McapRecording,
+           selected: list[zenoh.KeyExpr], args: argparse.Namespace) -> int:
     start = time.monotonic()
     with stop_on_signals() as stop:
-        player = _Player(session, args, stop)
+        selection = _Selection(selected)
+        player = _Player(session, args, stop, selection)
         try:
             while player.play(recording.records()) and args.loop:
                 pass
@@ -180,6 +326,22 @@ def replay(session: zenoh.Session, keys: Keys, recording: Recording,
             raise ToolError(str(e), code=2) from None
         finally:
             player.close()
+            _note_skipped(recording, selection)
+    acks = player.acks
+    waited = f" ({acks.timeouts} estimates not seen within --ack-timeout)" \
+        if acks is not None and acks.timeouts else ""
     print(f"vistrack replay: {player.published} samples from {recording.path} in "
-          f"{time.monotonic() - start:.2f} s", file=sys.stderr)
+          f"{time.monotonic() - start:.2f} s{waited}", file=sys.stderr)
+    if player.published == 0 and selected:
+        raise ToolError(f"{recording.path}: no recorded sample matches "
+                        f"{' '.join(args.keys)}", code=2)
     return 0
+
+
+def _note_skipped(recording: Recording | McapRecording, selected: _Selection) -> None:
+    """One line naming what the MCAP file holds of the keys asked for but cannot replay."""
+    skipped = {t: why for t, why in getattr(recording, "skipped", {}).items()
+               if selected(key_of(t))}
+    if skipped:
+        print("vistrack replay: note: not replayed: " + "; ".join(
+            f"{topic} ({why})" for topic, why in sorted(skipped.items())), file=sys.stderr)

@@ -1,5 +1,6 @@
 """What the command-line tools share (``echo``, ``hz``, ``status``, ``params``, ``record``,
-``replay``): one-line errors, the session, signals, a sample inbox, service status, tables.
+``replay``, ``export``, ``foxglove``): one-line errors, the session, signals, recorded samples, a
+sample inbox, service status, tables.
 
 Each tool is its own module under ``vistrack.services.tools`` (``add_arguments(parser)`` and
 ``main(args) -> exit code``, as ``cli.py`` expects), modelled on ``ros2 topic`` and dora's CLI
@@ -19,6 +20,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import zenoh
@@ -132,6 +134,35 @@ def has_subscriber(publisher: zenoh.Publisher) -> bool:
     # the 1.x stub says bool, but the binding returns a MatchingStatus (always truthy)
     status = publisher.matching_status
     return bool(getattr(status, "matching", status))
+
+
+# -- recordings ------------------------------------------------------------------------------
+
+class RecordError(Exception):
+    """A recording is not readable from some byte on.
+
+    Attributes
+    ----------
+    path : the file.
+    offset : byte offset of the first record (or header) that could not be read; None when
+        the file itself cannot be read.
+    """
+
+    def __init__(self, path: str | Path, offset: int | None, problem: str) -> None:
+        where = "" if offset is None else f" at byte offset {offset}"
+        super().__init__(f"{path}{where}: {problem}")
+        self.path = str(path)
+        self.offset = offset
+
+
+@dataclass(frozen=True)
+class Record:
+    """One recorded sample, whatever the file format (``record.py``, ``mcapio.py``)."""
+
+    t_ns: int
+    key: str
+    payload: bytes
+    offset: int  # where it starts in the file (MCAP: the chunk holding it)
 
 
 # -- receiving samples ------------------------------------------------------------------------

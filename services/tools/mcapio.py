@@ -1,0 +1,366 @@
+"""MCAP recordings: vistrack's samples as ROS 2 messages, the files Foxglove, PlotJuggler and
+``ros2 bag`` open (``vistrack record FILE.mcap``, ``vistrack replay``, ``vistrack export``).
+
+A file has the MCAP profile ``ros2``, zstd-compressed chunks, and:
+
+* one channel per key, on the topic ``/`` + the full key (``/vistrack/robot/camera/frame``),
+  typed as :mod:`vistrack.common.ros2types` says (schema encoding ``ros2msg``, with the
+  ``.msg`` definitions of ``vistrack_msgs`` embedded; message encoding ``cdr``);
+* each estimate also drawn over its frame on ``/vistrack/<robot>/camera/features`` and
+  ``/vistrack/<robot>/camera/centroid`` (``visualization_msgs/msg/ImageMarker``);
+* per message: log time = arrival (ns since the Unix epoch, from a monotonic clock, so it
+  never goes back); publish time = the contract's ``stamp_ns`` (the capture time of the frame
+  the message derives from: a Twist has no header, so this is where its stamp lives);
+  sequence = the contract's ``seq`` modulo 2^32;
+* a metadata record ``vistrack``: ``robot``, ``keys`` (a JSON list), ``start_ns``, ``tool``.
+
+Keys without a ROS 2 type (``sim/pose``) and payloads that are not valid messages of their key
+are not written; the writer counts them (``skipped``, ``rejected``).
+
+Reading rebuilds the contract's messages (:func:`~vistrack.common.ros2types.of_ros`): a frame's
+``seq`` from the message sequence, a command's ``stamp_ns`` from the publish time (its
+``stale`` flag is not in a Twist: False). The overlays are left out (they are drawn from the
+estimates); ``preprocessing/frame`` (an Image does not carry the candidates) and topics of other
+programs are not rebuilt either, and :attr:`McapRecording.skipped` says which and why.
+"""
+
+from __future__ import annotations
+
+import collections
+import importlib.metadata
+import json
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Header, Message, Schema
+from mcap.stream_reader import StreamReader
+from mcap.summary import Summary
+from mcap.writer import CompressionType, Writer
+
+from ...common import ros2types as r2
+from ...common.keys import PREFIX, key_suffix
+from ...common.messages import Estimate, MessageError, decode_any
+from .shared import Record, RecordError, ToolError
+
+#: The first 8 bytes of every MCAP file.
+MAGIC = b"\x89MCAP0\r\n"
+PROFILE = "ros2"
+#: Chunk size before compression: a chunk is also closed by every flush (once a second).
+CHUNK_BYTES = 1 << 20
+_SEQ_MOD = 1 << 32
+
+
+def topic_of(key: str) -> str:
+    """The MCAP / ROS 2 topic of a full key: ``vistrack/r/camera/frame`` ->
+    ``/vistrack/r/camera/frame``."""
+    return "/" + key
+
+
+def key_of(topic: str) -> str:
+    """The full key of a topic written by :func:`topic_of`."""
+    return topic[1:] if topic.startswith("/") else topic
+
+
+def _version() -> str:
+    try:
+        return importlib.metadata.version("vistrack")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def is_mcap(path: str | Path) -> bool:
+    """Whether the file at ``path`` starts with the MCAP magic (False if it cannot be read)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(MAGIC)) == MAGIC
+    except OSError:
+        return False
+
+
+class McapWriter:
+    """Writes an MCAP recording (module docstring) to ``path``; a context manager with the
+    interface of the ``.vtr`` writer (``write``, ``flush``, ``close``, ``count``, ``keys_seen``).
+
+    Attributes
+    ----------
+    count : samples written (overlays not counted).
+    keys_seen : keys of the samples written.
+    skipped : key -> samples not written because the key has no ROS 2 type.
+    rejected : key -> samples not written because the payload is not a valid message.
+    last_error : key -> why the last rejected sample of that key was rejected.
+
+    Raises
+    ------
+    ToolError (code 2)
+        If the file cannot be created.
+    """
+
+    def __init__(self, path: str | Path, *, robot: str, keys: list[str],
+                 tool: str = "vistrack record", start_ns: int | None = None) -> None:
+        self.path = Path(path)
+        try:
+            self._file: BinaryIO = open(path, "wb")  # closed by close()
+        except OSError as e:
+            raise ToolError(f"cannot write {str(path) or repr(str(path))}: {e.strerror}",
+                            code=2) from None
+        self._mcap = Writer(self._file, chunk_size=CHUNK_BYTES,
+                            compression=CompressionType.ZSTD)
+        self._mcap.start(profile=PROFILE, library=f"vistrack {_version()}")
+        self.start_ns = time.time_ns() if start_ns is None else int(start_ns)
+        self._start_mono = time.monotonic_ns()
+        self._mcap.add_metadata("vistrack", {"robot": robot, "keys": json.dumps(keys),
+                                             "start_ns": str(self.start_ns), "tool": tool})
+        self.count = 0
+        self.keys_seen: set[str] = set()
+        self.skipped: collections.Counter[str] = collections.Counter()
+        self.rejected: collections.Counter[str] = collections.Counter()
+        self.last_error: dict[str, str] = {}
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._last_t = 0
+        self._closed = False
+
+    def write(self, key: str, payload: bytes, mono_ns: int) -> bool:
+        """Append one sample that arrived at ``mono_ns`` (``time.monotonic_ns``); False if it
+        was not written (see ``skipped`` and ``rejected``)."""
+        return self.write_at(key, payload, self.start_ns + (mono_ns - self._start_mono))
+
+    def write_at(self, key: str, payload: bytes, t_ns: int) -> bool:
+        """Append one sample logged at ``t_ns`` (ns since the Unix epoch; an earlier time than
+        the last one written is raised to it: log times never go back)."""
+        suffix = key_suffix(key)
+        typename = r2.ROS_TYPES.get(suffix)
+        if typename is None:
+            self.skipped[key] += 1
+            return False
+        try:
+            msg = decode_any(key, payload)
+        except MessageError as e:
+            self.rejected[key] += 1
+            self.last_error[key] = str(e)
+            return False
+        t_ns = max(int(t_ns), self._last_t)
+        self._last_t = t_ns
+        self._add(key, typename, r2.to_ros(msg), t_ns, msg.stamp_ns, msg.seq)
+        if isinstance(msg, Estimate):
+            root = key[:-len(suffix)]
+            for overlay, draw in r2.OVERLAYS.items():
+                self._add(root + overlay, r2.IMAGE_MARKER, draw(msg), t_ns, msg.stamp_ns,
+                          msg.seq)
+        self.count += 1
+        self.keys_seen.add(key)
+        return True
+
+    def _add(self, key: str, typename: str, obj: Any, t_ns: int, stamp_ns: int,
+             seq: int) -> None:
+        channel = self._channels.get(key)
+        if channel is None:
+            channel = self._channels[key] = self._mcap.register_channel(
+                topic=topic_of(key), message_encoding="cdr", schema_id=self._schema(typename))
+        self._mcap.add_message(channel_id=channel, log_time=t_ns, data=r2.serialize(obj),
+                               publish_time=stamp_ns, sequence=seq % _SEQ_MOD)
+
+    def _schema(self, typename: str) -> int:
+        schema = self._schemas.get(typename)
+        if schema is None:
+            schema = self._schemas[typename] = self._mcap.register_schema(
+                name=typename, encoding="ros2msg", data=r2.msgdef(typename).encode())
+        return schema
+
+    def flush(self) -> None:
+        """Close the chunk in progress and write it out: a killed recorder loses only what
+        came after the last flush."""
+        self._mcap.flush()
+
+    def close(self) -> None:
+        """Write the summary and footer (indexes, statistics) and close the file."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._mcap.finish()
+        finally:
+            self._file.close()
+
+    def __enter__(self) -> McapWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class McapRecording:
+    """An MCAP file opened for replay: the contract's samples rebuilt from its messages.
+
+    Attributes
+    ----------
+    path : the file.
+    header : ``{"format": "mcap", "profile", "library"}`` of the file.
+    skipped : topic -> why its messages are not replayed (filled as the file is read).
+
+    Raises
+    ------
+    RecordError
+        If the file cannot be read or does not start with an MCAP magic and header.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            with open(self.path, "rb") as f:
+                head = f.read(len(MAGIC))
+                if head != MAGIC:
+                    what = "an empty file" if not head else f"starts with {head[:8]!r}"
+                    raise RecordError(path, 0, f"not an MCAP file ({what}, not the MCAP magic)")
+                try:
+                    f.seek(0)
+                    header = next(iter(StreamReader(f, record_size_limit=1 << 20).records))
+                except Exception as e:  # noqa: BLE001 - damaged bytes: mcap raises many kinds
+                    raise RecordError(path, len(MAGIC), "not a readable MCAP file: its header: "
+                                      f"{_damage(e)}") from None
+        except OSError as e:
+            raise RecordError(path, None, f"cannot read: {e.strerror}") from None
+        if not isinstance(header, Header):
+            raise RecordError(path, len(MAGIC), "not a readable MCAP file: no header record "
+                              f"after the magic ({type(header).__name__})")
+        self.header = {"format": "mcap", "profile": header.profile, "library": header.library}
+        self.skipped: dict[str, str] = {}
+        summary = _summary(self.path)
+        #: False when the file has no summary (a recorder that was killed, or a writer that
+        #: writes none): it is replayed up to where it ends.
+        self.complete = summary is not None
+        #: The ``vistrack`` metadata record (robot, keys, start_ns, tool) of a complete file
+        #: written by vistrack; empty otherwise.
+        self.info: dict[str, str] = {}
+        if summary is not None:
+            self.info = _vistrack_metadata(self.path)
+            replayed = [c for c in summary.channels.values()
+                        if self._channel(c, summary.schemas.get(c.schema_id)) is not None]
+            if not replayed:
+                ours = {t: why for t, why in self.skipped.items() if t.startswith(f"/{PREFIX}/")}
+                why = "; ".join(f"{t}: {w}" for t, w in sorted(ours.items())) if ours else (
+                    f"it has {_topics(summary)} (vistrack replays the /{PREFIX}/<robot>/<key> "
+                    "topics that vistrack record writes)")
+                raise RecordError(path, None, f"no vistrack topic to replay: {why}")
+
+    def records(self) -> Iterator[Record]:
+        """The samples the file's messages rebuild, in file order (the order they were
+        written, which is arrival order for vistrack's files).
+
+        Raises
+        ------
+        RecordError
+            At the first damaged record, or message that is not a valid message of its key
+            (after yielding the samples before it).
+        """
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, tuple[str, str, str] | None] = {}  # id -> (key, suffix, type)
+        last_seq: dict[int, int] = {}
+        with open(self.path, "rb") as f:
+            reader = iter(StreamReader(f, validate_crcs=True).records)
+            start = 0  # where the record being taken apart (a chunk) starts
+            while True:
+                before = f.tell()
+                try:
+                    rec = next(reader)
+                except StopIteration:
+                    return
+                except Exception as e:  # noqa: BLE001 - damaged bytes: mcap raises many kinds
+                    raise RecordError(self.path, before, _damage(e)) from None
+                if f.tell() != before:  # a new record read from the file, not from a chunk
+                    start = before
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = self._channel(rec, schemas.get(rec.schema_id))
+                elif isinstance(rec, Message):
+                    target = channels.get(rec.channel_id)
+                    if target is not None:
+                        yield self._sample(rec, target, last_seq, start)
+
+    def _channel(self, channel: Channel, schema: Schema | None) -> tuple[str, str, str] | None:
+        """(key, suffix, ROS type) of a channel to replay, or None (noted in ``skipped``)."""
+        topic = channel.topic
+        key = key_of(topic)
+        parts = key.split("/", 2)
+        suffix = key_suffix(key) if len(parts) == 3 and parts[0] == PREFIX else ""
+        expected = r2.ROS_TYPES.get(suffix)
+        name = schema.name if schema is not None else "no schema"
+        if suffix in r2.OVERLAYS:
+            return None  # drawn from the estimates again whenever they are written to MCAP
+        if expected is None:
+            self.skipped[topic] = (f"not a vistrack key (topics /{PREFIX}/<robot>/<key> are "
+                                   "replayed)")
+        elif suffix not in r2.REBUILT:
+            self.skipped[topic] = f"a {name} does not carry a whole {suffix} message"
+        elif schema is None or name != expected or schema.encoding != "ros2msg" \
+                or channel.message_encoding != "cdr":
+            self.skipped[topic] = (f"{name} ({schema.encoding if schema else '-'}, "
+                                   f"{channel.message_encoding}), not {expected} (ros2msg, cdr)")
+        elif (problem := r2.schema_problem(expected, schema.data.decode("utf-8", "replace"))):
+            self.skipped[topic] = problem
+        else:
+            return key, suffix, expected
+        return None
+
+    def _sample(self, msg: Message, target: tuple[str, str, str], last_seq: dict[int, int],
+                offset: int) -> Record:
+        key, suffix, typename = target
+        # the 32-bit sequence, unwrapped: it counts on from the last one of the channel
+        last = last_seq.get(msg.channel_id)
+        seq = msg.sequence if last is None else last + (msg.sequence - last) % _SEQ_MOD
+        last_seq[msg.channel_id] = seq
+        try:
+            obj = r2.deserialize(msg.data, typename)
+            payload = r2.of_ros(suffix, obj, seq=seq, stamp_ns_=msg.publish_time).encode()
+        except (ValueError, TypeError) as e:  # MessageError is a ValueError
+            raise RecordError(self.path, offset, f"message at log time {msg.log_time} on "
+                              f"{topic_of(key)} is not a valid {suffix}: {e}") from None
+        return Record(msg.log_time, key, payload, offset)
+
+
+def _summary(path: Path) -> Summary | None:
+    """The summary section of a complete MCAP file (None if it has none or is cut short)."""
+    try:
+        with open(path, "rb") as f:
+            return SeekingReader(f).get_summary()
+    except Exception:  # noqa: BLE001 - a damaged end: read on from the start instead
+        return None
+
+
+def _vistrack_metadata(path: Path) -> dict[str, str]:
+    try:
+        with open(path, "rb") as f:
+            for record in SeekingReader(f).iter_metadata():
+                if record.name == "vistrack":
+                    return dict(record.metadata)
+    except Exception:  # noqa: BLE001 - the metadata only informs; the messages are what counts
+        pass
+    return {}
+
+
+def _topics(summary: Summary, most: int = 5) -> str:
+    """"/a (type), /b (type) and N more" of a summary's channels."""
+    def typename(c: Channel) -> str:
+        schema = summary.schemas.get(c.schema_id)
+        return schema.name if schema is not None else "no schema"
+    names = [f"{c.topic} ({typename(c)})"
+             for c in sorted(summary.channels.values(), key=lambda c: c.topic)]
+    if not names:
+        return "no channel"
+    more = f" and {len(names) - most} more" if len(names) > most else ""
+    return ", ".join(names[:most]) + more
+
+
+def _describe(e: BaseException) -> str:
+    return f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+
+
+def _damage(e: BaseException) -> str:
+    """What a reader exception says about the file, in a user's words."""
+    if type(e).__name__ in ("EndOfFile", "EOFError") or "unpack requires" in str(e):
+        return "truncated: the file ends inside a record (was the recorder killed?)"
+    return f"damaged record ({_describe(e)})"

@@ -1,0 +1,254 @@
+"""MCAP recordings (services/tools/mcapio.py) as files, without Zenoh.
+
+Read back with readers that are not ours: the ``mcap`` library's reader and
+``mcap-ros2-support``'s ROS 2 decoder (which reads the schema embedded in the file, not our
+type store); foreign files written with ``mcap-ros2-support``'s own writer and CDR encoder.
+Frames are the built-in sequence, estimates the real tracker's over them.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from mcap_ros2.writer import Writer as Ros2Writer
+
+from vistrack.common import ros2types as r2
+from vistrack.common.messages import CmdVel, Frame, Params, Pose, decode_any
+from vistrack.common.params import TrackerParams
+from vistrack.common.synthetic import builtin_sequence
+from vistrack.common.vision import Tracker
+from vistrack.services.motion_estimation.service import estimate_message
+from vistrack.services.tools.mcapio import McapRecording, McapWriter
+from vistrack.services.tools.record import Recording, RecordWriter
+from vistrack.services.tools.shared import RecordError
+
+ROOT = "vistrack/robot"
+T0 = 1_700_000_000_000_000_000
+
+
+def _samples(n: int = 12) -> list[tuple[str, bytes, int]]:
+    """(full key, payload, arrival t_ns) of a short run: frames, estimates of the real
+    tracker, commands, a parameter set and simulator poses, in arrival order."""
+    tracker = Tracker(TrackerParams())
+    out = [(f"{ROOT}/tuner/params", Params.from_tracker_params(
+        TrackerParams(), seq=2**33 + 1, stamp_ns=T0, params_id=1, source="user",
+        reason="by hand").encode(), T0 + 1)]
+    for seq, image in enumerate(builtin_sequence(n)):
+        stamp = T0 + seq * 33_333_333
+        est = estimate_message(tracker.process(image, seq=seq), seq=seq, stamp_ns=stamp,
+                               params_id=1)
+        cmd = CmdVel(seq=seq, stamp_ns=stamp, vx=0.01 * seq, vy=-0.02, wz=0.0)
+        pose = Pose(seq=seq, stamp_ns=stamp, x=0.0, y=0.1, theta=0.0, tx=1.0, ty=2.0)
+        for suffix, msg, lag_ns in (("camera/frame", Frame.from_image(image, seq=seq,
+                                                                      stamp_ns=stamp), 200_000),
+                                    ("motion/estimate", est, 3_000_000),
+                                    ("control/cmd_vel", cmd, 3_500_000),
+                                    ("sim/pose", pose, 3_600_000)):
+            out.append((f"{ROOT}/{suffix}", msg.encode(), stamp + lag_ns))
+    return out
+
+
+@pytest.fixture(scope="module")
+def samples() -> list[tuple[str, bytes, int]]:
+    return _samples()
+
+
+@pytest.fixture(scope="module")
+def recording(samples, tmp_path_factory):
+    path = tmp_path_factory.mktemp("mcap") / "run.mcap"
+    with McapWriter(path, robot="robot", keys=[f"{ROOT}/**"]) as writer:
+        for key, payload, t_ns in samples:
+            writer.write_at(key, payload, t_ns)
+        writer.write_at(f"{ROOT}/motion/estimate", b"\x81\xa1v\x01", T0)  # not an estimate
+    return path, writer
+
+
+def _read(path):
+    """Every message as (topic, schema, channel, message, decoded) with mcap's own reader."""
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        header = reader.get_header()
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        rows = [(ch.topic, sch, ch, msg, dec) for sch, ch, msg, dec
+                in reader.iter_decoded_messages(log_time_order=False)]
+    return header, summary, rows
+
+
+def test_every_channel_and_message_decodes_with_mcap_ros2(recording, samples):
+    path, writer = recording
+    header, summary, rows = _read(path)
+    assert header.profile == "ros2"
+    assert writer.skipped == {f"{ROOT}/sim/pose": 12}
+    assert writer.rejected == {f"{ROOT}/motion/estimate": 1}
+    expected_types = {
+        "camera/frame": r2.IMAGE, "motion/estimate": r2.ESTIMATE, "control/cmd_vel": r2.TWIST,
+        "tuner/params": r2.PARAMS, "camera/features": r2.IMAGE_MARKER,
+        "camera/centroid": r2.IMAGE_MARKER}
+    assert {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()} \
+        == {f"/{ROOT}/{s}": t for s, t in expected_types.items()}
+    for schema in summary.schemas.values():
+        assert schema.encoding == "ros2msg" and schema.data.decode() == r2.msgdef(schema.name)
+    assert all(c.message_encoding == "cdr" for c in summary.channels.values())
+    counts = {c.topic: summary.statistics.channel_message_counts[c.id]
+              for c in summary.channels.values()}
+    assert counts[f"/{ROOT}/camera/frame"] == 12 and counts[f"/{ROOT}/camera/features"] == 12
+    assert len(rows) == sum(counts.values()) == 12 * 5 + 1
+    log_times = [msg.log_time for *_, msg, _ in rows]
+    assert log_times == sorted(log_times)
+    originals = {(key, decode_any(key, p).seq): decode_any(key, p) for key, p, _ in samples
+                 if "sim/pose" not in key}
+    for topic, _, _, msg, obj in rows:
+        key = topic[1:]
+        if key.endswith(("features", "centroid")):
+            est = originals[(f"{ROOT}/motion/estimate", msg.sequence)]
+            assert (obj.header.stamp.sec * 10**9 + obj.header.stamp.nanosec) == est.stamp_ns
+            if key.endswith("features"):
+                assert [(p.x, p.y) for p in obj.points] == [(x, y) for _, x, y in est.features]
+            else:
+                assert (obj.position.x, obj.position.y) == (est.xc, est.yc)
+                assert obj.scale == pytest.approx((est.xe + est.ye) / (2 * est.npi), rel=1e-6)
+            continue
+        orig = originals[(key, msg.sequence if not key.endswith("params") else 2**33 + 1)]
+        assert msg.publish_time == orig.stamp_ns
+        assert msg.sequence == orig.seq % 2**32
+        if key.endswith("camera/frame"):
+            assert obj.step * obj.height == len(obj.data) and obj.encoding == "mono8"
+            assert np.array_equal(np.frombuffer(obj.data, np.uint8).reshape(obj.height,
+                                                                            obj.width),
+                                  orig.data)
+        if hasattr(obj, "header"):
+            assert obj.header.stamp.sec * 10**9 + obj.header.stamp.nanosec == orig.stamp_ns
+        if key.endswith("estimate"):
+            assert (obj.npi, obj.xc, obj.scale, len(obj.features)) == \
+                (orig.npi, orig.xc, orig.scale, len(orig.features))
+        if key.endswith("cmd_vel"):
+            assert (obj.linear.x, obj.linear.y, obj.angular.z) == (orig.vx, orig.vy, orig.wz)
+
+
+def test_reading_back_rebuilds_the_contract_messages(recording, samples):
+    path, _ = recording
+    rec = McapRecording(path)
+    assert rec.complete and rec.info["robot"] == "robot"
+    assert json.loads(rec.info["keys"]) == [f"{ROOT}/**"]
+    got = list(rec.records())
+    want = [(k, p, t) for k, p, t in samples if "sim/pose" not in k]
+    assert [(r.key, r.t_ns) for r in got] == [(k, t) for k, _, t in want]
+    for r, (key, payload, _) in zip(got, want, strict=True):
+        a, b = decode_any(key, payload), decode_any(r.key, r.payload)
+        if isinstance(a, Frame):
+            assert (a.seq, a.stamp_ns) == (b.seq, b.stamp_ns)
+            assert np.array_equal(a.data, b.data)
+        else:
+            assert a == b  # CmdVel: stale False travels as its default
+    assert rec.skipped == {}
+
+
+def test_export_vtr_to_mcap_and_back_keeps_every_sample(samples, tmp_path):
+    vtr = tmp_path / "run.vtr"
+    with RecordWriter(vtr, robot="robot", keys=[f"{ROOT}/**"]) as writer:
+        for key, payload, t_ns in samples:
+            writer.write_at(key, payload, t_ns)
+    out = tmp_path / "run.mcap"
+    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "export", str(vtr),
+                          str(out)], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert "12 samples of vistrack/robot/sim/pose not written: it has no ROS 2 type" \
+        in run.stderr
+    back = tmp_path / "back.vtr"
+    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "export", str(out),
+                          str(back)], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    records = list(Recording(back).records())
+    assert [(r.key, r.t_ns) for r in records] == [(k, t) for k, _, t in samples
+                                                  if "sim/pose" not in k]
+
+
+def test_a_truncated_file_replays_up_to_the_damage(recording, tmp_path):
+    path, _ = recording
+    data = path.read_bytes()
+    whole = list(McapRecording(path).records())
+    for cut_at in (len(data) // 2, len(data) - 10):
+        cut = tmp_path / f"cut{cut_at}.mcap"
+        cut.write_bytes(data[:cut_at])
+        rec = McapRecording(cut)
+        assert not rec.complete
+        got = []
+        with pytest.raises(RecordError, match="truncated") as err:
+            for r in rec.records():
+                got.append(r)
+        assert str(cut) in str(err.value) and "\n" not in str(err.value)
+        assert [(r.key, r.payload) for r in got] == [(r.key, r.payload)
+                                                     for r in whole[:len(got)]]
+    cut = tmp_path / "header.mcap"
+    cut.write_bytes(data[:20])
+    with pytest.raises(RecordError, match="not a readable MCAP file"):
+        McapRecording(cut)
+
+
+def _foreign(path, topic: str, typename: str, msgdef: str, message: dict) -> None:
+    """An MCAP file from another program: mcap-ros2-support's writer and CDR encoder."""
+    with open(path, "wb") as f:
+        writer = Ros2Writer(f)
+        schema = writer.register_msgdef(typename, msgdef)
+        writer.write_message(topic=topic, schema=schema, message=message, log_time=T0,
+                             publish_time=T0, sequence=5)
+        writer.finish()
+
+
+def test_an_estimate_written_by_another_encoder_is_read_back(tmp_path):
+    path = tmp_path / "other.mcap"
+    _foreign(path, f"/{ROOT}/motion/estimate", r2.ESTIMATE, r2.msgdef(r2.ESTIMATE), {
+        "header": {"stamp": {"sec": 1700000000, "nanosec": 5}, "frame_id": "cam"},
+        "seq": 9, "valid": True, "npi": 1, "xc": 3.0, "yc": 4.0, "xe": 0.0, "ye": 0.0,
+        "dx": 0.5, "dy": -0.5, "scale": 1.0, "t_ms": 0.2, "first": False, "params_id": 3,
+        "features": [{"id": 4, "x": 3.0, "y": 4.0}]})
+    (rec,) = McapRecording(path).records()
+    est = decode_any(rec.key, rec.payload)
+    assert rec.key == f"{ROOT}/motion/estimate" and rec.t_ns == T0
+    assert (est.seq, est.stamp_ns, est.npi, est.xc, est.dx, est.params_id) == \
+        (9, 1_700_000_000_000_000_005, 1, 3.0, 0.5, 3)
+    assert est.features == [[4, 3.0, 4.0]]
+
+
+def test_a_foreign_mcap_file_is_refused_naming_what_it_holds(tmp_path):
+    path = tmp_path / "tf.mcap"
+    _foreign(path, "/chatter", "std_msgs/msg/String", "string data", {"data": "hi"})
+    with pytest.raises(RecordError, match=r"no vistrack topic to replay: it has /chatter "
+                                          r"\(std_msgs/msg/String\)"):
+        McapRecording(path)
+    wrong = tmp_path / "wrong-type.mcap"
+    _foreign(wrong, f"/{ROOT}/camera/frame", "std_msgs/msg/String", "string data",
+             {"data": "hi"})
+    with pytest.raises(RecordError, match="no vistrack topic"):
+        McapRecording(wrong)
+    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "replay", str(path)],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2
+    assert run.stderr.count("\n") == 1 and run.stderr.startswith("vistrack replay: error: ")
+    assert str(path) in run.stderr and "/chatter" in run.stderr
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"PNG not an mcap file")
+    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "export", str(junk),
+                          str(tmp_path / "out.mcap")], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 2 and run.stderr.count("\n") == 1
+    assert str(junk) in run.stderr and "not an MCAP file" in run.stderr
+
+
+def test_a_schema_other_than_ours_is_not_replayed(tmp_path):
+    path = tmp_path / "old.mcap"
+    old = r2.msgdef(r2.PARAMS).replace("uint32 ungroup_size\n", "")
+    _foreign(path, f"/{ROOT}/tuner/params", r2.PARAMS, old, {
+        "header": {"stamp": {"sec": 1, "nanosec": 0}, "frame_id": ""}, "seq": 1,
+        "max_features": 100, "thres_percent": 2.0, "search_size": 15, "corr_size": 9,
+        "params_id": 1, "source": "user", "reason": ""})
+    with pytest.raises(RecordError, match="ungroup_size"):
+        McapRecording(path)

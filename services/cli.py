@@ -34,6 +34,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "record": ("tools.record", "record samples of chosen keys to a file (.vtr or MCAP)"),
     "replay": ("tools.replay", "publish a recording (.vtr or MCAP) again at its timing"),
     "export": ("tools.export", "convert a recording, e.g. .vtr to MCAP (no Zenoh)"),
+    "foxglove": ("tools.foxglove_bridge",
+                 "serve the robot's keys live to Foxglove (WebSocket, ROS 2 messages)"),
     "up": ("launch.up", "start and supervise the five services (and a Zenoh router)"),
     "router": ("launch.router", "run a Zenoh router for the services and tools to connect to"),
     "certs": ("launch.certs", "a CA and host certificates for Zenoh's mutual TLS (no Zenoh)"),

@@ -47,6 +47,8 @@ FRAME_KEYS = (Frame.KEY, PreFrame.KEY)
 STREAM_KEYS = ("motion/estimate", "tuner/params", "tuner/report", "control/cmd_vel")
 #: Estimates kept to draw the overlays of a frame sent before its estimate came.
 _RECENT = 16
+#: Samples are taken from the inbox every BATCH_S, s.
+BATCH_S = 0.02
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -185,14 +187,15 @@ def serve(session: zenoh.Session, keys: Keys, args: argparse.Namespace) -> int:
         try:
             next_frames = time.monotonic()
             while not stop.is_set():
-                item = inbox.get(timeout=min(0.1, max(0.0, next_frames - time.monotonic())))
-                if item is not None:
+                for item in inbox.take():
                     bridge.sample(item.key, item.payload, item.t_ns)
                 now = time.monotonic()
                 if now >= next_frames:
                     for key, (payload, t_ns) in latest.take().items():
                         bridge.frame(key, payload, t_ns)
                     next_frames = max(next_frames + period, now)
+                # woken once a batch, not once a sample (estimates wait BATCH_S at most)
+                stop.wait(min(BATCH_S, max(0.0, next_frames - time.monotonic())))
         finally:
             for sub in subs:  # a callback subscriber left declared hangs the exit
                 sub.undeclare()

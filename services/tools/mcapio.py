@@ -34,6 +34,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import mcap.writer
+import zstandard
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Header, Message, Schema
 from mcap.stream_reader import StreamReader
@@ -51,6 +53,21 @@ PROFILE = "ros2"
 #: Chunk size before compression: a chunk is also closed by every flush (once a second).
 CHUNK_BYTES = 1 << 20
 _SEQ_MOD = 1 << 32
+#: zstd level of the chunks. mcap's writer calls ``zstandard.compress`` (level 3): on 256x256
+#: frames that ran at 13 MB/s here, 7 % of a core for a 30 fps recording, against 1.6 % at
+#: level 1 (ratio 1.57 instead of 1.77; lz4 gained nothing on these frames: 1.02).
+ZSTD_LEVEL = 1
+
+
+class _Zstd:
+    """Stands in for the ``zstandard`` module inside ``mcap.writer``, which offers no level:
+    the same ``compress`` at :data:`ZSTD_LEVEL` (any zstd reader decompresses it)."""
+
+    def __init__(self, level: int) -> None:
+        self._compressor = zstandard.ZstdCompressor(level=level)
+
+    def compress(self, data: bytes) -> bytes:
+        return self._compressor.compress(data)
 
 
 def topic_of(key: str) -> str:
@@ -106,6 +123,7 @@ class McapWriter:
         except OSError as e:
             raise ToolError(f"cannot write {str(path) or repr(str(path))}: {e.strerror}",
                             code=2) from None
+        mcap.writer.zstandard = _Zstd(ZSTD_LEVEL)  # type: ignore[assignment]  # see ZSTD_LEVEL
         self._mcap = Writer(self._file, chunk_size=CHUNK_BYTES,
                             compression=CompressionType.ZSTD)
         self._mcap.start(profile=PROFILE, library=f"vistrack {_version()}")

@@ -189,6 +189,7 @@ class Inbox:
 
     def __init__(self, capacity: int = 10_000) -> None:
         self._queue: queue.Queue[Received] = queue.Queue(capacity)
+        self.capacity = capacity
         self.overflow = 0
 
     def __call__(self, sample: zenoh.Sample) -> None:
@@ -207,6 +208,17 @@ class Inbox:
             return self._queue.get(timeout=max(0.0, timeout))
         except queue.Empty:
             return None
+
+    def take(self, most: int = 10_000) -> list[Received]:
+        """Every sample waiting (at most ``most``), without waiting: a consumer that takes
+        them in batches wakes once a batch, not once a sample."""
+        items: list[Received] = []
+        try:
+            while len(items) < most:
+                items.append(self._queue.get_nowait())
+        except queue.Empty:
+            pass
+        return items
 
 
 # -- services and their status ----------------------------------------------------------------

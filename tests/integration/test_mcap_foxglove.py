@@ -144,6 +144,15 @@ def run(tmp_path_factory, free_port_module):
                 client.receive(lambda c: c.received[f"/{ROOT}/motion/estimate"] >= FRAMES,
                                20)
                 elapsed = time.monotonic() - start
+                # bad input: a payload that is no estimate, then the tools go on
+                junk_ns = time.time_ns()
+                session.put(f"{ROOT}/motion/estimate", b"\x81\xa1v\x01 not an estimate")
+                bridge.wait_for("skipping payloads that are not valid")
+                params = Collector(session, f"{ROOT}/tuner/params")  # once a second
+                try:
+                    params.wait(lambda items: len(items) >= 2, timeout=10)
+                finally:
+                    params.sub.undeclare()
             assert _stop(rec) == 0, "\n".join(rec.lines)
             assert _stop(bridge) == 0, "\n".join(bridge.lines)
             for p in fresh:
@@ -151,6 +160,7 @@ def run(tmp_path_factory, free_port_module):
             yield {"path": path, "client": client, "endpoint": ep, "session": session,
                    "elapsed": elapsed, "live": [msgpack.unpackb(p) for _, p in est.items],
                    "commands": [msgpack.unpackb(p) for _, p in cmd.items],
+                   "junk_ns": junk_ns,
                    "record": rec}
         finally:
             for p in (*fresh, rec, bridge):
@@ -215,7 +225,10 @@ def test_the_recording_decodes_with_mcap_ros2(run):
     assert len(live_commands) >= FRAMES // 2
     assert commands[:len(live_commands)] == live_commands
     assert by_topic[f"/{ROOT}/tuner/params"][0][1].search_size == 15
-    assert "samples of 5 keys" in "\n".join(run["record"].lines)
+    log = "\n".join(run["record"].lines)
+    assert "samples of 5 keys" in log
+    assert f"1 samples of {ROOT}/motion/estimate not written: not valid messages" in log
+    assert any(m.log_time > run["junk_ns"] for _, _, m, _ in rows)  # and it went on
 
 
 def test_the_foxglove_client_received_and_decoded_every_channel(run):

@@ -12,6 +12,8 @@ One module a benchmark, each also run under pytest by ``tests/bench`` (``-m benc
 * :mod:`.faults`: hostile and extreme input on the live system, crash and hang to a new
   process ready, and the cost of the per-message fault isolation;
 * :mod:`.soak`: the full pipeline unpaced for a minute: memory, drops, nothing else lost.
+* :mod:`.record`: the MCAP recorder and the Foxglove bridge on a live pipeline, against the
+  ``.vtr`` recorder and ``vistrack hz`` listening to the same samples.
 
 Each is imported only when it runs (the pipeline one starts processes, the net one makes
 network namespaces).
@@ -72,6 +74,15 @@ def _soak(out=sys.stdout) -> dict[str, float]:
     return bench_soak(out)
 
 
+def _record(out=sys.stdout) -> dict[str, float]:
+    try:
+        from .record import bench_record  # starts processes; its client needs websockets
+    except ImportError as e:
+        raise SystemExit(f"vistrack bench: error: record needs {e.name}: pip install "
+                         "'vistrack[test]'") from None
+    return bench_record(out)
+
+
 BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": _tracker,
                                                        "net": _net,
                                                        "pipeline": _pipeline,
@@ -79,7 +90,8 @@ BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": _tracker,
                                                        "controller": _controller,
                                                        "idle": _idle,
                                                        "faults": _faults,
-                                                       "soak": _soak}
+                                                       "soak": _soak,
+                                                       "record": _record}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

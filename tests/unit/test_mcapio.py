@@ -19,7 +19,7 @@ from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
 
 from vistrack.common import ros2types as r2
-from vistrack.common.messages import CmdVel, Frame, Params, Pose, decode_any
+from vistrack.common.messages import CmdVel, Frame, Params, Pose, Report, decode_any
 from vistrack.common.params import TrackerParams
 from vistrack.common.synthetic import builtin_sequence
 from vistrack.common.vision import Tracker
@@ -51,6 +51,11 @@ def _samples(n: int = 12) -> list[tuple[str, bytes, int]]:
                                     ("control/cmd_vel", cmd, 3_500_000),
                                     ("sim/pose", pose, 3_600_000)):
             out.append((f"{ROOT}/{suffix}", msg.encode(), stamp + lag_ns))
+    report = Report(seq=1, stamp_ns=T0, design=[[-1, 1], [1, -1]], factors=["A", "B"],
+                    order=[1, 0], responses={"tf": [0.2, 0.3]}, effects={"tf": {"1": 0.1}},
+                    significant={"tf": {"99": ["1"], "95": ["1"]}},
+                    optimum={"search_size": 10, "corr_size": 5}, sweep={"search": [10, 12]})
+    out.append((f"{ROOT}/tuner/report", report.encode(), out[-1][2] + 1))
     return out
 
 
@@ -90,7 +95,8 @@ def test_every_channel_and_message_decodes_with_mcap_ros2(recording, samples):
     assert writer.rejected == {f"{ROOT}/motion/estimate": 1}
     expected_types = {
         "camera/frame": r2.IMAGE, "motion/estimate": r2.ESTIMATE, "control/cmd_vel": r2.TWIST,
-        "tuner/params": r2.PARAMS, "camera/features": r2.IMAGE_MARKER,
+        "tuner/params": r2.PARAMS, "tuner/report": r2.REPORT,
+        "camera/features": r2.IMAGE_MARKER,
         "camera/centroid": r2.IMAGE_MARKER}
     assert {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()} \
         == {f"/{ROOT}/{s}": t for s, t in expected_types.items()}
@@ -100,7 +106,7 @@ def test_every_channel_and_message_decodes_with_mcap_ros2(recording, samples):
     counts = {c.topic: summary.statistics.channel_message_counts[c.id]
               for c in summary.channels.values()}
     assert counts[f"/{ROOT}/camera/frame"] == 12 and counts[f"/{ROOT}/camera/features"] == 12
-    assert len(rows) == sum(counts.values()) == 12 * 5 + 1
+    assert len(rows) == sum(counts.values()) == 12 * 5 + 2
     log_times = [msg.log_time for *_, msg, _ in rows]
     assert log_times == sorted(log_times)
     originals = {(key, decode_any(key, p).seq): decode_any(key, p) for key, p, _ in samples
@@ -117,6 +123,9 @@ def test_every_channel_and_message_decodes_with_mcap_ros2(recording, samples):
                 assert obj.scale == pytest.approx((est.xe + est.ye) / (2 * est.npi), rel=1e-6)
             continue
         orig = originals[(key, msg.sequence if not key.endswith("params") else 2**33 + 1)]
+        if key.endswith("report"):
+            assert json.loads(obj.json)["factors"] == ["A", "B"] and list(obj.design) == \
+                [-1, 1, 1, -1]
         assert msg.publish_time == orig.stamp_ns
         assert msg.sequence == orig.seq % 2**32
         if key.endswith("camera/frame"):

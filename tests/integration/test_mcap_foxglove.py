@@ -52,9 +52,13 @@ FIELDS = ("seq", "stamp_ns", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale",
 
 
 def _stop(proc: Proc) -> int:
-    """Stop a tool as Ctrl-C does and return its exit code."""
+    """Stop a tool as Ctrl-C does, wait for it to finish, and return its exit code."""
     if proc.p.poll() is None:
         proc.p.send_signal(signal.SIGINT)
+        try:
+            proc.p.wait(30)
+        except subprocess.TimeoutExpired:
+            pass  # Proc.stop() terminates it, and the exit code says so
     return proc.stop(timeout=10)
 
 

@@ -390,10 +390,11 @@ def feature_marker(msg: Estimate, frame_id: str = FRAME_ID) -> Any:
 def centroid_marker(msg: Estimate, frame_id: str = FRAME_ID) -> Any:
     """``ImageMarker`` ``CIRCLE`` at the centroid (xc, yc) of Eq. 2, of radius the mean
     absolute deviation of the features about it, (xe + ye) / (2 NPI) px (at least 1 px);
-    transparent when no feature is tracked."""
+    transparent when the estimate is not valid (too few features: nothing to act on)."""
     npi = max(msg.npi, 1)
     radius = max((msg.xe + msg.ye) / (2.0 * npi), 1.0)
-    color = CENTROID_COLOR if msg.npi > 0 else (0.0, 0.0, 0.0, 0.0)
+    valid = getattr(msg, "valid", msg.npi > 0)
+    color = CENTROID_COLOR if valid else (0.0, 0.0, 0.0, 0.0)
     return _marker(msg, frame_id, ns="centroid", kind=0, position=_point(msg.xc, msg.yc),
                    scale=radius, color=color, points=[])
 

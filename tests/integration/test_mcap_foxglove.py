@@ -47,8 +47,8 @@ NS = "--no-multicast-scouting"
 FRAMES = 60  # the built-in sequence, played once
 FRAME_RATE = 5.0  # the bridge's --frame-rate: far below the camera's rate
 # what an estimate is, besides its processing time
-FIELDS = ("seq", "stamp_ns", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale", "first",
-          "params_id", "features")
+FIELDS = ("seq", "stamp_ns", "valid", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale",
+          "first", "params_id", "features")
 
 
 def _stop(proc: Proc) -> int:
@@ -282,7 +282,8 @@ def test_replaying_the_mcap_into_a_pipeline_without_camera_gives_the_same_estima
     assert [m["seq"] for m in got] == list(range(FRAMES))
     for m in got:
         e = recorded[m["seq"]]
-        ros = {"seq": e.seq, "stamp_ns": _stamp(e.header), "npi": e.npi, "xc": e.xc,
+        ros = {"seq": e.seq, "stamp_ns": _stamp(e.header), "valid": e.valid, "npi": e.npi,
+               "xc": e.xc,
                "yc": e.yc, "xe": e.xe, "ye": e.ye, "dx": e.dx, "dy": e.dy, "scale": e.scale,
                "first": e.first, "params_id": e.params_id,
                "features": [[f.id, f.x, f.y] for f in e.features]}

@@ -40,6 +40,10 @@ def test_the_centroid_circle_has_the_mean_distance_as_its_radius():
     assert m.scale == pytest.approx(8 / 6, rel=1e-6)
     empty = _decode(r2.IMAGE_MARKER, r2.serialize(r2.centroid_marker(_estimate(0))))
     assert empty.outline_color.a == 0.0 and empty.scale == 1.0  # nothing to draw, but stamped
+    two = _estimate(2)  # a centroid of two points is theirs, not the target's: not valid
+    assert not two.valid
+    assert _decode(r2.IMAGE_MARKER, r2.serialize(r2.centroid_marker(two))).outline_color.a \
+        == 0.0
     assert _decode(r2.IMAGE_MARKER, r2.serialize(r2.feature_marker(_estimate(0)))).points == []
 
 

@@ -2,7 +2,8 @@
 
 * :func:`add_zenoh_args` / :func:`config_from_args`: the command line contract's Zenoh flags
   (``-m -e -l -c --no-multicast-scouting --robot``) turned into a ``zenoh.Config`` the way
-  zenoh-python's ``examples/common/common.py`` does it.
+  zenoh-python's ``examples/common/common.py`` does it, except where it listens: on loopback
+  only (:data:`LOOPBACK_LISTEN`) unless ``-l`` or the config file names endpoints.
 * :class:`Node`: the seam a service loop is written against (``subscribe``, ``recv``,
   ``publish``, ``status``, ``stop``), like dora's node API. :class:`ZenohNode` runs it over a
   real Zenoh session (liveliness token, status queryable); :class:`MemoryNode` runs the same
@@ -61,6 +62,14 @@ DEFAULT_CAPACITY = 1024
 #: How long the set of connected peers must stay the same before a new node's links count as
 #: settled (:meth:`Node.wait_for_subscribers`): they come up within ~10 ms of each other here.
 SETTLE_S = 0.1
+#: Where a process listens when neither ``-l`` nor its config file names endpoints, per Zenoh
+#: mode: loopback only. Zenoh's own default, every interface (``tcp/[::]:0`` for a peer), let any
+#: host on the robot's network open a session with each service, read its camera and drive it.
+#: The local peers still connect directly to each other, on these endpoints (gossip and
+#: multicast scouting advertise them, and another host cannot reach them); a client listens on
+#: nothing. As rmw_zenoh's default session config does (``tcp/localhost:0``).
+LOOPBACK_LISTEN: dict[str, list[str]] = {"peer": ["tcp/127.0.0.1:0"],
+                                         "router": ["tcp/127.0.0.1:7447"]}
 # Longest a blocked recv() sleeps before re-checking ``stop``: bounds the shutdown delay
 # without costing latency (data wake it at once through the condition variable).
 _STOP_POLL_S = 0.05
@@ -87,7 +96,10 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
     group.add_argument("-e", "--connect", metavar="ENDPOINT", action="append",
                        help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
     group.add_argument("-l", "--listen", metavar="ENDPOINT", action="append",
-                       help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
+                       help="endpoint to listen on (repeatable), e.g. tcp/0.0.0.0:7447 to be "
+                            "reachable from other hosts (default: the config file's, else "
+                            "loopback only: a peer on tcp/127.0.0.1:0, a router on "
+                            "tcp/127.0.0.1:7447, a client on nothing)")
     group.add_argument("-c", "--config", metavar="FILE.json5",
                        help="Zenoh configuration file; the flags above override it")
     group.add_argument("--no-multicast-scouting", action="store_true",
@@ -98,6 +110,9 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
 
 def config_from_args(args: argparse.Namespace) -> zenoh.Config:
     """The ``zenoh.Config`` described by the flags of :func:`add_zenoh_args`.
+
+    Where neither ``--listen`` nor the config file names listen endpoints, the session listens
+    on loopback only (:data:`LOOPBACK_LISTEN`), never on Zenoh's default of every interface.
 
     Raises
     ------
@@ -129,19 +144,30 @@ def config_from_args(args: argparse.Namespace) -> zenoh.Config:
             conf.insert_json5(key, json.dumps(value))
         except zenoh.ZError as err:
             raise BusError(f"zenoh {flag} {value!r}: {err}") from None
+    if getattr(args, "listen", None) is None and not _names_listen_endpoints(conf):
+        conf.insert_json5("listen/endpoints", json.dumps(LOOPBACK_LISTEN))
     return conf
+
+
+def _names_listen_endpoints(conf: zenoh.Config) -> bool:
+    """Whether ``conf`` (read from a file) sets ``listen/endpoints``, to anything (``[]``
+    too) but the value Zenoh uses when it is not set (every interface)."""
+    unset = json.loads(zenoh.Config().get_json("listen/endpoints"))
+    return bool(json.loads(conf.get_json("listen/endpoints")) != unset)
 
 
 def loopback_config(endpoint: str, *, router: bool = False) -> zenoh.Config:
     """A ``zenoh.Config`` that connects to ``endpoint`` (or, ``router=True``, a router that
     listens on it), multicast scouting off: the explicit wiring benchmarks and tests use, so
-    they work in sandboxes without multicast and run side by side on their own ports."""
+    they work in sandboxes without multicast and run side by side on their own ports. The
+    peer listens on loopback only, as the services do."""
     conf = zenoh.Config()
     if router:
         conf.insert_json5("mode", '"router"')
         conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
     else:
         conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        conf.insert_json5("listen/endpoints", json.dumps(LOOPBACK_LISTEN["peer"]))
     conf.insert_json5("scouting/multicast/enabled", "false")
     return conf
 

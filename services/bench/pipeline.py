@@ -54,6 +54,7 @@ ECHO_PEER = """
 import json, sys, time, zenoh
 c = zenoh.Config()
 c.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
+c.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
 c.insert_json5("scouting/multicast/enabled", "false")
 with zenoh.open(c) as s:
     pub = s.declare_publisher("bench/pong")
@@ -63,7 +64,8 @@ with zenoh.open(c) as s:
 """
 
 # One node of the raw skeleton (plain zenoh, no project code): ``ROLE ENDPOINT FPS HANDOFF
-# SIZES...``. A relay answers each sample with a payload of its output size whose first 8 bytes
+# SIZES...``. Like our services it listens on loopback only, where the others connect to it
+# directly. A relay answers each sample with a payload of its output size whose first 8 bytes
 # are the input's (the capture stamp), from Zenoh's callback thread, or (HANDOFF 1) from a loop
 # thread that receives from a zenoh RingChannel(1), the latest-only reception the contract
 # prescribes for frames (and the cheapest hand-off: ours is a Python inbox); the camera puts
@@ -74,6 +76,7 @@ role, endpoint, fps, handoff, frame, pre, est, cmd = sys.argv[1], sys.argv[2], \
     float(sys.argv[3]), *map(int, sys.argv[4:9])
 c = zenoh.Config()
 c.insert_json5("connect/endpoints", json.dumps([endpoint]))
+c.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
 c.insert_json5("scouting/multicast/enabled", "false")
 def receive(s, src, act):
     if not handoff:

@@ -25,9 +25,7 @@ end, also on failure, after killing what still runs in it.
 from __future__ import annotations
 
 import json
-import os
 import re
-import shutil
 import signal
 import socket
 import subprocess
@@ -43,8 +41,10 @@ from typing import Any
 
 import cv2
 import msgpack
+import netns
 import pytest
 import zenoh
+from netns import NsProc, Stream, python, tool
 
 from vistrack.common import synthetic
 from vistrack.common.messages import CmdVel, Params
@@ -61,7 +61,6 @@ ROBOT_LOCAL = "tcp/127.0.0.1:7447"  # robot.json5's listen endpoint
 BASE_LOCAL = "tcp/127.0.0.1:7448"  # base.json5's
 START_S = 90.0  # three launches importing numpy/numba/OpenCV at once on a small machine
 FLOW_S = 30.0  # longest wait for data to flow again (lease 5 s + retry <= 2 s + margin)
-STOP_S = 10.0
 ESTIMATE, CMD = "vistrack/robot/motion/estimate", "vistrack/robot/control/cmd_vel"
 # Marks injected payloads apart from the controller's (|v| <= 0.8 m/s by its limits).
 FOREIGN_VX, LOCAL_VX, FOREIGN_PARAMS_ID = 7.77, 5.55, 999_999
@@ -94,169 +93,12 @@ with zenoh.open(conf) as s:
 """
 
 
-def _cannot_run() -> str | None:
-    if not sys.platform.startswith("linux"):
-        return "network namespaces are Linux only"
-    if os.geteuid() != 0:
-        return "needs root to create network namespaces (ip netns)"
-    if shutil.which("ip") is None:
-        return "needs the ip command of iproute2 (apt-get install iproute2)"
-    return None
-
-
-def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
-    proc = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=20)
-    if check and proc.returncode:
-        raise RuntimeError(f"ip {' '.join(args)}: {proc.stderr.strip()}")
-    return proc
-
-
-class Lan:
-    """Three namespaces on a bridge; ``close()`` kills what runs in them and deletes them."""
+class Lan(netns.Lan):
+    """The three hosts, the router's namespace holding the bridge."""
 
     def __init__(self) -> None:
-        tag = f"vt{os.getpid() % 100000}{uuid.uuid4().hex[:4]}"  # unique per run
-        self.router, self.robot, self.base = (f"{tag}-{h}" for h in ("router", "robot", "base"))
-        self.made: list[str] = []
-
-    def build(self) -> None:
-        for ns in (self.router, self.robot, self.base):
-            _ip("netns", "add", ns)
-            self.made.append(ns)
-            _ip("-n", ns, "link", "set", "lo", "up")
-        _ip("-n", self.router, "link", "add", "br0", "type", "bridge")
-        _ip("-n", self.router, "addr", "add", f"{ROUTER_IP}/24", "dev", "br0")
-        _ip("-n", self.router, "link", "set", "br0", "up")
-        for ns, addr, port in ((self.robot, ROBOT_IP, "p-robot"), (self.base, BASE_IP, "p-base")):
-            # both ends are created inside the namespaces: nothing appears in the host's
-            _ip("link", "add", "eth0", "netns", ns, "type", "veth", "peer", "name", port,
-                "netns", self.router)
-            _ip("-n", self.router, "link", "set", port, "master", "br0", "up")
-            _ip("-n", ns, "addr", "add", f"{addr}/24", "dev", "eth0")
-            _ip("-n", ns, "link", "set", "eth0", "up")
-
-    def link(self, ns: str, up: bool) -> None:
-        _ip("-n", ns, "link", "set", "eth0", "up" if up else "down")
-
-    def close(self) -> None:
-        for ns in reversed(self.made):
-            pids = _ip("netns", "pids", ns, check=False).stdout.split()
-            for pid in pids:  # only what this module started: it runs in its namespaces
-                try:
-                    os.kill(int(pid), signal.SIGKILL)
-                except (ProcessLookupError, ValueError):
-                    pass
-            _ip("netns", "del", ns, check=False)
-        self.made.clear()
-
-
-def cli(ns: str, *args: str) -> list[str]:
-    return ["ip", "netns", "exec", ns, sys.executable, "-m", "vistrack.services.cli", *args]
-
-
-def tool(ns: str, *args: str, timeout: float = 40.0) -> subprocess.CompletedProcess[str]:
-    """Run a vistrack tool on a host to completion."""
-    return subprocess.run(cli(ns, *args), capture_output=True, text=True, timeout=timeout)
-
-
-def python(ns: str, code: str, *args: str, timeout: float = 40.0
-           ) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(["ip", "netns", "exec", ns, sys.executable, "-c", code, *args],
-                          capture_output=True, text=True, timeout=timeout)
-
-
-@dataclass
-class Line:
-    t: float  # arrival, time.monotonic()
-    text: str
-
-
-class NsProc:
-    """A long-running vistrack command on a host; its merged output kept line by line."""
-
-    def __init__(self, ns: str, *args: str) -> None:
-        self.args = args
-        self.proc = subprocess.Popen(cli(ns, *args), stdout=subprocess.PIPE,
-                                     stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     text=True, bufsize=1,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        self.lines: list[Line] = []
-        self._cond = threading.Condition()
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for raw in self.proc.stdout:
-            with self._cond:
-                self.lines.append(Line(time.monotonic(), raw.rstrip("\n")))
-                self._cond.notify_all()
-        with self._cond:
-            self._cond.notify_all()
-
-    @property
-    def output(self) -> str:
-        """Everything printed so far."""
-        with self._cond:
-            return "\n".join(line.text for line in self.lines)
-
-    @property
-    def tail(self) -> str:
-        with self._cond:
-            return "\n".join(line.text for line in self.lines[-40:])
-
-    def wait_line(self, pattern: str, timeout: float) -> str:
-        regex = re.compile(pattern)
-        deadline = time.monotonic() + timeout
-        with self._cond:
-            while True:
-                for line in self.lines:
-                    if regex.search(line.text):
-                        return line.text
-                left = deadline - time.monotonic()
-                if left <= 0 or (self.proc.poll() is not None and not self._reader.is_alive()):
-                    raise AssertionError(f"{self.args[0]}: no line matching {pattern!r} within "
-                                         f"{timeout} s (exit {self.proc.poll()}):\n{self.tail}")
-                self._cond.wait(min(left, 0.2))
-
-    def stop(self, sig: int = signal.SIGTERM) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-            try:
-                self.proc.wait(STOP_S)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(STOP_S)
-        self._reader.join(STOP_S)
-        if self.proc.stdout is not None:
-            self.proc.stdout.close()
-        return self.proc.returncode
-
-
-class Stream(NsProc):
-    """``vistrack echo KEY`` on a host: the samples it prints, with their arrival times."""
-
-    def __init__(self, ns: str, key: str, endpoint: str) -> None:
-        super().__init__(ns, "echo", key, "-e", endpoint, "--no-multicast-scouting")
-
-    def samples(self, since: float = 0.0) -> list[tuple[float, dict[str, Any]]]:
-        with self._cond:
-            lines = [line for line in self.lines if line.t >= since]
-        return [(line.t, json.loads(line.text)) for line in lines if line.text.startswith("{")]
-
-    def wait(self, pred: Callable[[list[dict[str, Any]]], bool], since: float, timeout: float,
-             what: str) -> list[dict[str, Any]]:
-        """The samples arrived since ``since`` once ``pred`` holds for them."""
-        deadline = time.monotonic() + timeout
-        while True:
-            got = [m for _, m in self.samples(since)]
-            if pred(got):
-                return got
-            if time.monotonic() > deadline:
-                raise AssertionError(f"{what}: not within {timeout} s ({len(got)} samples of "
-                                     f"{self.args[1]}); last output:\n{self.tail[-2000:]}")
-            with self._cond:
-                self._cond.wait(0.2)
+        super().__init__({"router": ROUTER_IP, "robot": ROBOT_IP, "base": BASE_IP})
+        self.router, self.robot, self.base = self.ns.values()
 
 
 def render(template: str, out: Path, certs: Path, *, cert_name: str | None = None) -> Path:
@@ -452,21 +294,8 @@ def test_deploy_configs_mtls_and_access_control_on_loopback(tmp_path):
 
 @pytest.fixture(scope="module")
 def lan():
-    reason = _cannot_run()
-    if reason:
-        pytest.skip(reason)
-    net = Lan()
-    try:
-        net.build()
-    except RuntimeError as e:
-        net.close()
-        if not net.made and "Operation not permitted" in str(e):
-            pytest.skip(f"cannot create network namespaces here: {e}")
-        raise
-    try:
+    with netns.lan_or_skip(Lan()) as net:
         yield net
-    finally:
-        net.close()
 
 
 @pytest.fixture(scope="module")

@@ -34,6 +34,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
@@ -401,3 +402,80 @@ def centroid_marker(msg: Estimate, frame_id: str = FRAME_ID) -> Any:
 
 #: Derived topic suffix (under ``vistrack/<robot>/``) -> how it is drawn from an estimate.
 OVERLAYS = {"camera/features": feature_marker, "camera/centroid": centroid_marker}
+
+
+# -- ROS 2 cameras -> 8-bit grey ---------------------------------------------------------------
+
+#: ``sensor_msgs/msg/Image`` encodings a ROS 2 camera source takes: bytes a pixel and the
+#: OpenCV conversion to grey (None: already one channel).
+IMAGE_ENCODINGS: dict[str, tuple[int, int | None]] = {
+    "mono8": (1, None), "8UC1": (1, None), "mono16": (2, None), "16UC1": (2, None),
+    "rgb8": (3, cv2.COLOR_RGB2GRAY), "bgr8": (3, cv2.COLOR_BGR2GRAY),
+    "rgba8": (4, cv2.COLOR_RGBA2GRAY), "bgra8": (4, cv2.COLOR_BGRA2GRAY),
+}
+
+
+def grey_of_image(obj: Any) -> np.ndarray:
+    """The 8-bit grey image, shape (height, width) uint8, of a ``sensor_msgs/msg/Image`` in
+    one of :data:`IMAGE_ENCODINGS`: colour through OpenCV's luma weights, 16-bit by its high
+    byte (value // 256, either byte order as ``is_bigendian`` says). Row padding
+    (``step`` > width * bytes a pixel) is dropped.
+
+    Raises
+    ------
+    ValueError
+        For another encoding, an empty image, a ``step`` shorter than a row, or ``data`` whose
+        size is not ``step * height``; the text names the value and what was expected.
+    """
+    encoding = str(obj.encoding)
+    if encoding not in IMAGE_ENCODINGS:
+        raise ValueError(f"image encoding {encoding!r} is not supported: allowed "
+                         f"{', '.join(IMAGE_ENCODINGS)}")
+    channels, conversion = IMAGE_ENCODINGS[encoding]
+    width, height, step = int(obj.width), int(obj.height), int(obj.step)
+    if width < 1 or height < 1:
+        raise ValueError(f"image is {width}x{height}: expected at least 1x1")
+    row = width * channels
+    data = np.asarray(obj.data, np.uint8).reshape(-1)
+    if step < row or data.size != step * height:
+        raise ValueError(f"{encoding} image data is {data.size} bytes: expected step * height "
+                         f"= {step} * {height} with step >= {row} ({width} px of "
+                         f"{channels} bytes)")
+    rows = data.reshape(height, step)[:, :row]
+    if channels == 2:
+        pixels = rows.reshape(height, width, 2)
+        return np.ascontiguousarray(pixels[:, :, 0 if obj.is_bigendian else 1])
+    if conversion is None:
+        return np.ascontiguousarray(rows)
+    return cv2.cvtColor(np.ascontiguousarray(rows).reshape(height, width, channels),
+                        conversion)
+
+
+def grey_of_compressed(obj: Any) -> np.ndarray:
+    """The 8-bit grey image of a ``sensor_msgs/msg/CompressedImage`` (JPEG, PNG, any format
+    OpenCV's ``imdecode`` reads; colour made grey by it). ValueError if it does not decode."""
+    data = np.asarray(obj.data, np.uint8).reshape(-1)
+    image = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    if image is None:
+        raise ValueError(f"compressed image ({obj.format or 'no format'}, {data.size} bytes) "
+                         "does not decode")
+    if image.dtype != np.uint8:  # a 16-bit PNG
+        image = (np.asarray(image, np.uint16) >> 8).astype(np.uint8)
+    return np.ascontiguousarray(image)
+
+
+def frame_of_camera(obj: Any, *, seq: int) -> Frame:
+    """The ``camera/frame`` of an ``Image`` or ``CompressedImage`` from a ROS 2 camera (see
+    :func:`grey_of_image`, :func:`grey_of_compressed`), stamped with the header's stamp.
+
+    Raises
+    ------
+    ValueError
+        For an image that cannot be converted, or one larger than a ``camera/frame`` carries.
+    """
+    grey = (grey_of_compressed(obj) if obj.__msgtype__ == COMPRESSED_IMAGE
+            else grey_of_image(obj))
+    try:
+        return Frame.from_image(grey, seq=seq, stamp_ns=stamp_ns(obj.header))
+    except MessageError as e:
+        raise ValueError(str(e)) from None

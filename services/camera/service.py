@@ -6,7 +6,8 @@ Reads   ``vistrack/<robot>/motion/estimate``  (pacing to the pipeline, and end o
 Writes  ``vistrack/<robot>/camera/frame``, ``vistrack/<robot>/sim/pose`` (simulator only)
 
 Sources: ``file:PATH`` (video, image folder or glob), ``device:N``, ``builtin`` (a generated
-textured scene), ``sim[:SCENARIO]`` (the robot simulator, see :mod:`.simcam`).
+textured scene), ``sim[:SCENARIO]`` (the robot simulator, see :mod:`.simcam`), ``ros2:TOPIC``
+(a ROS 2 camera's ``sensor_msgs/msg/Image`` topic over ``rmw_zenoh``, see :mod:`.ros2cam`).
 
 ``--fps F`` paces frames at F per second. ``--fps 0`` (the default for files) runs "as fast as
 consumers allow": frame n is sent once motion-estimation has published frame n - ``--in-flight``
@@ -30,6 +31,7 @@ from collections.abc import Iterable, Iterator
 
 import numpy as np
 
+from ...common import rmw_zenoh as rmw
 from ...common.bus import Node
 from ...common.messages import MAX_SIDE, Frame, peek_int
 from ...common.sources import (
@@ -42,6 +44,7 @@ from ...common.sources import (
 )
 from ..runtime import Faults, add_service_args, ready, serve, wait_for_consumers
 from ..usage import add_number, print_error
+from .ros2cam import default_domain, is_ros2, run_ros2, topic_of
 from .simcam import make_simulator, run_sim
 
 log = logging.getLogger("vistrack.camera")
@@ -56,7 +59,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="file:PATH (video, image folder or glob), device:N, builtin (the "
                              "built-in generated sequence, default), or sim[:SCENARIO] (the "
                              "robot simulator; scenarios: default, sideways, approach, steps, "
-                             "still, lighting, or a YAML file)")
+                             "still, lighting, or a YAML file), or ros2:TOPIC (a ROS 2 camera's "
+                             "sensor_msgs/msg/Image topic over rmw_zenoh, e.g. "
+                             "ros2:/camera/image_raw; CompressedImage when the topic ends in "
+                             "/compressed)")
     add_number(parser, "--fps", lo=0, hi=1000, default=0.0, metavar="F",
                help="frames per second, %(allowed)s; 0 = as fast as the pipeline takes them "
                     "(default 0)")
@@ -82,6 +88,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                help="Gaussian sensor noise, grey levels, %(allowed)s (default 0)")
     add_number(sim, "--seed", lo=0, hi=2**63 - 1, integer=True, default=0, metavar="N",
                help="noise seed, %(allowed)s (default 0)")
+    ros = parser.add_argument_group("ROS 2 source")
+    add_number(ros, "--domain", lo=rmw.DOMAIN_RANGE[0], hi=rmw.DOMAIN_RANGE[1], integer=True,
+               default=default_domain(), metavar="ID",
+               help="ROS domain id of ros2:TOPIC, %(allowed)s (default: $ROS_DOMAIN_ID, else 0)")
     add_service_args(parser)
 
 
@@ -166,6 +176,8 @@ def loop(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray] | No
     if frames is None:
         if _is_sim(args):
             return run_sim(node, args, make_simulator(args))
+        if is_ros2(args.source):
+            return run_ros2(node, args, _size(args))
         frames = open_source(args.source, _size(args), args.loop)
     # estimates tell when a frame has been through the pipeline (pacing with --fps 0, and the
     # end of a file either way); pre-processed frames when pre-processing is free again
@@ -239,6 +251,9 @@ def check_args(args: argparse.Namespace) -> None:
         make_simulator(args)
         return
     _size(args)
+    if is_ros2(args.source):
+        topic_of(args.source)
+        return
     if args.source.startswith("device:"):
         device_index(args.source)
     else:
@@ -258,7 +273,7 @@ def _first_frame_read(frames: Iterator[np.ndarray]) -> Iterator[np.ndarray]:
 
 
 def main(args: argparse.Namespace) -> int:
-    if _is_sim(args):
+    if _is_sim(args) or is_ros2(args.source):
         return serve("camera", args, loop)
     try:
         frames = _first_frame_read(open_source(args.source, _size(args), args.loop))

@@ -27,6 +27,10 @@ PREFIX = "vistrack"
 
 #: Service names as they appear in keys (liveliness tokens, status queryables, launch files).
 SERVICES = ("camera", "preprocessing", "motion_estimation", "auto_tuner", "fuzzy_controller")
+#: Services a launch file may add to those: not part of the default launch.
+OPTIONAL_SERVICES = ("ros2",)
+#: Every service name a launch file accepts.
+LAUNCHABLE = (*SERVICES, *OPTIONAL_SERVICES)
 
 #: Attribute name of :class:`Keys` -> contract key suffix under ``vistrack/<robot>/``.
 CONTRACT_SUFFIXES: dict[str, str] = {

@@ -27,6 +27,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "auto-tuner": ("auto_tuner.service", "service: frame buffer, experiments, parameters"),
     "fuzzy-controller": ("fuzzy_controller.service",
                          "service: velocity commands that cancel the image motion"),
+    "ros2": ("ros2.service",
+             "service: commands, estimates and parameters as ROS 2 topics (rmw_zenoh)"),
     "echo": ("tools.echo", "print the samples of a key as JSON lines"),
     "hz": ("tools.hz", "rate, period jitter and seq gaps of a key, once a second"),
     "status": ("tools.status", "live services and their counters"),

@@ -21,7 +21,7 @@ from typing import Any
 import yaml
 import zenoh
 
-from ...common.keys import SERVICES, validate_robot_id
+from ...common.keys import LAUNCHABLE, validate_robot_id
 from ..usage import FlagError, check_endpoint, one_line, run_checks
 from .router import (
     DEFAULT_LISTEN,
@@ -142,8 +142,9 @@ class ServiceSpec:
     hang_timeout: float = DEFAULT_HANG_TIMEOUT
 
     def __post_init__(self) -> None:
-        if self.name not in SERVICES:
-            raise LaunchError(f"unknown service {self.name!r}; allowed: {', '.join(SERVICES)}")
+        if self.name not in LAUNCHABLE:
+            raise LaunchError(f"unknown service {self.name!r}; allowed: "
+                              f"{', '.join(LAUNCHABLE)}")
         if self.restart not in POLICIES:
             raise LaunchError(f"{self.cli_name}: unknown restart policy {self.restart!r}; "
                               f"allowed: {', '.join(POLICIES)}")
@@ -336,9 +337,9 @@ def _endpoints(reader: _Reader, node: yaml.Node, path: str) -> tuple[str, ...]:
 
 
 def _service_name(reader: _Reader, node: yaml.Node, path: str) -> str:
-    allowed = ", ".join(s.replace("_", "-") for s in SERVICES)
+    allowed = ", ".join(s.replace("_", "-") for s in LAUNCHABLE)
     name = reader.scalar(node, path, (str,), f"a service name ({allowed})")
-    if name.replace("-", "_") not in SERVICES:
+    if name.replace("-", "_") not in LAUNCHABLE:
         raise reader.error(node, path, f"unknown service {name!r}; allowed: {allowed}")
     return name.replace("-", "_")
 

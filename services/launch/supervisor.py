@@ -40,7 +40,8 @@ from .router import (
 )
 
 #: Start order: consumers before producers, the camera last (see ``Launcher.start``).
-LAUNCH_ORDER = ("fuzzy_controller", "motion_estimation", "preprocessing", "auto_tuner", "camera")
+LAUNCH_ORDER = ("ros2", "fuzzy_controller", "motion_estimation", "preprocessing", "auto_tuner",
+                "camera")
 #: The input (a :class:`Keys` attribute) each consumer subscribes to once it can take data.
 #: Services declare their liveliness token before warming up and subscribing, so the camera
 #: waits for these subscriptions too (ARCHITECTURE.md's table of keys).

@@ -1,0 +1,149 @@
+"""ros2: the pipeline as ROS 2 topics, on the wire exactly as ``rmw_zenoh`` publishes them.
+
+Reads   ``vistrack/<robot>/control/cmd_vel``  (every one, in order)
+        ``vistrack/<robot>/motion/estimate``  (latest-only, like every estimate reader)
+        ``vistrack/<robot>/tuner/params``     (every one, in order)
+Writes  ``<domain>/cmd_vel/geometry_msgs::msg::dds_::Twist_/RIHS01_...``
+        ``<domain>/vistrack/estimate/vistrack_msgs::msg::dds_::Estimate_/RIHS01_...``
+        ``<domain>/vistrack/params/vistrack_msgs::msg::dds_::Params_/RIHS01_...``
+        (CDR, each sample with rmw_zenoh's 33-byte attachment) and the liveliness tokens of a
+        ROS 2 node ``vistrack`` and its three publishers (``@ros2_lv/<domain>/...``)
+
+A ROS 2 robot running ``rmw_zenoh`` on the same Zenoh network takes ``/cmd_vel`` as from any
+ROS 2 node; ``ros2 topic list`` and ``ros2 topic echo /vistrack/estimate`` (with
+``vistrack_msgs`` built from ``deploy/ros2``) see the rest. Topic names are relative, so
+``--namespace`` moves them (``/robot1/cmd_vel``); ``--remap FROM:=TO`` renames one.
+Commands and parameters are published reliable with KEEP_ALL history (Zenoh's BLOCK
+congestion control: none dropped), estimates reliable with the last 10 kept. A message that
+does not decode is rejected, counted and logged, and the service goes on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+from ...common import rmw_zenoh as rmw
+from ...common import ros2types as r2
+from ...common.bus import Node
+from ...common.messages import CmdVel, Estimate, Params
+from ..camera.ros2cam import default_domain
+from ..runtime import add_service_args, decode_or_reject, ready, serve
+from ..usage import add_number
+
+log = logging.getLogger("vistrack.ros2")
+
+
+@dataclass(frozen=True)
+class Bridge:
+    """One contract key published as one ROS 2 topic."""
+
+    attr: str            # the Keys attribute of the contract key
+    cls: type            # its contract message
+    topic: str           # default ROS 2 name (relative: under --namespace)
+    qos: rmw.QoS
+    latest: bool         # latest-only on the vistrack side
+
+
+BRIDGES = (
+    Bridge("cmd_vel", CmdVel, "cmd_vel", rmw.QOS_ALL, latest=False),
+    Bridge("estimate", Estimate, "vistrack/estimate", rmw.QOS_DEFAULT, latest=True),
+    Bridge("params", Params, "vistrack/params", rmw.QOS_ALL, latest=False),
+)
+
+
+def _remap(text: str) -> tuple[str, str]:
+    src, sep, dst = text.partition(":=")
+    if not sep or not src or not dst:
+        raise argparse.ArgumentTypeError(f"--remap {text!r}: expected FROM:=TO, e.g. "
+                                          "cmd_vel:=/mobile_base/cmd_vel")
+    return src, dst
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    ros = parser.add_argument_group("ROS 2")
+    add_number(ros, "--domain", lo=rmw.DOMAIN_RANGE[0], hi=rmw.DOMAIN_RANGE[1], integer=True,
+               default=default_domain(), metavar="ID",
+               help="ROS domain id, %(allowed)s (default: $ROS_DOMAIN_ID, else 0)")
+    ros.add_argument("--namespace", default="/", metavar="NS",
+                     help="ROS namespace of the node and its topics (default: /)")
+    ros.add_argument("--node-name", default="vistrack", metavar="NAME",
+                     help="ROS node name (default: vistrack)")
+    ros.add_argument("--remap", action="append", default=[], type=_remap, metavar="FROM:=TO",
+                     help="rename a topic, as ROS 2's --remap does: cmd_vel, "
+                          "vistrack/estimate or vistrack/params (or their full names) to a "
+                          "relative or absolute name (repeatable)")
+    add_service_args(parser)
+
+
+def topics(args: argparse.Namespace) -> dict[str, str]:
+    """Contract attribute -> fully qualified ROS 2 topic, after namespace and remaps.
+
+    Raises
+    ------
+    ValueError
+        For a bad namespace, node name or topic, or a remap of no topic of this service.
+    """
+    rmw.validate_node_name(args.node_name)
+    ns = rmw.validate_namespace(args.namespace)
+    names = {b.attr: rmw.qualified_topic(b.topic, ns) for b in BRIDGES}
+    for src, dst in args.remap:
+        hits = [a for a, b in zip(names, BRIDGES, strict=True)
+                if src in (b.topic, "/" + b.topic, names[a])]
+        if not hits:
+            raise ValueError(f"--remap {src}:={dst}: {src!r} is none of this service's topics "
+                             f"({', '.join(sorted(names.values()))})")
+        for attr in hits:
+            names[attr] = rmw.qualified_topic(dst, ns)
+    return names
+
+
+def check_args(args: argparse.Namespace) -> None:
+    topics(args)
+
+
+def loop(node: Node, args: argparse.Namespace, participant: rmw.Participant | None = None
+         ) -> int:
+    """Republish the contract's commands, estimates and parameters as ROS 2 messages.
+
+    ``participant`` (tests) is the ROS 2 node to publish with; by default one is declared on
+    the node's own Zenoh session.
+    """
+    names = topics(args)
+    own = participant is None
+    if participant is None:
+        participant = rmw.Participant(node.session,  # type: ignore[attr-defined]
+                                      rmw.Rmw(args.domain, args.namespace, args.node_name))
+    try:
+        routes: dict[str, tuple[Bridge, Any]] = {}
+        for b in BRIDGES:
+            typename = r2.ROS_TYPES[b.cls.KEY]  # type: ignore[attr-defined]
+            pub = participant.publisher(names[b.attr], typename, r2.type_hash(typename), b.qos)
+            routes[getattr(node.keys, b.attr)] = (b, pub)
+            node.subscribe(getattr(node.keys, b.attr), latest=b.latest)
+            log.info("%s -> %s (%s)", getattr(node.keys, b.attr), names[b.attr], pub.key)
+        node.status.extra.update({names[b.attr]: 0 for b in BRIDGES})
+        ready(node)
+        while not node.stop.is_set():
+            item = node.recv(timeout=0.1)
+            if item is None:
+                continue
+            key, payload = item
+            bridge, pub = routes[key]
+            msg = decode_or_reject(bridge.cls, payload, node, log)
+            if msg is None:
+                continue
+            with node.status.timed():
+                pub.put(r2.serialize(r2.to_ros(msg)))
+            node.status.count_published()
+            node.status.extra[names[bridge.attr]] += 1
+    finally:
+        if own:
+            participant.close()
+    return 0
+
+
+def main(args: argparse.Namespace) -> int:
+    return serve("ros2", args, loop)

@@ -453,15 +453,17 @@ def grey_of_image(obj: Any) -> np.ndarray:
 
 def grey_of_compressed(obj: Any) -> np.ndarray:
     """The 8-bit grey image of a ``sensor_msgs/msg/CompressedImage`` (JPEG, PNG, any format
-    OpenCV's ``imdecode`` reads; colour made grey by it). ValueError if it does not decode."""
+    OpenCV's ``imdecode`` reads), made grey exactly as the file camera makes an image file
+    grey (``vision.preprocess.to_gray``). ValueError if it does not decode."""
+    # here, not at the top: the vision package loads numba, which MCAP tools need not pay for
+    from .vision.preprocess import to_gray
+
     data = np.asarray(obj.data, np.uint8).reshape(-1)
-    image = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
         raise ValueError(f"compressed image ({obj.format or 'no format'}, {data.size} bytes) "
                          "does not decode")
-    if image.dtype != np.uint8:  # a 16-bit PNG
-        image = (np.asarray(image, np.uint16) >> 8).astype(np.uint8)
-    return np.ascontiguousarray(image)
+    return to_gray(image)
 
 
 def frame_of_camera(obj: Any, *, seq: int) -> Frame:

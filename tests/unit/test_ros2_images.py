@@ -1,0 +1,130 @@
+"""ROS 2 camera images to 8-bit grey (ros2types.grey_of_image, grey_of_compressed,
+frame_of_camera), against OpenCV on real texture.
+
+The images are built with rosbags' own ``sensor_msgs`` classes and CDR codec (not ours), from
+a Middlebury frame when the shared data is there, else from the built-in sequence's texture.
+The reference for colour is OpenCV's ``COLOR_BGR2GRAY`` of the BGR original, what the file
+camera does with the same picture.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from rosbags.typesys import Stores, get_typestore
+
+from vistrack.common import groundtruth
+from vistrack.common import ros2types as r2
+from vistrack.common.synthetic import texture
+
+JAZZY = get_typestore(Stores.ROS2_JAZZY)
+Image = JAZZY.types[r2.IMAGE]
+CompressedImage = JAZZY.types[r2.COMPRESSED_IMAGE]
+Header = JAZZY.types["std_msgs/msg/Header"]
+Time = JAZZY.types["builtin_interfaces/msg/Time"]
+STAMP = Header(stamp=Time(sec=1_700_000_000, nanosec=123_456_789), frame_id="cam")
+
+
+@pytest.fixture(scope="module")
+def bgr() -> np.ndarray:
+    folder = groundtruth.middlebury("RubberWhale")
+    if folder is not None:
+        image = cv2.imread(str(folder / "frame10.png"), cv2.IMREAD_COLOR)
+        return np.ascontiguousarray(image[:120, :161])  # odd width: rows need no padding
+    grey = np.ascontiguousarray(texture(256, seed=3)[:120, :161])
+    return np.dstack([grey, np.roll(grey, 7, axis=1), 255 - grey])
+
+
+def _wire(msg, typename: str):
+    """The message as it arrives: CDR by rosbags, decoded by our module."""
+    return r2.deserialize(JAZZY.serialize_cdr(msg, typename).tobytes(), typename)
+
+
+def _image(pixels: np.ndarray, encoding: str, *, pad: int = 0, bigendian: int = 0,
+           width: int | None = None):
+    h, w = pixels.shape[0], width or pixels.shape[1]
+    rows = pixels.reshape(h, -1)
+    if pad:
+        rows = np.hstack([rows, np.full((h, pad), 77, np.uint8)])
+    return _wire(Image(header=STAMP, height=h, width=w, encoding=encoding,
+                       is_bigendian=bigendian, step=rows.shape[1],
+                       data=np.ascontiguousarray(rows).reshape(-1)), r2.IMAGE)
+
+
+@pytest.mark.parametrize(("encoding", "convert"), [
+    ("bgr8", lambda b: b),
+    ("rgb8", lambda b: b[:, :, ::-1]),
+    ("bgra8", lambda b: np.dstack([b, np.full(b.shape[:2], 200, np.uint8)])),
+    ("rgba8", lambda b: np.dstack([b[:, :, ::-1], np.full(b.shape[:2], 9, np.uint8)])),
+])
+@pytest.mark.parametrize("pad", [0, 3])
+def test_colour_encodings_give_opencvs_grey(bgr, encoding, convert, pad):
+    got = r2.grey_of_image(_image(np.ascontiguousarray(convert(bgr)), encoding, pad=pad))
+    np.testing.assert_array_equal(got, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))
+
+
+def test_mono8_is_kept_as_is(bgr):
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    np.testing.assert_array_equal(r2.grey_of_image(_image(grey, "mono8", pad=5)), grey)
+
+
+@pytest.mark.parametrize("bigendian", [0, 1])
+def test_mono16_keeps_the_high_byte_in_either_byte_order(bgr, bigendian):
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    wide = grey.astype(np.uint16) * 256 + 255 - grey  # low byte: anything but the answer
+    raw = wide.astype(">u2" if bigendian else "<u2").view(np.uint8).reshape(grey.shape[0], -1)
+    got = r2.grey_of_image(_image(raw, "mono16", bigendian=bigendian, width=grey.shape[1]))
+    assert got.shape == grey.shape
+    np.testing.assert_array_equal(got, grey)
+
+
+@pytest.mark.parametrize(("ext", "tolerance"), [(".png", 0), (".jpg", 12)])
+def test_compressed_images_decode_to_grey(bgr, ext, tolerance):
+    ok, data = cv2.imencode(ext, bgr)
+    assert ok
+    msg = _wire(CompressedImage(header=STAMP, format=ext[1:], data=data.reshape(-1)),
+                r2.COMPRESSED_IMAGE)
+    frame = r2.frame_of_camera(msg, seq=4)
+    want = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY).astype(int)
+    assert (frame.width, frame.height) == (bgr.shape[1], bgr.shape[0])
+    assert np.abs(frame.data.astype(int) - want).mean() <= tolerance / 4
+    assert np.abs(frame.data.astype(int) - want).max() <= max(tolerance * 4, 1)
+
+
+def test_frame_of_camera_keeps_the_header_stamp(bgr):
+    frame = r2.frame_of_camera(_image(np.ascontiguousarray(bgr[:, :, ::-1]), "rgb8"), seq=9)
+    assert frame.seq == 9 and frame.stamp_ns == 1_700_000_000_123_456_789
+    assert frame.data.shape == bgr.shape[:2]
+
+
+def test_a_1x1_black_image_is_an_image():
+    frame = r2.frame_of_camera(_image(np.zeros((1, 1, 3), np.uint8), "bgr8"), seq=0)
+    assert (frame.width, frame.height) == (1, 1) and frame.data[0, 0] == 0
+
+
+def _raw(encoding="rgb8", width=4, height=3, step=12, size=36):
+    return _wire(Image(header=STAMP, height=height, width=width, encoding=encoding,
+                       is_bigendian=0, step=step, data=np.zeros(size, np.uint8)), r2.IMAGE)
+
+
+@pytest.mark.parametrize(("msg", "message"), [
+    (lambda: _raw(encoding="yuv422"), "image encoding 'yuv422' is not supported: allowed mono8"),
+    (lambda: _raw(encoding="bayer_rggb8"), "'bayer_rggb8' is not supported"),
+    (lambda: _raw(size=35), "rgb8 image data is 35 bytes: expected step \\* height = 12 \\* 3"),
+    (lambda: _raw(step=11, size=33), "with step >= 12"),
+    (lambda: _raw(width=0, step=0, size=0), "image is 0x3: expected at least 1x1"),
+    (lambda: _raw(encoding="mono8", width=5000, height=1, step=5000, size=5000),
+     "field .width. must be in 1..4096, got 5000"),
+])
+def test_bad_images_are_refused_naming_what_is_wrong(msg, message):
+    with pytest.raises(ValueError, match=message):
+        r2.frame_of_camera(msg(), seq=0)
+
+
+def test_a_compressed_image_that_does_not_decode_is_refused():
+    msg = _wire(CompressedImage(header=STAMP, format="jpeg",
+                                data=np.frombuffer(b"\xff\xd8not a jpeg", np.uint8)),
+                r2.COMPRESSED_IMAGE)
+    with pytest.raises(ValueError, match="compressed image \\(jpeg, 12 bytes\\) does not decode"):
+        r2.frame_of_camera(msg, seq=0)

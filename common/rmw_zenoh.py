@@ -304,6 +304,11 @@ class Participant:
         self._entities.append(pub)
         return pub
 
+    @property
+    def publishers(self) -> list[Publisher]:
+        """The publishers declared so far, in order."""
+        return [e for e in self._entities if isinstance(e, Publisher)]
+
     def subscription(self, topic: str, typename: str, type_hash: str, qos: QoS,
                      callback: Callable[[zenoh.Sample], Any] | None = None, *,
                      any_hash: bool = False) -> str:

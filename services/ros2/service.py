@@ -57,7 +57,7 @@ BRIDGES = (
 def _remap(text: str) -> tuple[str, str]:
     src, sep, dst = text.partition(":=")
     if not sep or not src or not dst:
-        raise argparse.ArgumentTypeError(f"--remap {text!r}: expected FROM:=TO, e.g. "
+        raise argparse.ArgumentTypeError(f"{text!r}: expected FROM:=TO, e.g. "
                                           "cmd_vel:=/mobile_base/cmd_vel")
     return src, dst
 

@@ -1,0 +1,207 @@
+"""A ROS 2 robot and vistrack on one Zenoh network, no ROS installed, no bridge.
+
+A plain Zenoh session plays a ROS 2 node the way ``rmw_zenoh`` does, everything written out
+here from its design document (``ros2/rmw_zenoh`` ``docs/design.md``, Jazzy/Kilted/Rolling
+format): data keys ("Topic and Service name mapping to Zenoh key expressions"), liveliness
+tokens ("Graph Cache"), the 33-byte attachment ("Publishers"); CDR by rosbags. It publishes
+RubberWhale frames as ``sensor_msgs/msg/Image`` (``rgb8``, as most ROS cameras send) to
+``vistrack camera --source ros2:/camera/image_raw``, and reads ``/vistrack/estimate`` and
+``/cmd_vel`` back from ``vistrack ros2``.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import subprocess
+import sys
+import threading
+import time
+
+import cv2
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from vistrack.common import groundtruth
+from vistrack.common import ros2types as r2
+from vistrack.common.bus import query_status
+from vistrack.common.keys import Keys
+
+from procs import Collector, router, service, zenoh_config
+
+pytestmark = pytest.mark.integration
+
+STORE = get_typestore(Stores.ROS2_JAZZY)
+STORE.register({k: v for name, text in r2.msg_files().items()
+                for k, v in get_types_from_msg(text, name).items()})
+T = STORE.types
+FLAGS = ["--search-size", "21", "--corr-size", "11", "--subpixel"]
+
+
+def dds(typename: str) -> str:
+    pkg, kind, name = typename.split("/")
+    return f"{pkg}::{kind}::dds_::{name}_"
+
+
+def data_key(topic: str, typename: str, domain: int = 0) -> str:
+    return f"{domain}/{topic.strip('/')}/{dds(typename)}/{STORE.hash_rihs01(typename)}"
+
+
+class RosNode:
+    """A ROS 2 node ``camera_driver`` as rmw_zenoh would declare it on ``session``."""
+
+    GID = bytes(range(0x40, 0x50))
+
+    def __init__(self, session: zenoh.Session) -> None:
+        zid = str(session.zid())
+        lv = f"@ros2_lv/0/{zid}/0"
+        self.tokens = [session.liveliness().declare_token(t) for t in (
+            f"{lv}/0/NN/%/%/camera_driver",
+            f"{lv}/1/MP/%/%/camera_driver/%camera%image_raw/{dds(r2.IMAGE)}/"
+            f"{STORE.hash_rihs01(r2.IMAGE)}/2::,5:,:,:,,",
+            f"{lv}/2/MS/%/%/camera_driver/%cmd_vel/{dds(r2.TWIST)}/"
+            f"{STORE.hash_rihs01(r2.TWIST)}/::,10:,:,:,,")]
+        self.image_pub = session.declare_publisher(data_key("/camera/image_raw", r2.IMAGE))
+        self.seq = 0
+        self.received: dict[str, list[tuple[bytes, bytes]]] = {}
+        self._lock = threading.Lock()
+        self.subs = [session.declare_subscriber(data_key(topic, typename), self._on)
+                     for topic, typename in (("/cmd_vel", r2.TWIST),
+                                             ("/vistrack/estimate", r2.ESTIMATE))]
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        attachment = sample.attachment.to_bytes() if sample.attachment is not None else b""
+        with self._lock:
+            self.received.setdefault(str(sample.key_expr), []).append(
+                (sample.payload.to_bytes(), attachment))
+
+    def samples(self, topic: str, typename: str) -> list[tuple[bytes, bytes]]:
+        with self._lock:
+            return list(self.received.get(data_key(topic, typename), []))
+
+    def publish_image(self, rgb: np.ndarray | None = None, *, encoding: str = "rgb8",
+                      data: np.ndarray | None = None, stamp_ns: int | None = None) -> int:
+        stamp_ns = time.time_ns() if stamp_ns is None else stamp_ns
+        h, w = rgb.shape[:2]
+        header = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+            sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), frame_id="camera_optical")
+        msg = T[r2.IMAGE](header=header, height=h, width=w, encoding=encoding, is_bigendian=0,
+                          step=w * 3, data=rgb.reshape(-1) if data is None else data)
+        self.seq += 1
+        self.image_pub.put(STORE.serialize_cdr(msg, r2.IMAGE).tobytes(),
+                           attachment=struct.pack("<qqB", self.seq, time.time_ns(), 16)
+                           + self.GID)
+        return stamp_ns
+
+    def close(self) -> None:
+        for entity in (*self.subs, self.image_pub, *self.tokens):
+            entity.undeclare()
+
+
+def wait_for(condition, timeout=30.0, what="condition"):
+    deadline = time.monotonic() + timeout
+    while not (value := condition()):
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.01)
+    return value
+
+
+def camera_status(session: zenoh.Session) -> dict:
+    return next((s for s in query_status(session, Keys()) if s["service"] == "camera"), {})
+
+
+@pytest.fixture(scope="module")
+def rubberwhale():
+    folder = groundtruth.middlebury("RubberWhale")
+    if folder is None:
+        pytest.skip("Middlebury RubberWhale not found: set VISTRACK_DATA or put the shared "
+                    "data at ../shared/data")
+    return folder
+
+
+def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_port):
+    """RubberWhale frame07-14 from a ROS 2 camera: every estimate, read back as a ROS 2
+    ``vistrack_msgs/msg/Estimate``, equals what ``vistrack track`` prints for the files; every
+    ``control/cmd_vel`` of the run appears on ``/cmd_vel`` as a Twist, in order, numbered
+    1..N; bad images are rejected and counted and the camera goes on; ``ros2 topic list``'s
+    tokens are there."""
+    offline = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "track",
+                              str(rubberwhale), "--format", "jsonl", *FLAGS],
+                             capture_output=True, text=True, check=True).stdout
+    expected = [json.loads(line) for line in offline.splitlines()]
+    frames = [cv2.imread(str(p), cv2.IMREAD_COLOR)[:, :, ::-1]
+              for p in sorted(rubberwhale.glob("frame*.png"))]
+    assert len(expected) == len(frames) == 8
+    procs = []
+    with router(free_port) as ep, zenoh.open(zenoh_config(ep)) as session:
+        commands = Collector(session, "vistrack/robot/control/cmd_vel")
+        robot = RosNode(session)
+        try:
+            bridge = service("ros2", ep, "--domain", "0")
+            procs.append(bridge)
+            bridge.wait_for("ready", timeout=90)
+            for name, extra in (("preprocessing", FLAGS), ("motion-estimation", FLAGS),
+                                ("fuzzy-controller", []),
+                                ("camera", ["--source", "ros2:/camera/image_raw",
+                                            "--domain", "0"])):
+                procs.append(service(name, ep, *extra))
+            for p in procs:
+                p.wait_for("ready", timeout=90)
+            wait_for(lambda: robot.image_pub.matching_status.matching, what="the camera")
+            time.sleep(0.2)  # the links of the processes that just joined settle
+            estimates = []
+            for n, rgb in enumerate(frames, start=1):
+                robot.publish_image(np.ascontiguousarray(rgb))
+                got = wait_for(lambda n=n: len(est := robot.samples(
+                    "/vistrack/estimate", r2.ESTIMATE)) >= n and est, what=f"estimate {n}")
+                estimates = got
+            # bad images: data of the wrong size, an encoding no camera frame can come from
+            small = np.ascontiguousarray(frames[0][:4, :4])
+            robot.publish_image(small, data=np.zeros(47, np.uint8))
+            robot.publish_image(small, encoding="yuv422")
+            wait_for(lambda: camera_status(session).get("rejected") == 2,
+                     what="the camera to count 2 rejected images")
+            status = camera_status(session)
+            assert "yuv422" in status["last_error"]
+            robot.publish_image(np.ascontiguousarray(frames[0]))  # and it goes on
+            wait_for(lambda: len(robot.samples("/vistrack/estimate", r2.ESTIMATE)) == 9,
+                     what="the estimate after the bad images")
+            tokens = [str(r.ok.key_expr) for r in
+                      session.liveliness().get("@ros2_lv/0/**", timeout=2.0) if r.ok]
+            # the controller stops: the run's last command is sent; then compare
+            procs[3].stop()
+            wait_for(lambda: len(robot.samples("/cmd_vel", r2.TWIST)) == len(commands.items)
+                     > 0, what="every command on /cmd_vel")
+            time.sleep(0.3)  # nothing more arrives
+            twists = robot.samples("/cmd_vel", r2.TWIST)
+            sent = [msgpack.unpackb(p) for _, p in commands.items]
+        finally:
+            for p in reversed(procs):
+                p.stop()
+            robot.close()
+            commands.sub.undeclare()
+
+    for row, (payload, attachment) in zip(expected, estimates[:8], strict=True):
+        e = STORE.deserialize_cdr(payload, r2.ESTIMATE)
+        got = {"seq": e.seq, "npi": e.npi, "xc": e.xc, "yc": e.yc, "xe": e.xe, "ye": e.ye,
+               "dx": e.dx, "dy": e.dy, "scale": e.scale, "first": e.first}
+        assert got == {k: row[k] for k in got}, row["seq"]
+        assert [[f.id, f.x, f.y] for f in e.features] == row["features"]
+        assert struct.unpack_from("<qqB", attachment)[0] == row["seq"] + 1
+    assert len(twists) == len(sent) and sent
+    for n, ((payload, attachment), cmd) in enumerate(zip(twists, sent, strict=True), 1):
+        t = STORE.deserialize_cdr(payload, r2.TWIST)
+        assert (t.linear.x, t.linear.y, t.angular.z) == (cmd["vx"], cmd["vy"], cmd["wz"])
+        seq, _, length = struct.unpack_from("<qqB", attachment)
+        assert (seq, length, len(attachment)) == (n, 16, 33)
+    assert any(cmd["vx"] or cmd["vy"] for cmd in sent)  # it tracked and commanded
+    names = {"/".join(t.split("/")[5:10]) for t in tokens}
+    assert {"NN/%/%/vistrack", "MP/%/%/vistrack/%cmd_vel",
+            "MP/%/%/vistrack/%vistrack%estimate", "MP/%/%/vistrack/%vistrack%params",
+            "NN/%/%/vistrack_camera", "MS/%/%/vistrack_camera/%camera%image_raw",
+            "NN/%/%/camera_driver"} <= names
+    twist_token = next(t for t in tokens if "/MP/%/%/vistrack/%cmd_vel/" in t)
+    assert twist_token.endswith(f"/{dds(r2.TWIST)}/{STORE.hash_rihs01(r2.TWIST)}/::2,:,:,:,,")

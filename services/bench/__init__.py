@@ -11,9 +11,10 @@ One module a benchmark, each also run under pytest by ``tests/bench`` (``-m benc
 * :mod:`.idle`: the CPU each process of ``vistrack up`` takes at 30 fps, from /proc;
 * :mod:`.faults`: hostile and extreme input on the live system, crash and hang to a new
   process ready, and the cost of the per-message fault isolation;
-* :mod:`.soak`: the full pipeline unpaced for a minute: memory, drops, nothing else lost.
+* :mod:`.soak`: the full pipeline unpaced for a minute: memory, drops, nothing else lost;
 * :mod:`.record`: the MCAP recorder and the Foxglove bridge on a live pipeline, against the
-  ``.vtr`` recorder and ``vistrack hz`` listening to the same samples.
+  ``.vtr`` recorder and ``vistrack hz`` listening to the same samples;
+* :mod:`.ros2`: a ROS 2 camera topic against a plain ``camera/frame``, and ``/cmd_vel``.
 
 Each is imported only when it runs (the pipeline one starts processes, the net one makes
 network namespaces).
@@ -83,6 +84,12 @@ def _record(out=sys.stdout) -> dict[str, float]:
     return bench_record(out)
 
 
+def _ros2(out=sys.stdout) -> dict[str, float]:
+    from .ros2 import bench_ros2  # starts processes: imported only when run
+
+    return bench_ros2(out)
+
+
 BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": _tracker,
                                                        "net": _net,
                                                        "pipeline": _pipeline,
@@ -91,7 +98,8 @@ BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": _tracker,
                                                        "idle": _idle,
                                                        "faults": _faults,
                                                        "soak": _soak,
-                                                       "record": _record}
+                                                       "record": _record,
+                                                       "ros2": _ros2}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import struct
 from dataclasses import dataclass
 from typing import Any
 
@@ -136,7 +137,14 @@ def loop(node: Node, args: argparse.Namespace, participant: rmw.Participant | No
             if msg is None:
                 continue
             with node.status.timed():
-                pub.put(r2.serialize(r2.to_ros(msg)))
+                try:
+                    cdr = r2.serialize(r2.to_ros(msg))
+                except (struct.error, OverflowError, ValueError) as e:
+                    # a valid message whose value the ROS 2 type cannot hold
+                    node.status.reject(e)
+                    log.error("rejected %s: no ROS 2 %s: %s", key, names[bridge.attr], e)
+                    continue
+                pub.put(cdr)
             node.status.count_published()
             node.status.extra[names[bridge.attr]] += 1
     finally:

@@ -126,8 +126,8 @@ def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_p
     """RubberWhale frame07-14 from a ROS 2 camera: every estimate, read back as a ROS 2
     ``vistrack_msgs/msg/Estimate``, equals what ``vistrack track`` prints for the files; every
     ``control/cmd_vel`` of the run appears on ``/cmd_vel`` as a Twist, in order, numbered
-    1..N; bad images are rejected and counted and the camera goes on; ``ros2 topic list``'s
-    tokens are there."""
+    1..N; bad images are rejected and counted, images lost on the way are counted from the
+    attachments, and the camera goes on; ``ros2 topic list``'s tokens are there."""
     offline = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "track",
                               str(rubberwhale), "--format", "jsonl", *FLAGS],
                              capture_output=True, text=True, check=True).stdout
@@ -160,12 +160,14 @@ def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_p
                 estimates = got
             # bad images: data of the wrong size, an encoding no camera frame can come from
             small = np.ascontiguousarray(frames[0][:4, :4])
+            robot.seq += 2  # two images lost on the way: the attachments' numbers tell
             robot.publish_image(small, data=np.zeros(47, np.uint8))
             robot.publish_image(small, encoding="yuv422")
             wait_for(lambda: camera_status(session).get("rejected") == 2,
                      what="the camera to count 2 rejected images")
             status = camera_status(session)
             assert "yuv422" in status["last_error"]
+            assert status["dropped"] == 2 and status["extra"]["frames"] == 8
             robot.publish_image(np.ascontiguousarray(frames[0]))  # and it goes on
             wait_for(lambda: len(robot.samples("/vistrack/estimate", r2.ESTIMATE)) == 9,
                      what="the estimate after the bad images")

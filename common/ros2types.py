@@ -112,7 +112,8 @@ def deserialize(data: bytes | bytearray | memoryview, typename: str) -> Any:
         exceptions on truncated or foreign bytes; they are all reported as one kind here).
     """
     try:
-        return typestore().deserialize_cdr(bytes(data), typename)
+        # a memoryview: rosbags slices off the 4-byte header, which copied a whole image
+        return typestore().deserialize_cdr(memoryview(bytes(data)), typename)
     except Exception as e:  # noqa: BLE001 - rosbags' decoder raises struct/index/unicode errors
         raise ValueError(f"not a CDR {typename}: {type(e).__name__}: {e}") from None
 

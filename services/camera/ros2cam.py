@@ -31,7 +31,7 @@ from ...common import rmw_zenoh as rmw
 from ...common import ros2types as r2
 from ...common.bus import Node
 from ...common.messages import Frame
-from ..runtime import ready
+from ..runtime import ready, wait_for_consumers
 
 log = logging.getLogger("vistrack.camera")
 
@@ -90,6 +90,11 @@ def run_ros2(node: Node, args: argparse.Namespace, size: tuple[int, int] | None)
                 convert(item[1])
         return 0
     node.advertise(node.keys.frame, reliable=False)
+    # subscribe to the ROS 2 topic once camera/frame has a reader: a frame published before
+    # this process has learnt of preprocessing's subscription reaches nobody (the first image
+    # was lost so in two runs of five), and images nobody reads need no converting
+    if not wait_for_consumers(node, node.keys.frame):
+        return 0  # stopped first
     with rmw.Participant(session, rmw.Rmw(domain=args.domain, node=NODE_NAME)) as participant:
         participant.subscription(topic, typename, type_hash, rmw.QOS_SENSOR,
                                  convert.on_sample, any_hash=True)

@@ -61,10 +61,14 @@ class RosNode:
         self.tokens = [session.liveliness().declare_token(t) for t in (
             f"{lv}/0/NN/%/%/camera_driver",
             f"{lv}/1/MP/%/%/camera_driver/%camera%image_raw/{dds(r2.IMAGE)}/"
-            f"{STORE.hash_rihs01(r2.IMAGE)}/2::,5:,:,:,,",
+            f"{STORE.hash_rihs01(r2.IMAGE)}/::2,:,:,:,,",
             f"{lv}/2/MS/%/%/camera_driver/%cmd_vel/{dds(r2.TWIST)}/"
             f"{STORE.hash_rihs01(r2.TWIST)}/::,10:,:,:,,")]
-        self.image_pub = session.declare_publisher(data_key("/camera/image_raw", r2.IMAGE))
+        # RELIABLE, KEEP_ALL: rmw_zenoh's BLOCK congestion control (design.md, "Quality of
+        # Service"), so no frame of the comparison is dropped on the way to the camera
+        self.image_pub = session.declare_publisher(
+            data_key("/camera/image_raw", r2.IMAGE),
+            congestion_control=zenoh.CongestionControl.BLOCK)
         self.seq = 0
         self.received: dict[str, list[tuple[bytes, bytes]]] = {}
         self._lock = threading.Lock()
@@ -136,28 +140,52 @@ def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_p
               for p in sorted(rubberwhale.glob("frame*.png"))]
     assert len(expected) == len(frames) == 8
     procs = []
-    with router(free_port) as ep, zenoh.open(zenoh_config(ep)) as session:
+    # every session a client of the router, as on a robot whose rmw_zenohd routes everything
+    # (deploy/ros2-robot.yaml): peers that have just joined open links to each other, and a
+    # sample published meanwhile could miss a subscriber (the first image, once in five runs)
+    client = zenoh_config(f"tcp/127.0.0.1:{free_port}")
+    client.insert_json5("mode", '"client"')
+    with router(free_port) as ep, zenoh.open(client) as session:
         commands = Collector(session, "vistrack/robot/control/cmd_vel")
         robot = RosNode(session)
         try:
-            bridge = service("ros2", ep, "--domain", "0")
-            procs.append(bridge)
-            bridge.wait_for("ready", timeout=90)
-            for name, extra in (("preprocessing", FLAGS), ("motion-estimation", FLAGS),
-                                ("fuzzy-controller", []),
-                                ("camera", ["--source", "ros2:/camera/image_raw",
-                                            "--domain", "0"])):
-                procs.append(service(name, ep, *extra))
-            for p in procs:
-                p.wait_for("ready", timeout=90)
+            # downstream first, as `vistrack up` starts them: each is subscribed to its inputs
+            # (its ready line) before the service that feeds it opens its session
+            for stage in ((("ros2", ["--domain", "0"]),),
+                          (("fuzzy-controller", []), ("motion-estimation", FLAGS)),
+                          (("preprocessing", FLAGS),),
+                          (("camera", ["--source", "ros2:/camera/image_raw", "--domain", "0"]),)):
+                started = [service(name, ep, *extra, "-m", "client") for name, extra in stage]
+                procs += started
+                for p in started:
+                    p.wait_for("ready", timeout=90)
             wait_for(lambda: robot.image_pub.matching_status.matching, what="the camera")
-            time.sleep(0.2)  # the links of the processes that just joined settle
             estimates = []
+            resent = 0  # frames the camera published that preprocessing never got
+            offsets = []  # the camera's seq of frame n is n - 1 + the frames resent before
             for n, rgb in enumerate(frames, start=1):
-                robot.publish_image(np.ascontiguousarray(rgb))
-                got = wait_for(lambda n=n: len(est := robot.samples(
-                    "/vistrack/estimate", r2.ESTIMATE)) >= n and est, what=f"estimate {n}")
-                estimates = got
+                for attempt in range(3):
+                    robot.publish_image(np.ascontiguousarray(rgb))
+                    try:
+                        estimates = wait_for(lambda n=n: len(est := robot.samples(
+                            "/vistrack/estimate", r2.ESTIMATE)) >= n and est,
+                            timeout=5.0, what=f"estimate {n}")
+                        offsets.append(resent)
+                        break
+                    except AssertionError as e:  # which service has it got to?
+                        st = {s["service"]: s for s in query_status(session, Keys())}
+                        if attempt < 2 and st["camera"]["published"] == n + resent \
+                                and st["preprocessing"]["received"] == n - 1:
+                            # camera/frame is DROP by the contract (a slow reader must
+                            # not stall the camera): on this busy 2-core machine a frame
+                            # fresh out of a process that has just started is lost now and
+                            # then; a live camera sends the next, and so does this one
+                            resent += 1
+                            continue
+                        raise AssertionError(f"{e}; " + "; ".join(
+                            f"{name}: received {x['received']} published {x['published']} "
+                            f"dropped {x['dropped']} rejected {x['rejected']}"
+                            for name, x in st.items())) from None
             # bad images: data of the wrong size, an encoding no camera frame can come from
             small = np.ascontiguousarray(frames[0][:4, :4])
             robot.seq += 2  # two images lost on the way: the attachments' numbers tell
@@ -167,14 +195,14 @@ def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_p
                      what="the camera to count 2 rejected images")
             status = camera_status(session)
             assert "yuv422" in status["last_error"]
-            assert status["dropped"] == 2 and status["extra"]["frames"] == 8
+            assert status["dropped"] == 2 and status["extra"]["frames"] == 8 + resent
             robot.publish_image(np.ascontiguousarray(frames[0]))  # and it goes on
             wait_for(lambda: len(robot.samples("/vistrack/estimate", r2.ESTIMATE)) == 9,
                      what="the estimate after the bad images")
             tokens = [str(r.ok.key_expr) for r in
                       session.liveliness().get("@ros2_lv/0/**", timeout=2.0) if r.ok]
             # the controller stops: the run's last command is sent; then compare
-            procs[3].stop()
+            procs[1].stop()
             wait_for(lambda: len(robot.samples("/cmd_vel", r2.TWIST)) == len(commands.items)
                      > 0, what="every command on /cmd_vel")
             time.sleep(0.3)  # nothing more arrives
@@ -186,11 +214,12 @@ def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_p
             robot.close()
             commands.sub.undeclare()
 
-    for row, (payload, attachment) in zip(expected, estimates[:8], strict=True):
+    for row, offset, (payload, attachment) in zip(expected, offsets, estimates[:8],
+                                                  strict=True):
         e = STORE.deserialize_cdr(payload, r2.ESTIMATE)
         got = {"seq": e.seq, "npi": e.npi, "xc": e.xc, "yc": e.yc, "xe": e.xe, "ye": e.ye,
                "dx": e.dx, "dy": e.dy, "scale": e.scale, "first": e.first}
-        assert got == {k: row[k] for k in got}, row["seq"]
+        assert got == {**{k: row[k] for k in got}, "seq": row["seq"] + offset}, row["seq"]
         assert [[f.id, f.x, f.y] for f in e.features] == row["features"]
         assert struct.unpack_from("<qqB", attachment)[0] == row["seq"] + 1
     assert len(twists) == len(sent) and sent
@@ -200,6 +229,7 @@ def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_p
         seq, _, length = struct.unpack_from("<qqB", attachment)
         assert (seq, length, len(attachment)) == (n, 16, 33)
     assert any(cmd["vx"] or cmd["vy"] for cmd in sent)  # it tracked and commanded
+    assert resent <= 1, f"{resent} frames lost between the camera and preprocessing"
     names = {"/".join(t.split("/")[5:10]) for t in tokens}
     assert {"NN/%/%/vistrack", "MP/%/%/vistrack/%cmd_vel",
             "MP/%/%/vistrack/%vistrack%estimate", "MP/%/%/vistrack/%vistrack%params",

@@ -218,7 +218,7 @@ def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_p
                                                   strict=True):
         e = STORE.deserialize_cdr(payload, r2.ESTIMATE)
         got = {"seq": e.seq, "npi": e.npi, "xc": e.xc, "yc": e.yc, "xe": e.xe, "ye": e.ye,
-               "dx": e.dx, "dy": e.dy, "scale": e.scale, "first": e.first}
+               "dx": e.dx, "dy": e.dy, "scale": e.scale, "first": e.first, "valid": e.valid}
         assert got == {**{k: row[k] for k in got}, "seq": row["seq"] + offset}, row["seq"]
         assert [[f.id, f.x, f.y] for f in e.features] == row["features"]
         assert struct.unpack_from("<qqB", attachment)[0] == row["seq"] + 1

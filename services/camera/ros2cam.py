@@ -104,6 +104,21 @@ def run_ros2(node: Node, args: argparse.Namespace, size: tuple[int, int] | None)
     return 0
 
 
+def frame_of_payload(payload: bytes, typename: str, seq: int,
+                     size: tuple[int, int] | None = None) -> Frame:
+    """The ``camera/frame`` number ``seq`` of one CDR ``Image`` or ``CompressedImage``:
+    8-bit grey, resized to ``size`` (width, height) if given, stamped with the header's stamp
+    (an unstamped image, stamp 0, with the time of arrival). ValueError naming what was wrong
+    for an image that cannot be converted."""
+    frame = r2.frame_of_camera(r2.deserialize(payload, typename), seq=seq)
+    if (size is not None and (frame.width, frame.height) != size) \
+            or not frame.stamp_ns:  # resized, or from a driver that does not stamp
+        image = frame.data if size is None else cv2.resize(
+            frame.data, size, interpolation=cv2.INTER_AREA)
+        frame = Frame.from_image(image, seq=seq, stamp_ns=frame.stamp_ns or time.time_ns())
+    return frame
+
+
 class _Converter:
     """ROS 2 images in, ``camera/frame`` out: one image at a time (a lock, since Zenoh may
     call from more than one thread), numbered from 0, bad ones rejected and logged."""
@@ -133,19 +148,11 @@ class _Converter:
         node = self.node
         with self._lock, node.status.timed():
             try:
-                frame = r2.frame_of_camera(r2.deserialize(payload, self.typename),
-                                           seq=self.seq)
+                frame = frame_of_payload(payload, self.typename, self.seq, self.size)
             except ValueError as e:
                 node.status.reject(e)
                 log.error("rejected %s: %s", self.typename, e)
                 return
-            size = self.size
-            if (size is not None and (frame.width, frame.height) != size) \
-                    or not frame.stamp_ns:  # resized, or from a driver that does not stamp
-                image = frame.data if size is None else cv2.resize(
-                    frame.data, size, interpolation=cv2.INTER_AREA)
-                frame = Frame.from_image(image, seq=self.seq,
-                                         stamp_ns=frame.stamp_ns or time.time_ns())
             node.publish(node.keys.frame, frame.encode(), reliable=False)
             self.seq += 1
             # an existing key's value: safe against the status reply copying the dict

@@ -6,6 +6,14 @@ Writes  ``vistrack/<robot>/preprocessing/frame``   (filtered frame + candidates 
 
 A pre-processed frame keeps its camera frame's ``seq``: downstream sees the camera's gaps, and
 a ``seq`` that goes back (the camera restarted) tells motion-estimation to start a new track.
+
+``--source ros2:TOPIC`` reads a ROS 2 camera's ``sensor_msgs/msg/Image`` (or
+``CompressedImage``) topic over ``rmw_zenoh`` in place of ``camera/frame``, with no camera
+process between the driver and the tracker: each image is converted as the camera's
+``ros2:`` source converts it (:func:`~vistrack.services.camera.ros2cam.frame_of_payload`),
+pre-processed, and then published as the ``camera/frame`` the auto-tuner and the tools read
+(after ``preprocessing/frame``: off the tracker's path). A bad image is rejected, counted and
+logged. Run no camera service alongside.
 """
 
 from __future__ import annotations
@@ -13,24 +21,54 @@ from __future__ import annotations
 import argparse
 import logging
 import time
+from collections.abc import Callable
+from contextlib import nullcontext
 
+from ...common import rmw_zenoh as rmw
+from ...common import ros2types as r2
 from ...common.bus import Node
 from ...common.messages import Frame, PreFrame
 from ...common.vision import preprocess, warm_up
+from ..camera import ros2cam
 from ..runtime import (
     ParamsInForce,
     add_service_args,
     decode_or_reject,
     dispatch,
     ready,
+    reject,
     serve,
 )
+from ..usage import add_number
 
 log = logging.getLogger("vistrack.preprocessing")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--source", default=FRAME_SOURCE, metavar="SOURCE",
+                        help=f"{FRAME_SOURCE} (the camera service's frames, default) or "
+                             "ros2:TOPIC (a ROS 2 camera's sensor_msgs/msg/Image topic over "
+                             "rmw_zenoh, read directly, e.g. ros2:/camera/image_raw; "
+                             "CompressedImage when the topic ends in /compressed; this "
+                             "service then publishes camera/frame: run no camera)")
+    add_number(parser, "--domain", lo=rmw.DOMAIN_RANGE[0], hi=rmw.DOMAIN_RANGE[1],
+               integer=True, default=ros2cam.default_domain(), metavar="ID",
+               help="ROS domain id of ros2:TOPIC, %(allowed)s (default: $ROS_DOMAIN_ID, "
+                    "else 0)")
     add_service_args(parser, tracker_params=True)
+
+
+#: ``--source`` of the camera service's frames.
+FRAME_SOURCE = "camera/frame"
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """ValueError naming a ``--source`` that is neither camera/frame nor ros2:TOPIC."""
+    if args.source != FRAME_SOURCE:
+        if not ros2cam.is_ros2(args.source):
+            raise ValueError(f"--source {args.source!r}: expected {FRAME_SOURCE} or "
+                             "ros2:TOPIC, e.g. ros2:/camera/image_raw")
+        ros2cam.topic_of(args.source)
 
 
 def loop(node: Node, args: argparse.Namespace) -> None:
@@ -38,14 +76,9 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     state.publish_status(node)
     warm_up()
     node.subscribe(node.keys.params, latest=False)
-    node.subscribe(node.keys.frame, latest=True)
     node.advertise(node.keys.pre_frame, reliable=False)
 
-    def on_frame(payload: bytes) -> None:
-        t0 = time.perf_counter()
-        frame = decode_or_reject(Frame, payload, node, log)
-        if frame is None:
-            return
+    def process(frame: Frame, t0: float) -> None:
         pre = preprocess(frame.data, state.params)
         out = PreFrame(seq=frame.seq, stamp_ns=frame.stamp_ns, width=frame.width,
                        height=frame.height, data=pre.filtered, candidates=pre.candidates,
@@ -53,9 +86,67 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         node.publish(node.keys.pre_frame, out.encode(), reliable=False)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
 
-    ready(node)
-    dispatch(node, {node.keys.params: lambda payload: state.apply(payload, node, log),
-                    node.keys.frame: on_frame}, log)
+    def on_frame(payload: bytes) -> None:
+        t0 = time.perf_counter()
+        frame = decode_or_reject(Frame, payload, node, log)
+        if frame is not None:
+            process(frame, t0)
+
+    handlers: dict[str, Callable[[bytes], object]] = {
+        node.keys.params: lambda payload: state.apply(payload, node, log)}
+    if args.source == FRAME_SOURCE:
+        node.subscribe(node.keys.frame, latest=True)
+        handlers[node.keys.frame] = on_frame
+        ready(node)
+        dispatch(node, handlers, log)
+        return
+    topic = ros2cam.topic_of(args.source)
+    typename = ros2cam.type_of(topic)
+    key = rmw.topic_key(args.domain, topic, typename, "*")  # any type hash, as the camera
+    node.subscribe(key, latest=True)
+    node.advertise(node.keys.frame, reliable=False)
+    seq = 0
+    node.status.extra["frames"] = 0
+
+    def on_image(payload: bytes) -> None:
+        nonlocal seq
+        t0 = time.perf_counter()
+        try:
+            frame = ros2cam.frame_of_payload(payload, typename, seq)
+        except ValueError as e:
+            reject(node, log, typename, e)
+            return
+        process(frame, t0)
+        node.publish(node.keys.frame, frame.encode(), reliable=False)
+        seq += 1
+        node.status.extra["frames"] = seq
+
+    # samples come on the publisher's key, with its own type hash: any key of the topic
+    handlers = _AndTopic(handlers, key.rsplit("/", 1)[0] + "/", on_image)
+    session = getattr(node, "session", None)  # the graph tokens need Zenoh; memory has none
+    with rmw.Participant(session, rmw.Rmw(domain=args.domain, node=ros2cam.NODE_NAME)) \
+            if session is not None else nullcontext() as participant:
+        if participant is not None:
+            participant.subscription(topic, typename, r2.type_hash(typename), rmw.QOS_SENSOR)
+        log.info("ROS 2 camera read directly: %s (%s) on domain %d", topic, typename,
+                 args.domain)
+        ready(node)
+        dispatch(node, handlers, log)
+
+
+class _AndTopic(dict[str, Callable[[bytes], object]]):
+    """``dispatch``'s handlers, and ``on_image`` for every key under ``prefix`` (a ROS 2
+    topic's key up to its type hash)."""
+
+    def __init__(self, handlers: dict[str, Callable[[bytes], object]], prefix: str,
+                 on_image: Callable[[bytes], object]) -> None:
+        super().__init__(handlers)
+        self.prefix, self.on_image = prefix, on_image
+
+    def __missing__(self, key: str) -> Callable[[bytes], object]:
+        if key.startswith(self.prefix):
+            return self.on_image
+        raise KeyError(key)
 
 
 def main(args: argparse.Namespace) -> int:

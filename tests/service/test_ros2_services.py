@@ -28,6 +28,7 @@ from vistrack.common.messages import CmdVel, Estimate, Frame, Params
 from vistrack.common.synthetic import texture
 from vistrack.services import cli
 from vistrack.services.camera import service as camera
+from vistrack.services.preprocessing import service as preprocessing
 from vistrack.services.ros2 import service as bridge
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
@@ -136,6 +137,55 @@ def test_ros2_camera_takes_compressed_images_on_a_compressed_topic():
     assert (frame.width, frame.height, frame.stamp_ns) == (28, 20, 5 * 10**9 + 7)
     np.testing.assert_array_equal(frame.data, cv2.resize(grey, (28, 20),
                                                          interpolation=cv2.INTER_AREA))
+
+
+def test_preprocessing_reads_a_ros2_camera_directly_and_publishes_its_frames():
+    """preprocessing --source ros2:TOPIC: the same pre-processed frame as from the equal
+    camera/frame, then that camera/frame itself (for the tuner and the tools); a bad image is
+    rejected and counted, and the next one goes through."""
+    grey = np.ascontiguousarray(texture(256, seed=7)[:64, :80])
+    bgr = np.dstack([grey, grey, grey])
+    key = ros_key(2, "/camera/image_raw", r2.IMAGE)
+    outputs = {}
+    for source in ("camera/frame", "ros2:/camera/image_raw"):
+        args = parse("preprocessing", "--source", source, "--domain", "2")
+        with MemoryNode("preprocessing") as node:
+            thread = threading.Thread(target=preprocessing.loop, args=(node, args),
+                                      daemon=True)
+            thread.start()
+            if source == "camera/frame":
+                frame = Frame.from_image(grey, seq=0, stamp_ns=STAMP_NS).encode()
+                wait_for(lambda f=frame: node.feed(node.keys.frame, f), timeout=60,
+                         what="the camera/frame subscription")
+            else:
+                wait_for(lambda: node.feed(key, image_cdr(bgr, "bgr8", data=np.zeros(
+                    7, np.uint8))), timeout=60, what="the image subscription")
+                wait_for(lambda: node.status.rejected == 1, what="the bad image rejected")
+                node.feed(key, image_cdr(bgr, "bgr8"))
+            wait_for(lambda n=node: n.published_on(n.keys.pre_frame), what="a pre-frame")
+            if source != "camera/frame":
+                wait_for(lambda n=node: n.published_on(n.keys.frame), what="its camera/frame")
+            node.stop.set()
+            thread.join(10)
+        outputs[source] = node
+    plain, ros = outputs["camera/frame"], outputs["ros2:/camera/image_raw"]
+    assert ros.published_on(ros.keys.pre_frame) == plain.published_on(plain.keys.pre_frame)
+    frame = Frame.decode(ros.published_on(ros.keys.frame)[0])
+    assert (frame.seq, frame.stamp_ns) == (0, STAMP_NS)
+    np.testing.assert_array_equal(frame.data, grey)
+    assert ros.status.rejected == 1 and "data is 7 bytes" in ros.status.last_error
+    assert not plain.published_on(plain.keys.frame)
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--source", "camera"], "--source 'camera': expected camera/frame or ros2:TOPIC"),
+    (["--source", "ros2:/camera//image"], "ROS topic '/camera//image' is not valid"),
+    (["--source", "ros2:/cam", "--domain", "-1"], "--domain -1 is out of range"),
+])
+def test_bad_preprocessing_sources_are_one_line_errors(argv, message, capsys):
+    assert exit_code(["preprocessing", *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
 
 
 @pytest.mark.parametrize(("argv", "message"), [

@@ -15,13 +15,14 @@ from vistrack.services.launch.launchfile import default_launch, load_launch
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 
 
-def test_the_ros2_robot_launch_file_is_valid_and_starts_the_bridge_first():
+def test_the_ros2_robot_launch_file_is_valid_and_reads_the_camera_in_preprocessing():
     spec = load_launch(DEPLOY / "ros2-robot.yaml")
     names = {s.name for s in spec.services}
-    assert names == {"ros2", "camera", "preprocessing", "motion_estimation", "auto_tuner",
+    # no camera service: it would publish camera/frame alongside preprocessing's
+    assert names == {"ros2", "preprocessing", "motion_estimation", "auto_tuner",
                      "fuzzy_controller"}
-    camera = spec.service("camera")
-    assert camera is not None and "ros2:/camera/image_raw" in camera.flags
+    pre = spec.service("preprocessing")
+    assert pre is not None and "ros2:/camera/image_raw" in pre.flags
 
 
 def test_the_default_launch_has_no_ros2_service():
@@ -41,6 +42,11 @@ def spec_names(spec) -> set[str]:
      r"service's topics"),
     ("services:\n  camera:\n    flags: {--source: 'ros2:/camera//raw'}\n",
      r"line 3: services\.camera\.flags: ROS topic '/camera//raw' is not valid"),
+    ("services:\n  preprocessing:\n    flags: {--source: 'ros2:/camera//raw'}\n",
+     r"line 3: services\.preprocessing\.flags: ROS topic '/camera//raw' is not valid"),
+    ("services:\n  preprocessing:\n    flags: {--source: 'camera'}\n",
+     r"line 3: services\.preprocessing\.flags: --source 'camera': expected camera/frame or "
+     r"ros2:TOPIC"),
     ("services:\n  bridge:\n", r"line 2: services: unknown service 'bridge'; allowed: "
                                r"camera, .*, fuzzy-controller, ros2"),
 ])

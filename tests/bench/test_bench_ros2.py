@@ -1,5 +1,6 @@
 """ROS 2 benchmark (deselected by default: ``pytest -m bench``; or ``vistrack bench ros2``):
-estimates from a ROS 2 image topic against a plain ``camera/frame`` at 256x256 and 30 fps,
+estimates from a ROS 2 image topic (through the camera service, and read by preprocessing
+directly) against a plain ``camera/frame`` at 256x256 and 30 fps,
 and every ``control/cmd_vel`` against ``/cmd_vel``.
 
 Prints the table; asserts that every figure was measured and that no command was lost or
@@ -30,3 +31,4 @@ def test_bench_ros2(capsys):
     assert fig["cmd_vel_sent"] > 0
     assert fig["cmd_vel_ros"] == fig["cmd_vel_sent"] == fig["cmd_vel_in_order"]
     assert fig["cmd_vel_seq_contiguous"] == 1.0
+    assert fig["camera_rejected"] == fig["direct_rejected"] == 0  # good images all taken

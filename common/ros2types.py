@@ -253,12 +253,7 @@ def frame_of_image(obj: Any, *, seq: int) -> Frame:
     ROS 2 camera source's job)."""
     if obj.encoding != "mono8":
         raise ValueError(f"image encoding {obj.encoding!r}: expected 'mono8'")
-    data = np.asarray(obj.data, np.uint8)
-    if obj.step < obj.width or data.size != obj.step * obj.height:
-        raise ValueError(f"image data is {data.size} bytes: expected step * height = "
-                         f"{obj.step} * {obj.height} with step >= width {obj.width}")
-    rows = data.reshape(obj.height, obj.step)[:, :obj.width]
-    return Frame.from_image(np.ascontiguousarray(rows), seq=seq, stamp_ns=stamp_ns(obj.header))
+    return Frame.from_image(grey_of_image(obj), seq=seq, stamp_ns=stamp_ns(obj.header))
 
 
 def cmd_vel_of_twist(obj: Any, *, seq: int, stamp_ns_: int, stale: bool = False) -> CmdVel:
@@ -440,8 +435,8 @@ def grey_of_image(obj: Any) -> np.ndarray:
     data = np.asarray(obj.data, np.uint8).reshape(-1)
     if step < row or data.size != step * height:
         raise ValueError(f"{encoding} image data is {data.size} bytes: expected step * height "
-                         f"= {step} * {height} with step >= {row} ({width} px of "
-                         f"{channels} bytes)")
+                         f"= {step} * {height} with step >= {row} (step >= width * "
+                         f"bytes a pixel = {width} * {channels})")
     rows = data.reshape(height, step)[:, :row]
     if channels == 2:
         pixels = rows.reshape(height, width, 2)

@@ -201,6 +201,10 @@ def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_p
             small = np.ascontiguousarray(frames[0][:4, :4])
             robot.seq += 2  # two images lost on the way: the attachments' numbers tell
             robot.publish_image(small, data=np.zeros(47, np.uint8))
+            if path == "direct":  # preprocessing's input is latest-only (a ring of one): the
+                # second bad image would overwrite the first one still waiting there
+                wait_for(lambda: service_status(session, reader).get("rejected") == 1,
+                         what="the first bad image rejected")
             robot.publish_image(small, encoding="yuv422")
             wait_for(lambda: service_status(session, reader).get("rejected") == 2,
                      what=f"the {reader} to count 2 rejected images")

@@ -32,7 +32,20 @@ Measurement choices (why)
   pre-processing (THRES_PERCENT, CORR_SIZE's border margin, the filter) rather than once per
   run: on a 30-frame 256x256 buffer this cut a tuning cycle from 4.6 to 3.2 s. The numbers
   tracked are identical to ``Tracker.process``'s.
-* **Noise: per-frame minimum over repeated, interleaved, shuffled passes.** A run is
+* **Pre-processing is timed once, tracking in every pass.** Pre-processing does the same work
+  whatever the windows: the pre-processings of a cycle differ in THRES_PERCENT (how many
+  candidates are sorted) and in the border margin CORR_SIZE // 2 + 1 (which only moves the
+  bounds of the candidates' scan; margins of 3 and 16 px measured the same within the timing
+  noise on 256x256 to 1280x720 frames). So each distinct pre-processing runs once, timed frame
+  by frame, and a point's pre-processing time for frame i is the least that any
+  pre-processing of the same work (filter, strength, THRES_PERCENT) took on frame i: the
+  sweep's seven margins are seven samples of one cost, a whole run or more apart, as the timing
+  passes are for the tracking. Its cost grows with frames x pixels; timing it in every pass
+  made a cycle at 1280x720 spend half its time pre-processing the same frames again (6.4 of
+  11.8 s in one run). A slow spell over one pre-processing no longer shows as an effect of
+  its CORR_SIZE either.
+* **Noise: per-frame minimum over repeated, interleaved, shuffled passes** (of the tracking;
+  pre-processing: above). A run is
   deterministic, so frame i does the same work in every repeat and any extra time is
   interference (other processes on this 2-core machine, interrupts, the garbage collector). The
   minimum over repeats of each frame's time estimates the interference-free cost (pre-processing
@@ -207,7 +220,8 @@ class Experiment:
     reference : (SEARCH_SIZE, CORR_SIZE) of the reference runs.
 
     It keeps every run's motion and times and every distinct pre-processing of the buffer
-    (about 2 MB each for 30 frames of 256x256; a tuning cycle makes 13): drop it when done.
+    (about 2 MB each for 30 frames of 256x256, 28 MB at 1280x720; a tuning cycle makes 13):
+    drop it when done.
     """
 
     def __init__(self, frames: Sequence[np.ndarray], *, repeats: int = DEFAULT_REPEATS,
@@ -234,7 +248,7 @@ class Experiment:
         TrackerParams(search_size=self.reference[0], corr_size=self.reference[1])  # validate
         self._runs: dict[tuple, _Run] = {}
         self._pre: dict[tuple, list[Preprocessed]] = {}
-        self._pre_times: dict[tuple, list[np.ndarray]] = {}
+        self._pre_times: dict[tuple, np.ndarray] = {}  # (n_frames,) ms of each, once
         warm_up()  # compile (or load) the numba kernels once, before anything is timed
 
     @property
@@ -295,7 +309,7 @@ class Experiment:
         tick = _ticker(progress, phase, sum(len(t) for t in todo) + len(missing_refs))
         for r in range(self.repeats):
             for i in todo[r]:
-                self._run(points[i], keys[i], timed_passes=r + 1)
+                self._run(points[i], keys[i])
                 tick()
         self._run_references(refs, missing_refs, tick)
         return [self.responses(p) for p in points]
@@ -365,8 +379,7 @@ class Experiment:
 
     def responses(self, params: TrackerParams) -> Responses:
         """The responses of a point already run (see :meth:`measure`)."""
-        return self._score(params, self._runs[_key(params)].times,
-                           self._pre_times[_pre_key(params)])
+        return self._score(params, self._runs[_key(params)].times, [self._pre_cost(params)])
 
     def _score(self, params: TrackerParams, track_times: Sequence[np.ndarray],
                pre_times: Sequence[np.ndarray]) -> Responses:
@@ -393,8 +406,8 @@ class Experiment:
             self._run(refs[k], k)
             tick()
 
-    def _run(self, params: TrackerParams, key: tuple, timed_passes: int = 0) -> None:
-        frames = self._preprocessed(params, timed_passes)
+    def _run(self, params: TrackerParams, key: tuple) -> None:
+        frames = self._preprocessed(params)
         tracker = Tracker(params)
         estimates = [tracker.update(pre) for pre in frames]
         times = np.array([e.t_ms for e in estimates])
@@ -420,18 +433,20 @@ class Experiment:
             t0 = time.perf_counter()
             frames.append(preprocess(frame, params))
             t_pre[i] = (time.perf_counter() - t0) * 1e3
-        self._pre.setdefault(_pre_key(params), frames)
+        if _pre_key(params) not in self._pre:
+            self._pre[_pre_key(params)] = frames
+            self._pre_times[_pre_key(params)] = t_pre
         tracker = Tracker(params)
         estimates = [tracker.update(pre) for pre in frames]
         if key not in self._runs:
             self._runs[key] = self._new_run(estimates)
         return t_pre, np.array([e.t_ms for e in estimates])
 
-    def _preprocessed(self, params: TrackerParams, timed_passes: int) -> list[Preprocessed]:
-        """The buffer pre-processed for ``params``, timed at least ``timed_passes`` times."""
+    def _preprocessed(self, params: TrackerParams) -> list[Preprocessed]:
+        """The buffer pre-processed for ``params``: once per distinct pre-processing, timed
+        frame by frame."""
         key = _pre_key(params)
-        times = self._pre_times.setdefault(key, [])
-        if key not in self._pre or len(times) < timed_passes:
+        if key not in self._pre:
             out = []
             t_ms = np.empty(len(self.frames))
             for i, frame in enumerate(self.frames):
@@ -439,8 +454,17 @@ class Experiment:
                 out.append(preprocess(frame, params))
                 t_ms[i] = (time.perf_counter() - t0) * 1e3
             self._pre[key] = out
-            times.append(t_ms)
+            self._pre_times[key] = t_ms
         return self._pre[key]
+
+    def _pre_cost(self, params: TrackerParams) -> np.ndarray:
+        """(n_frames,) ms: the pre-processing time of each frame for ``params``, the least that
+        any pre-processing of the buffer doing the same work took on that frame (see the module
+        notes: the border margin, the only other thing a pre-processing key holds, does not
+        change its cost)."""
+        work = _pre_work(params)
+        times = [t for k, t in self._pre_times.items() if k[:len(work)] == work]
+        return np.min(np.stack(times), axis=0)
 
     def _epe(self, estimates: list) -> float | None:
         gt = self.ground_truth
@@ -478,9 +502,18 @@ def _key(params: TrackerParams) -> tuple:
 
 
 def _pre_key(params: TrackerParams) -> tuple:
-    """What :func:`preprocess` depends on: the filter, the strength, THRES_PERCENT, and the
-    border margin that keeps a correlation window inside the frame."""
-    return params.blur_sigma, params.strength, params.thres_percent, params.corr_half
+    """What :func:`preprocess` depends on: the filter, the strength, THRES_PERCENT (its
+    :func:`_pre_work`), and the border margin that keeps a correlation window inside the
+    frame."""
+    return (*_pre_work(params), params.corr_half)
+
+
+def _pre_work(params: TrackerParams) -> tuple:
+    """What the cost of :func:`preprocess` depends on, frame size aside: the filter, the
+    strength and THRES_PERCENT (the number of candidates sorted). Not the border margin: it
+    only moves the bounds of the candidates' scan, and measured on 256x256 to 1280x720 frames
+    margins of 3 and 16 px cost the same within the timing noise."""
+    return params.blur_sigma, params.strength, params.thres_percent
 
 
 def _check_frames(frames: Sequence[np.ndarray]) -> list[np.ndarray]:

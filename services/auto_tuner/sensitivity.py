@@ -42,6 +42,7 @@ Pure numpy (through :mod:`.experiment`): no Zenoh, no msgpack.
 
 from __future__ import annotations
 
+import math
 import secrets
 import time
 from collections.abc import Mapping, Sequence
@@ -86,6 +87,26 @@ DEFAULT_TOLERANCE = 0.5
 STEP_RANGE = (1, 10)
 TOLERANCE_RANGE = (0.0, 100.0)
 BUFFER_RANGE = (2, 1000)
+#: The buffer's work budget: the pixels of all the frames a cycle runs on, in megapixels. A
+#: cycle pre-processes every frame once per distinct pre-processing (13 of them), so that part
+#: of its cost grows with frames x pixels; 30 frames of 1280x720 (27.6 MP) fit, larger frames
+#: keep fewer (the latest), down to MIN_FRAMES.
+DEFAULT_MEGAPIXELS = 28.0
+MEGAPIXELS_RANGE = (0.1, 1000.0)
+#: The fewest frames the budget leaves: t1, and three frames of tf and motion.
+MIN_FRAMES = 4
+
+
+def frames_within(n_frames: int, shape: tuple[int, int], megapixels: float | None) -> int:
+    """How many of a buffer's ``n_frames`` frames of ``shape`` (H, W) a tuning cycle runs on:
+    all of them while their pixels stay within ``megapixels`` (None: no budget), else as many
+    as fit, but at least :data:`MIN_FRAMES` (or all, when fewer)."""
+    if megapixels is None:
+        return n_frames
+    if not (math.isfinite(megapixels) and megapixels > 0):
+        raise ValueError(f"max_megapixels={megapixels!r} must be a number > 0 (MP)")
+    fit = int(megapixels * 1e6 // (shape[0] * shape[1]))
+    return min(n_frames, max(fit, MIN_FRAMES))
 
 
 @dataclass(frozen=True, eq=False)
@@ -271,8 +292,10 @@ class TuneResult:
     """One tuning cycle: the design run, its analysis, the sweep and the optimum.
 
     ``seconds`` is the wall time of the cycle's parts: ``design`` (with its reference runs and
-    the analysis), ``sweep`` and ``total``. ``replicated`` is the replicated design run when
-    the design was replicated (``run`` then holds its per-run means), else None.
+    the analysis), ``sweep`` and ``total``. ``frames`` is the number of frames the cycle ran
+    on: the latest of the ``offered`` ones that fit the work budget ``max_megapixels``.
+    ``replicated`` is the replicated design run when the design was replicated (``run`` then
+    holds its per-run means), else None.
     """
 
     run: DesignRun
@@ -285,6 +308,8 @@ class TuneResult:
     repeats: int
     seconds: dict[str, float]
     replicated: ReplicatedRun | None = None
+    offered: int = 0
+    max_megapixels: float | None = None
 
     @property
     def params(self) -> TrackerParams:
@@ -299,7 +324,8 @@ class TuneResult:
         list, standard order), ``effects`` (response -> paper term -> effect), ``significant``
         (response -> {"99": [...], "95": [...]}), ``optimum`` (the five parameters), ``sweep``
         (grid and responses). Extra fields (readers ignore what they do not know): ``method``,
-        ``levels``, ``aliases``, ``seed``, ``tolerance``, ``reason``, ``frames``, ``size``,
+        ``levels``, ``aliases``, ``seed``, ``tolerance``, ``reason``, ``frames`` (run on),
+        ``frames_offered``, ``max_megapixels`` (the work budget that chose them), ``size``,
         ``repeats``, ``seconds``, ``search`` (the SSD search the times were measured with),
         ``replicates`` (independent timings of every design run, 1: unreplicated).
 
@@ -339,6 +365,8 @@ class TuneResult:
             "tolerance": float(self.tolerance),
             "reason": self.optimum.reason,
             "frames": self.frames,
+            "frames_offered": self.offered,
+            "max_megapixels": self.max_megapixels,
             "size": list(self.size),
             "repeats": self.repeats,
             "seconds": dict(self.seconds),
@@ -357,7 +385,8 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
          tolerance: float = DEFAULT_TOLERANCE, step: int = DEFAULT_STEP,
          repeats: int | None = None, method: str = "lenth", design: Design | None = None,
          ground_truth: GroundTruth | None = None, base: TrackerParams | None = None,
-         progress: Progress | None = None, replicates: int = 1) -> TuneResult:
+         progress: Progress | None = None, replicates: int = 1,
+         max_megapixels: float | None = DEFAULT_MEGAPIXELS) -> TuneResult:
     """The whole tuning cycle on a buffer of frames: design, analysis, sweep, optimum.
 
     Parameters
@@ -382,6 +411,9 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
         design, what the auto-tuner service runs). With N >= 2 the design is run N times in a
         completely randomised order (:func:`.experiment.run_replicated`), costing N times the
         design's time, and analysed against pure error; the sweep is not replicated.
+    max_megapixels : the work budget (:func:`frames_within`): the cycle runs on the latest
+        frames whose pixels fit it, at least :data:`MIN_FRAMES`; None runs on all. Default
+        :data:`DEFAULT_MEGAPIXELS`, 30 frames of 1280x720.
     """
     if not np.isfinite(tolerance) or tolerance < 0:
         raise ValueError(f"tolerance={tolerance!r} must be a number >= 0 (px)")
@@ -392,6 +424,14 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
     if replicates > 1 and method != "lenth":
         raise ValueError(f"method={method!r} tests the unreplicated design; with "
                          f"replicates={replicates} the effects are tested against pure error")
+    offered = len(frames)
+    if offered:
+        keep = frames_within(offered, np.shape(frames[0])[:2], max_megapixels)
+        if keep < offered and ground_truth is not None:
+            raise ValueError(f"{offered} frames exceed max_megapixels={max_megapixels:g}; "
+                             "ground truth is given for all of them: pass "
+                             "max_megapixels=None")
+        frames = list(frames)[offered - keep:]
     exp = Experiment(frames, ground_truth=ground_truth,
                      **({} if repeats is None else {"repeats": repeats}))
     start = time.perf_counter()  # after warm_up: a service compiles once, not every cycle
@@ -411,4 +451,4 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
     end = time.perf_counter()
     seconds = {"design": mid - start, "sweep": end - mid, "total": end - start}
     return TuneResult(run, analysis, result, best, float(tolerance), len(exp.frames), exp.size,
-                      exp.repeats, seconds, replicated)
+                      exp.repeats, seconds, replicated, offered, max_megapixels)

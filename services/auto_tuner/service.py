@@ -58,8 +58,11 @@ from ..usage import add_number
 from . import triggers as tr
 from .sensitivity import (
     BUFFER_RANGE,
+    DEFAULT_MEGAPIXELS,
     DEFAULT_STEP,
     DEFAULT_TOLERANCE,
+    MEGAPIXELS_RANGE,
+    MIN_FRAMES,
     STEP_RANGE,
     TOLERANCE_RANGE,
 )
@@ -76,6 +79,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_number(parser, "--buffer", lo=BUFFER_RANGE[0], hi=BUFFER_RANGE[1], integer=True,
                default=30, metavar="N",
                help="frames kept for the experiments, %(allowed)s (default 30)")
+    add_number(parser, "--max-megapixels", lo=MEGAPIXELS_RANGE[0], hi=MEGAPIXELS_RANGE[1],
+               default=DEFAULT_MEGAPIXELS, metavar="MP",
+               help="work budget of a tuning: it runs on the latest buffered frames whose "
+                    f"pixels fit, at least {MIN_FRAMES}; %(allowed)s (default "
+                    f"{DEFAULT_MEGAPIXELS:g}: 30 frames of 1280x720)")
     parser.add_argument("--no-tune", action="store_true",
                         help="never tune: keep the buffer and remind the parameters in force")
     add_number(parser, "--tune-sweep-step", lo=STEP_RANGE[0], hi=STEP_RANGE[1], integer=True,
@@ -217,7 +225,8 @@ class AutoTuner:
             self.stamp_ns = self.frames[-1][1]
             self.worker.submit({"frames": [f for f, _ in self.frames], "base": self.state.params,
                                 "tolerance": self.args.tolerance,
-                                "step": self.args.tune_sweep_step})
+                                "step": self.args.tune_sweep_step,
+                                "max_megapixels": self.args.max_megapixels})
             self.node.status.extra.update(tuning=True, pending=None)
             log.info("tuning (%s) on %d frames", reason, len(self.frames))
 

@@ -70,7 +70,7 @@ def _work(conn: Any, parent_pid: int) -> None:
             job = conn.recv()
             try:
                 result = tune(job["frames"], None, tolerance=job["tolerance"], step=job["step"],
-                              base=job["base"])
+                              base=job["base"], max_megapixels=job["max_megapixels"])
                 conn.send(("ok", result.to_report(), dict(result.optimum.params)))
             except Exception as e:  # noqa: BLE001 - a failed cycle is reported, the worker lives
                 conn.send(("error", f"{type(e).__name__}: {e}"))

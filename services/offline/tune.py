@@ -35,8 +35,11 @@ from ...common.sources import SourceError, open_files, parse_size
 from ..auto_tuner.experiment import DEFAULT_REPEATS, METHODS, RESPONSES, bounce
 from ..auto_tuner.sensitivity import (
     BUFFER_RANGE,
+    DEFAULT_MEGAPIXELS,
     DEFAULT_STEP,
     DEFAULT_TOLERANCE,
+    MEGAPIXELS_RANGE,
+    MIN_FRAMES,
     STEP_RANGE,
     TOLERANCE_RANGE,
     TuneResult,
@@ -71,6 +74,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_number(parser, "--max-frames", lo=BUFFER_RANGE[0], hi=BUFFER_RANGE[1], integer=True,
                default=30, metavar="N",
                help="frames in the buffer, %(allowed)s (default 30, as the service keeps)")
+    add_number(parser, "--max-megapixels", lo=MEGAPIXELS_RANGE[0], hi=MEGAPIXELS_RANGE[1],
+               default=DEFAULT_MEGAPIXELS, metavar="MP",
+               help="work budget: the experiment runs on the latest frames of the buffer whose "
+                    f"pixels fit, at least {MIN_FRAMES}; %(allowed)s (default "
+                    f"{DEFAULT_MEGAPIXELS:g}: 30 frames of 1280x720, as the service)")
     parser.add_argument("--bounce", action="store_true",
                         help="fill the buffer by playing a shorter sequence back and forth")
     add_number(parser, "--repeats", lo=1, hi=20, integer=True, default=DEFAULT_REPEATS,
@@ -151,7 +159,10 @@ def print_text(result: TuneResult, what: str, out: TextIO) -> None:
     d = result.run.design
     w, h = result.size
     replicates = rep["replicates"]
-    print(f"# vistrack tune: {what}; {result.frames} frames {w}x{h}; seed {rep['seed']}; "
+    frames = (f"{result.frames} frames" if result.frames == result.offered else
+              f"the latest {result.frames} of {result.offered} frames (work budget "
+              f"{result.max_megapixels:g} MP)")
+    print(f"# vistrack tune: {what}; {frames} {w}x{h}; seed {rep['seed']}; "
           f"{result.sweep.base.search} SSD search; timing passes {result.repeats}; "
           + (f"{replicates} replicates of every design run; " if replicates > 1 else "")
           + f"{result.seconds['total']:.1f} s", file=out)
@@ -253,7 +264,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
     try:
         result = tune(frames, seed, tolerance=args.tolerance, step=args.step,
                       repeats=args.repeats, method=args.method or "lenth", base=base,
-                      progress=progress, replicates=args.replicates)
+                      progress=progress, replicates=args.replicates,
+                      max_megapixels=args.max_megapixels)
     finally:
         if progress is not None:
             progress.close()

@@ -12,6 +12,7 @@ import ast
 import dataclasses
 import json
 import math
+import time
 from pathlib import Path
 
 import cv2
@@ -40,8 +41,10 @@ from vistrack.services.auto_tuner.experiment import (
 )
 from vistrack.services.auto_tuner.sensitivity import (
     CORR_RANGE,
+    MIN_FRAMES,
     SEARCH_RANGE,
     Sweep,
+    frames_within,
     grid_values,
     optimum,
     sweep,
@@ -138,6 +141,53 @@ def test_equal_window_geometries_share_one_run(small_frames, count_trackers):
     points = [p for p in count_trackers if p.search_size != 50]
     assert len(points) == 2  # two timing passes of the first; none of the second
     assert len(count_trackers) - len(points) == 1  # one shared reference, untimed
+
+
+@pytest.fixture
+def count_preprocessing(monkeypatch):
+    """Record (THRES_PERCENT, corr_half) of every frame the experiment pre-processes."""
+    made: list[tuple[float, int]] = []
+    real = ex_mod.preprocess
+
+    def spy(frame, params):
+        made.append((params.thres_percent, params.corr_half))
+        return real(frame, params)
+
+    monkeypatch.setattr(ex_mod, "preprocess", spy)
+    return made
+
+
+def test_each_preprocessing_runs_once_whatever_the_timing_passes(small_frames,
+                                                                 count_preprocessing):
+    """Pre-processing is deterministic and its cost the same for every margin (see the module
+    notes): it runs once per distinct pre-processing, not once per timing pass."""
+    run_design(small_frames, paper_design(), seed=4, repeats=3)
+    # THRES_PERCENT 0.1 and 5 x the margins of CORR_SIZE 5, 15 and of the references' 30
+    keys = {(t, h) for t in (0.1, 5.0) for h in (2, 7, 15)}
+    assert set(count_preprocessing) == keys
+    assert len(count_preprocessing) == len(keys) * len(small_frames)
+
+
+def test_a_slow_spell_on_one_preprocessing_does_not_reach_its_points(small_frames,
+                                                                      monkeypatch):
+    """A point's pre-processing time is, frame by frame, the least that any pre-processing
+    doing the same work took (they differ only by the border margin): a spell that slows one
+    of them (here by 30 ms a frame, on CORR_SIZE 9's) does not make its windows look slower,
+    where timing each one alone would have added the 30 ms to its points' t1 and tf."""
+    real = ex_mod.preprocess
+    slow = {"calls": 0}
+
+    def spell(frame, params):
+        if params.corr_half == 4:
+            slow["calls"] += 1
+            time.sleep(0.03)
+        return real(frame, params)
+
+    monkeypatch.setattr(ex_mod, "preprocess", spell)
+    sw = sweep(Experiment(small_frames, repeats=2), search_sizes=[10], corr_sizes=[5, 9])
+    assert slow["calls"] == len(small_frames)  # the spell did happen, on every frame
+    (t1_5, t1_9), (tf_5, tf_9) = sw.t1[0], sw.tf[0]
+    assert abs(tf_9 - tf_5) < 10.0 and abs(t1_9 - t1_5) < 10.0, (sw.t1, sw.tf)
 
 
 def test_experiment_rejects_bad_buffers(small_frames):
@@ -531,6 +581,35 @@ def test_report_has_the_contract_fields_as_plain_types(small_frames):
     assert rep["seed"] == 3 and rep["frames"] == 6 and rep["size"] == [96, 96]
     assert rep["sweep"]["search_size"] == [10, 15, 20] and rep["sweep"]["corr_size"] == [5, 10, 15]
     assert result.params.search_size == rep["optimum"]["search_size"]
+
+
+def test_work_budget_keeps_the_latest_frames_that_fit():
+    assert frames_within(30, (480, 640), 28.0) == 30  # 9.2 MP
+    assert frames_within(30, (720, 1280), 28.0) == 30  # 27.6 MP
+    assert frames_within(30, (1080, 1920), 28.0) == 13  # 28 MP // 2.07 MP
+    assert frames_within(30, (4096, 4096), 28.0) == MIN_FRAMES  # never fewer
+    assert frames_within(3, (4096, 4096), 28.0) == 3  # nor more than there are
+    assert frames_within(30, (4096, 4096), None) == 30  # no budget
+    for bad in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="max_megapixels"):
+            frames_within(30, (96, 96), bad)
+
+
+def test_a_cycle_over_budget_runs_on_the_latest_frames(small_frames):
+    """6 frames of 96x96 (55 kpx) with a 0.04 MP budget: the cycle runs on the latest 4 (the
+    floor), exactly as on those 4 frames alone: the same motion, so the same ex, ey and NPI."""
+    capped = tune(small_frames, seed=3, step=5, repeats=1, max_megapixels=0.04)
+    alone = tune(small_frames[2:], seed=3, step=5, repeats=1, max_megapixels=None)
+    assert capped.frames == 4 and capped.offered == 6 and alone.offered == 4
+    for name in ("ex", "ey", "npi_mean"):
+        assert capped.run.response(name).tolist() == alone.run.response(name).tolist(), name
+    for name in ("ex", "ey", "npi"):
+        assert getattr(capped.sweep, name).tolist() == getattr(alone.sweep, name).tolist()
+    rep = capped.to_report()
+    assert rep["frames"] == 4 and rep["frames_offered"] == 6 and rep["max_megapixels"] == 0.04
+    with pytest.raises(ValueError, match="ground truth"):
+        tune(small_frames, seed=3, max_megapixels=0.04,
+             ground_truth=GroundTruth.from_steps([STEP] * 5))
 
 
 def test_algorithm_modules_import_neither_zenoh_nor_msgpack():

@@ -73,6 +73,7 @@ def test_text_sections_progress_and_plots(tmp_path):
     (["--seed", "-1"], "--seed -1 is out of range: allowed 0..9223372036854775807"),
     (["--seed", "x"], "--seed 'x' is not an integer: allowed 0..9223372036854775807"),
     (["--format", "xml"], "invalid choice"),
+    (["--max-megapixels", "0"], "--max-megapixels 0 is out of range: allowed 0.1..1000"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, message, capsys):
     code = _main(["tune", *args])

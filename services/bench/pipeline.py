@@ -29,6 +29,7 @@ its experiments, which would take a core for seconds, are left out of the measur
 
 from __future__ import annotations
 
+import math
 import os
 import socket
 import subprocess
@@ -37,6 +38,7 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
+from typing import TextIO
 
 import numpy as np
 import zenoh
@@ -44,9 +46,9 @@ import zenoh
 from ...common import synthetic
 from ...common.bus import alive_services, loopback_config, query_status
 from ...common.keys import Keys
-from ...common.messages import CmdVel, Frame, PreFrame, peek_int
+from ...common.messages import CmdVel, Estimate, Frame, PreFrame, peek_int
 from ...common.params import TrackerParams
-from ...common.vision import Tracker, preprocess, warm_up
+from ...common.vision import Preprocessed, Tracker, preprocess, warm_up
 from ..fuzzy_controller.control import FuzzyController, FuzzySurface
 from ..motion_estimation.service import estimate_message
 
@@ -122,6 +124,17 @@ with zenoh.open(c) as s:
 """
 
 SERVICES = ("fuzzy-controller", "motion-estimation", "preprocessing", "auto-tuner")
+#: The bench process itself: the embedded Zenoh router every message goes through, and the
+#: collector of estimates.
+ROUTER = "router+collector"
+#: The processes of a run, in the pipeline's order (the CPU table's rows).
+PROCESSES = ("camera", "preprocessing", "motion-estimation", "fuzzy-controller", "auto-tuner",
+             ROUTER)
+
+
+def _slug(name: str) -> str:
+    """A process name as a figure key: ``motion-estimation`` -> ``motion_estimation``."""
+    return name.replace("-", "_").replace("+", "_")
 
 
 def _free_port() -> int:
@@ -130,14 +143,63 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _cpu_s(pids: list[int]) -> float:
-    """User + system CPU seconds used so far by these processes (all their threads)."""
-    total = 0
-    for pid in pids:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        total += int(fields[11]) + int(fields[12])
-    return total / os.sysconf("SC_CLK_TCK")
+#: Zenoh's runtime threads by name prefix (zenoh 1.x names its tokio pools): ``rx`` reads the
+#: links and runs subscriber callbacks (so our hand-off of a payload into the loop's inbox),
+#: ``tx`` writes them; ``net``, ``acc``, ``app`` and the rest are its other pools.
+ZENOH_THREADS = ("rx", "tx")
+#: Where a process's CPU goes, in the order printed: the Python loop (a service's main thread,
+#: a skeleton node's loop threads), Zenoh's receiving and sending threads, everything else.
+THREAD_GROUPS = ("loop", "rx", "tx", "other")
+
+
+def _thread_ticks(pid: int) -> dict[int, tuple[str, int]]:
+    """tid -> (thread group, user + system clock ticks so far) of every thread of ``pid``."""
+    out: dict[int, tuple[str, int]] = {}
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except FileNotFoundError:
+        return out
+    for tid in tids:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                text = f.read()
+        except (FileNotFoundError, ProcessLookupError):
+            continue  # the thread ended meanwhile
+        comm = text[text.index("(") + 1:text.rindex(")")]
+        fields = text.rsplit(")", 1)[1].split()
+        zenoh_pool = comm.split("-")[0] in ("rx", "tx", "net", "acc", "app")
+        group = next((g for g in ZENOH_THREADS if comm.startswith(g + "-")),
+                     "other" if zenoh_pool else "loop")
+        out[int(tid)] = (group, int(fields[11]) + int(fields[12]))
+    return out
+
+
+class CpuMeter:
+    """CPU of named processes between :meth:`start` and :meth:`stop`, by thread group, read
+    from /proc (no instrumentation in the processes measured)."""
+
+    def __init__(self, pids: dict[str, int]) -> None:
+        self.pids = pids
+        self._t0: dict[str, dict[int, tuple[str, int]]] = {}
+        self.seconds: dict[str, dict[str, float]] = {}
+
+    def start(self) -> None:
+        self._t0 = {name: _thread_ticks(pid) for name, pid in self.pids.items()}
+
+    def stop(self) -> None:
+        tick = 1.0 / os.sysconf("SC_CLK_TCK")
+        for name, pid in self.pids.items():
+            groups = dict.fromkeys(THREAD_GROUPS, 0.0)
+            before = self._t0.get(name, {})
+            for tid, (group, ticks) in _thread_ticks(pid).items():
+                groups[group] += (ticks - before.get(tid, (group, 0))[1]) * tick
+            self.seconds[name] = groups
+
+    def per_frame_us(self, frames: int) -> dict[str, dict[str, float]]:
+        """Process -> thread group -> us of CPU a frame (and ``total``)."""
+        return {name: {**{g: v / frames * 1e6 for g, v in groups.items()},
+                       "total": sum(groups.values()) / frames * 1e6}
+                for name, groups in self.seconds.items()}
 
 
 @contextmanager
@@ -240,6 +302,69 @@ def message_sizes(frames: list[np.ndarray]) -> tuple[int, int, int, int]:
             len(cmd.encode()))
 
 
+#: The parts of a loop's work per frame that :func:`stage_costs` times.
+PARTS = ("decode", "work", "encode")
+
+
+def stage_costs(frames: list[np.ndarray], passes: int = 3) -> dict[str, dict[str, float]]:
+    """us a frame of what each process's loop does with a frame, timed here (median over the
+    frames, best of ``passes``) rather than inside the services, which would perturb the run:
+    process -> ``decode`` (and validate its inputs), ``work`` (its computation), ``encode``
+    (build, validate and encode its output). The camera's work (reading its source) is not
+    timed; the auto-tuner's (run with ``--no-tune``) is keeping a copy of every frame."""
+    warm_up()
+    params = TrackerParams()
+    ctrl = FuzzyController(FuzzySurface.compile())
+    best: dict[str, dict[str, float]] = {}
+    times: dict[tuple[str, str], list[float]] = {}
+
+    def lap(proc: str, part: str, t0: float) -> float:
+        """Record the time since ``t0`` as ``proc``'s ``part``; the time now."""
+        now = time.perf_counter()
+        times.setdefault((proc, part), []).append((now - t0) * 1e6)
+        return time.perf_counter()
+
+    for p in range(passes):
+        tracker = Tracker(params)
+        times.clear()
+        for k, f in enumerate(frames):
+            stamp = time.time_ns()
+            t = time.perf_counter()
+            payload = Frame.from_image(f, seq=k, stamp_ns=stamp).encode()
+            t = lap("camera", "encode", t)
+            frame = Frame.decode(payload)
+            t = lap("preprocessing", "decode", t)
+            pre = preprocess(frame.data, params)
+            t = lap("preprocessing", "work", t)
+            pre_payload = PreFrame(seq=k, stamp_ns=stamp, width=frame.width,
+                                   height=frame.height, data=pre.filtered,
+                                   candidates=pre.candidates, strength=pre.strength,
+                                   params_id=0).encode()
+            t = lap("preprocessing", "encode", t)
+            pre_msg = PreFrame.decode(pre_payload)
+            t = lap("motion-estimation", "decode", t)
+            est = tracker.update(Preprocessed(pre_msg.data, pre_msg.candidates,
+                                              pre_msg.strength))
+            t = lap("motion-estimation", "work", t)
+            est_payload = estimate_message(est, seq=k, stamp_ns=stamp, params_id=0).encode()
+            t = lap("motion-estimation", "encode", t)
+            e = Estimate.decode(est_payload)
+            t = lap("fuzzy-controller", "decode", t)
+            ctrl.update(e.xc, e.scale, k / 30.0 + 1.0 + 100 * p, frame.width, npi=e.npi)
+            t = lap("fuzzy-controller", "work", t)
+            CmdVel(seq=k, stamp_ns=stamp, vx=0.1, vy=-0.1, wz=0.0).encode()
+            t = lap("fuzzy-controller", "encode", t)
+            kept = Frame.decode(payload)
+            Estimate.decode(est_payload)
+            t = lap("auto-tuner", "decode", t)
+            np.array(kept.data)
+            lap("auto-tuner", "work", t)
+        for (proc, part), ts in times.items():
+            row = best.setdefault(proc, {})
+            row[part] = min(row.get(part, math.inf), float(np.median(ts)))
+    return best
+
+
 def skeleton(session: zenoh.Session, endpoint: str, sizes: tuple[int, ...], *, fps: float,
              seconds: float, handoff: bool = False) -> dict[str, float]:
     """Run the raw Zenoh skeleton for ``seconds``: estimates per second and the latency from
@@ -253,24 +378,27 @@ def skeleton(session: zenoh.Session, endpoint: str, sizes: tuple[int, ...], *, f
         stamps.append((time.time_ns(), int.from_bytes(sample.payload.to_bytes()[:8], "little")))
 
     with ExitStack() as stack:
-        pids = [os.getpid()]  # the router and this collector
+        pids = {ROUTER: os.getpid()}  # the router and this collector
         for role in (*SERVICES, "camera"):
-            pids.append(stack.enter_context(_process(
+            pids[role] = stack.enter_context(_process(
                 [sys.executable, "-c", SKELETON_NODE, role, endpoint, f"{fps:g}",
                  str(int(handoff)), *size_args],
-                stdin=True, ready_line=True)).pid)
+                stdin=True, ready_line=True)).pid
         time.sleep(1.0)  # steady state
         sub = session.declare_subscriber("bench/skel/est", on)
-        cpu0 = _cpu_s(pids)
+        meter = CpuMeter(pids)
+        meter.start()
         time.sleep(seconds)  # a measurement window, not synchronisation
-        cpu = _cpu_s(pids) - cpu0
+        meter.stop()
         sub.undeclare()
     if len(stamps) < 10:
         raise RuntimeError(f"raw zenoh skeleton: only {len(stamps)} estimates in {seconds} s")
     lat = np.array([(t - s) * 1e-6 for t, s in stamps])
+    per = meter.per_frame_us(len(stamps))
     return {"rate_hz": len(stamps) / seconds, "lat_p50_ms": float(np.median(lat)),
             "lat_p99_ms": float(np.percentile(lat, 99)), "hop_ms": float(np.median(lat)) / 3,
-            "cpu_us_per_frame": cpu / len(stamps) * 1e6}
+            "cpu_us_per_frame": sum(p["total"] for p in per.values()),
+            **{f"cpu_{_slug(n)}_{g}": v for n, groups in per.items() for g, v in groups.items()}}
 
 
 def _collect_estimates(session: zenoh.Session, keys: Keys, seconds: float
@@ -292,22 +420,23 @@ def distributed(session: zenoh.Session, endpoint: str, keys: Keys, *, fps: float
                 seconds: float) -> dict[str, float]:
     """Run camera + four services for ``seconds``; latency and rate figures."""
     with ExitStack() as stack:
-        pids = [os.getpid()]  # the router and this collector
+        pids = {ROUTER: os.getpid()}  # the router and this collector
         for name in SERVICES:
             # the tuner buffers every frame but runs no experiment: its worker would take the
             # CPU the pipeline is being measured on
             extra = ("--no-tune",) if name == "auto-tuner" else ()
-            pids.append(stack.enter_context(_process(_vistrack(name, endpoint, *extra))).pid)
+            pids[name] = stack.enter_context(_process(_vistrack(name, endpoint, *extra))).pid
         _wait_alive(session, keys, {"preprocessing", "motion_estimation", "auto_tuner",
                                     "fuzzy_controller"}, 60)
-        pids.append(stack.enter_context(_process(_vistrack(
+        pids["camera"] = stack.enter_context(_process(_vistrack(
             "camera", endpoint, "--source", "builtin", "--loop", "--fps", f"{fps:g}",
-            "--in-flight", "2"))).pid)
+            "--in-flight", "2"))).pid
         _wait_alive(session, keys, {"camera"}, 30)
         time.sleep(1.0)  # let the first-frame work (feature selection) pass: steady state
-        cpu0 = _cpu_s(pids)
+        meter = CpuMeter(pids)
+        meter.start()
         samples = _collect_estimates(session, keys, seconds)
-        cpu = _cpu_s(pids) - cpu0
+        meter.stop()
         status = {s["service"]: s for s in query_status(session, keys, timeout=2.0)}
     if len(samples) < 10:
         raise RuntimeError(f"only {len(samples)} estimates in {seconds} s")
@@ -315,15 +444,17 @@ def distributed(session: zenoh.Session, endpoint: str, keys: Keys, *, fps: float
     pre = status.get("preprocessing", {})
     me = status.get("motion_estimation", {})
     proc_ms = (pre.get("p50_ms") or 0.0) + (me.get("p50_ms") or 0.0)
+    per = meter.per_frame_us(len(samples))
     return {"rate_hz": len(samples) / seconds, "pre_p50_ms": pre.get("p50_ms") or 0.0,
             "me_p50_ms": me.get("p50_ms") or 0.0, "lat_p50_ms": float(np.median(lat)),
             "lat_p99_ms": float(np.percentile(lat, 99)), "proc_p50_ms": proc_ms,
             "hop_ms": (float(np.median(lat)) - proc_ms) / 3.0,
             "dropped": float(pre.get("dropped", 0) + me.get("dropped", 0)),
-            "cpu_us_per_frame": cpu / len(samples) * 1e6}
+            "cpu_us_per_frame": sum(p["total"] for p in per.values()),
+            **{f"cpu_{_slug(n)}_{g}": v for n, groups in per.items() for g, v in groups.items()}}
 
 
-def bench_pipeline(out=sys.stdout, seconds: float = 5.0) -> dict[str, float]:
+def bench_pipeline(out: TextIO = sys.stdout, seconds: float = 5.0) -> dict[str, float]:
     """Run every part and print the table; return the figures."""
     frames = synthetic.builtin_sequence(60)
     keys = Keys("robot")
@@ -384,4 +515,44 @@ def bench_pipeline(out=sys.stdout, seconds: float = 5.0) -> dict[str, float]:
     ]
     for label, value in rows:
         print(f"{label:56s} {value}", file=out)
+    costs = stage_costs(frames)
+    fig.update({f"stage_{_slug(n)}_{k}_us": v for n, parts in costs.items()
+                for k, v in parts.items()})
+    print_cpu_table(fig, costs, out)
     return fig
+
+
+def print_cpu_table(fig: dict[str, float], costs: dict[str, dict[str, float]],
+                    out: TextIO) -> None:
+    """Where each process's CPU goes, unpaced: ours against the skeleton's same process."""
+    print("\n# where the CPU goes, unpaced, us a frame (per estimate delivered); from /proc, by "
+          "thread: loop = the Python loop (a service's main thread; the skeleton's loop "
+          "threads), rx = Zenoh's link readers, which run the subscriber callbacks (our "
+          "hand-off into the loop's inbox), tx = its writers, other = its other pools; "
+          "decode / work / encode = the loop's parts timed in this process on the same "
+          "frames, rest = loop minus those (receiving from the inbox, publishing, status "
+          "counting, the loop itself)", file=out)
+    print(f"{'process':18s}{'ours':>7s}{'skeleton':>9s}{'extra':>7s}  |{'loop':>6s}{'decode':>8s}"
+          f"{'work':>7s}{'encode':>8s}{'rest':>7s}  |{'rx':>6s}{'tx':>6s}{'other':>7s}  "
+          f"| skeleton:{'loop':>6s}{'rx':>6s}{'tx':>6s}{'other':>7s}", file=out)
+    sums = dict.fromkeys(("ours", "skel", "decode", "work", "encode"), 0.0)
+    for name in PROCESSES:
+        ours = {g: fig.get(f"free_cpu_{_slug(name)}_{g}", 0.0) for g in (*THREAD_GROUPS, "total")}
+        skel = {g: fig.get(f"skeleton_loop_cpu_{_slug(name)}_{g}", 0.0)
+                for g in (*THREAD_GROUPS, "total")}
+        part = {k: costs.get(name, {}).get(k, 0.0) for k in PARTS}
+        rest = ours["loop"] - sum(part.values())
+        for k in PARTS:
+            sums[k] += part[k]
+        sums["ours"] += ours["total"]
+        sums["skel"] += skel["total"]
+        cells = "".join(f"{part[k]:{w}.0f}" if name in costs else f"{'-':>{w}s}"
+                        for k, w in (("decode", 8), ("work", 7), ("encode", 8)))
+        print(f"{name:18s}{ours['total']:7.0f}{skel['total']:9.0f}"
+              f"{ours['total'] - skel['total']:+7.0f}  |{ours['loop']:6.0f}{cells}"
+              f"{rest:7.0f}  |{ours['rx']:6.0f}{ours['tx']:6.0f}{ours['other']:7.0f}  "
+              f"|          {skel['loop']:6.0f}{skel['rx']:6.0f}{skel['tx']:6.0f}"
+              f"{skel['other']:7.0f}", file=out)
+    print(f"{'all processes':18s}{sums['ours']:7.0f}{sums['skel']:9.0f}"
+          f"{sums['ours'] - sums['skel']:+7.0f}  |{'':6s}{sums['decode']:8.0f}"
+          f"{sums['work']:7.0f}{sums['encode']:8.0f}", file=out)

@@ -3,8 +3,9 @@ pipeline``).
 
 Prints the table: a raw Zenoh round trip, the raw Zenoh skeleton of the five processes (paced
 and unpaced, receiving in Zenoh's callbacks and in RingChannel(1) loops), the stages in one
-process, and our five processes at 30 fps and unpaced. Asserts only that every figure was
-measured and that the ratios are those of the figures, never a time.
+process, and our five processes at 30 fps and unpaced; then where each process's CPU goes,
+unpaced, by thread and by part of its loop. Asserts only that every figure was measured and
+that the ratios and sums are those of the figures, never a time.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import math
 
 import pytest
 
-from vistrack.services.bench.pipeline import bench_pipeline
+from vistrack.services.bench.pipeline import PROCESSES, THREAD_GROUPS, _slug, bench_pipeline
 
 pytestmark = pytest.mark.bench
 
@@ -38,3 +39,19 @@ def test_bench_pipeline(capsys):
     assert fig["throughput_ratio_skeleton_loop"] == pytest.approx(fig["free_rate_hz"]
                                                                   / fig["skeleton_loop_rate_hz"])
     assert fig["free_dropped"] >= 0
+    # the CPU table: every process measured by thread, adding up to the run's total
+    for run in ("free", "skeleton_loop"):
+        total = 0.0
+        for name in PROCESSES:
+            groups = [fig[f"{run}_cpu_{_slug(name)}_{g}"] for g in THREAD_GROUPS]
+            assert all(v >= 0 for v in groups), (run, name, groups)
+            assert sum(groups) == pytest.approx(fig[f"{run}_cpu_{_slug(name)}_total"])
+            total += fig[f"{run}_cpu_{_slug(name)}_total"]
+        assert total == pytest.approx(fig[f"{run}_cpu_us_per_frame"])
+    for name, parts in (("preprocessing", ("decode", "work", "encode")),
+                        ("motion_estimation", ("decode", "work", "encode")),
+                        ("fuzzy_controller", ("decode", "work", "encode")),
+                        ("camera", ("encode",)), ("auto_tuner", ("decode", "work"))):
+        for part in parts:
+            assert fig[f"stage_{name}_{part}_us"] > 0, (name, part)
+    assert "where the CPU goes" in buf.getvalue()

@@ -34,7 +34,9 @@ ROOT = "vistrack/robot"
 FPS = 15
 SCENE_A, SCENE_B = 45, 75
 WINDOWS = ["--search-size", "31", "--corr-size", "15"]  # not a point of the sweep
-TUNER = [*WINDOWS, "--buffer", "15", "--tune-sweep-step", "5", "--min-interval", "1"]
+# a work budget of 10 of the 15 buffered 256x256 frames: 10 x 65536 px = 0.655 MP
+TUNER = [*WINDOWS, "--buffer", "15", "--tune-sweep-step", "5", "--min-interval", "1",
+         "--max-megapixels", "0.66"]
 MAX_GAP_S = 1.0
 
 
@@ -114,6 +116,8 @@ def test_tunes_retunes_on_a_scene_change_and_never_stalls_the_estimates(frames_d
 
     # the initial tuning: a full report, and new parameters (the flags' windows are not swept)
     assert first["trigger"] == "initial tuning" and first["changed"] is True
+    # the worker ran on the latest frames the work budget allows, and the report says so
+    assert (first["frames"], first["frames_offered"], first["max_megapixels"]) == (10, 15, 0.66)
     for _, p in reports.items:
         Report.decode(p)  # every contract field, within the readers' limits
         assert len(p) < 64 * 1024
@@ -162,6 +166,7 @@ def test_tunes_retunes_on_a_scene_change_and_never_stalls_the_estimates(frames_d
     (["--tune-sweep-step", "0"], "--tune-sweep-step 0 is out of range: allowed 1..10"),
     (["--tolerance", "-0.5"], "--tolerance -0.5 is out of range: allowed 0..100"),
     (["--buffer", "1"], "--buffer 1 is out of range: allowed 2..1000"),
+    (["--max-megapixels", "0"], "--max-megapixels 0 is out of range: allowed 0.1..1000"),
 ])
 def test_bad_flags_are_one_line_and_exit_2(flags, message):
     run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "auto-tuner", *flags],

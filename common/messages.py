@@ -14,6 +14,17 @@ mismatch, over-long field) raises :class:`MessageError`, whose text names the fi
 never raises anything else, whatever the bytes, so a service can count and log the rejection
 and go on. The same checks run in each message's constructor, so a producer cannot encode a
 message its consumers would reject.
+
+The messages of the hot path (``camera/frame``, ``preprocessing/frame``, ``motion/estimate``)
+are decoded first by msgspec, which parses and type-checks the map in C against a
+:class:`msgspec.Struct` holding the same rules (types, ranges, finiteness), with the array
+fields taken as zero-copy views of the payload; the cross-field checks follow in numpy. Only a
+payload msgspec refuses goes through the checks above, which name the field and the allowed
+range: so the accepted messages and the errors are exactly those of the checks, at C speed for
+valid messages. One difference: msgspec skips a field it does not know without reading its
+name, so an unknown field whose name is not UTF-8 is ignored, as unknown fields are, where
+msgpack refused the whole payload. Encoding goes through msgspec's encoder, which writes the
+same bytes as msgpack.
 """
 
 from __future__ import annotations
@@ -21,11 +32,13 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, TypeVar
+from typing import Annotated, Any, ClassVar, Literal, TypeVar
 
 import msgpack
+import msgspec
 import numpy as np
 
 from vistrack.common.keys import key_suffix
@@ -219,10 +232,18 @@ def _np_default(obj: Any) -> Any:
     raise TypeError(f"cannot encode {type(obj).__name__} in a message")
 
 
+_ENCODER = msgspec.msgpack.Encoder(enc_hook=_np_default)
+
+
 def pack(values: Mapping[str, Any]) -> bytes:
     """Encode a map as a versioned payload (``"v": 1`` first), numpy values allowed."""
-    return msgpack.packb({"v": SCHEMA_VERSION, **values}, use_bin_type=True,
-                         default=_np_default)
+    try:
+        return _ENCODER.encode({"v": SCHEMA_VERSION, **values})
+    except (TypeError, OverflowError):
+        # what msgspec cannot write (a dict with non-str keys in a report, an int beyond
+        # 64 bits) raises as msgpack does, with msgpack's own message
+        return msgpack.packb({"v": SCHEMA_VERSION, **values}, use_bin_type=True,
+                             default=_np_default)
 
 
 def unpack(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
@@ -301,6 +322,7 @@ def _bin_field(where: str, name: str, m: Mapping[str, Any]) -> bytes:
 # -- messages -------------------------------------------------------------------------------
 
 _M = TypeVar("_M", bound="_Message")
+_FIELD_NAMES: dict[type, tuple[str, ...]] = {}  # message class -> its field names, in order
 
 
 class _Message:
@@ -327,6 +349,9 @@ class _Message:
         """The msgpack payload: a map with ``"v": 1`` and every field."""
         return pack(self._wire_fields())
 
+    #: The msgspec decoder of the hot-path messages (see the module notes), else None.
+    _FAST: ClassVar[msgspec.msgpack.Decoder | None] = None
+
     @classmethod
     def decode(cls: type[_M], payload: bytes | bytearray | memoryview) -> _M:
         """Parse and validate a payload.
@@ -336,7 +361,30 @@ class _Message:
         MessageError
             For any invalid payload (and nothing else), naming the field.
         """
+        if cls._FAST is not None and isinstance(payload, (bytes, bytearray, memoryview)):
+            try:
+                values = cls._from_wire(cls._FAST.decode(payload))
+            except msgspec.DecodeError:  # ValidationError too: the checks below name it
+                values = None
+            if values is not None:
+                msg = object.__new__(cls)  # valid: the checks would change nothing
+                msg.__dict__.update(values)
+                return msg
         return cls._from_map(unpack(payload))
+
+    @classmethod
+    def _from_wire(cls, wire: Any) -> dict[str, Any] | None:
+        """Every field's value from a message msgspec decoded, arrays made, or None when a
+        cross-field check fails (the full checks then name it)."""
+        return {name: getattr(wire, name) for name in cls._field_names()}
+
+    @classmethod
+    def _field_names(cls) -> tuple[str, ...]:
+        names = _FIELD_NAMES.get(cls)
+        if names is None:
+            names = _FIELD_NAMES[cls] = tuple(
+                f.name for f in dataclasses.fields(cls))  # type: ignore[arg-type]
+        return names
 
     @classmethod
     def _from_map(cls: type[_M], m: dict[str, Any]) -> _M:
@@ -375,6 +423,66 @@ def _image_from_wire(where: str, values: dict[str, Any]) -> None:
     if len(data) != width * height:
         raise _error(where, "data", f"must be width*height = {width * height} bytes", data)
     values["data"] = np.frombuffer(data, dtype=np.uint8).reshape(height, width)
+
+
+# -- msgspec types of the hot-path messages: the checks above, as msgspec constraints -------
+
+_BIG = sys.float_info.max  # NaN and the infinities fail -max <= x <= max: "must be finite"
+_Count = Annotated[int, msgspec.Meta(ge=0)]
+_Finite = Annotated[float, msgspec.Meta(ge=-_BIG, le=_BIG)]
+_FiniteNonNeg = Annotated[float, msgspec.Meta(ge=0.0, le=_BIG)]
+_FinitePos = Annotated[float, msgspec.Meta(gt=0.0, le=_BIG)]
+_Side = Annotated[int, msgspec.Meta(ge=1, le=MAX_SIDE)]
+_ParamsId = Annotated[int, msgspec.Meta(ge=0, le=MAX_PARAMS_ID)]
+
+
+class _FrameWire(msgspec.Struct):
+    v: Literal[1]
+    seq: _Count
+    stamp_ns: _Count
+    width: _Side
+    height: _Side
+    encoding: Literal["mono8"]
+    data: memoryview  # a view of the payload, not a copy
+
+
+class _PreFrameWire(_FrameWire):
+    candidates: memoryview
+    strength: memoryview
+    params_id: _ParamsId
+
+
+class _EstimateWire(msgspec.Struct):
+    v: Literal[1]
+    seq: _Count
+    stamp_ns: _Count
+    npi: _Count
+    xc: _Finite
+    yc: _Finite
+    xe: _FiniteNonNeg
+    ye: _FiniteNonNeg
+    dx: _Finite
+    dy: _Finite
+    scale: _FinitePos
+    t_ms: _FiniteNonNeg
+    first: bool
+    features: list[tuple[_Count, _Finite, _Finite]]
+    params_id: _ParamsId
+    valid: bool | msgspec.UnsetType = msgspec.UNSET  # absent: an older publisher's
+
+
+def _image_view(wire: Any) -> np.ndarray | None:
+    """The (height, width) uint8 view of a decoded image's data, or None if its size is off."""
+    if len(wire.data) != wire.width * wire.height:
+        return None
+    return _read_only(np.frombuffer(wire.data, np.uint8).reshape(wire.height, wire.width))
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    """``array`` made read-only: a view of a payload that may be a bytearray must not write
+    into it."""
+    array.flags.writeable = False
+    return array
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -421,6 +529,17 @@ class Frame(_Message):
     def _arrays_from_wire(cls, values: dict[str, Any]) -> dict[str, Any]:
         _image_from_wire(cls.KEY, values)
         return values
+
+    @classmethod
+    def _from_wire(cls, wire: Any) -> dict[str, Any] | None:
+        data = _image_view(wire)
+        if data is None:
+            return None
+        return {"seq": wire.seq, "stamp_ns": wire.stamp_ns, "width": wire.width,
+                "height": wire.height, "encoding": wire.encoding, "data": data}
+
+
+Frame._FAST = msgspec.msgpack.Decoder(_FrameWire)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -496,6 +615,29 @@ class PreFrame(_Message):
         values["strength"] = np.frombuffer(strength, dtype="<f4")
         return values
 
+    @classmethod
+    def _from_wire(cls, wire: Any) -> dict[str, Any] | None:
+        data = _image_view(wire)
+        n = len(wire.candidates)
+        if data is None or n % 4 or len(wire.strength) != n:
+            return None
+        cand = _read_only(np.frombuffer(wire.candidates, "<i2").reshape(-1, 2))
+        strength = _read_only(np.frombuffer(wire.strength, "<f4"))
+        if cand.size:
+            # as unsigned, a negative coordinate is >= 32768, beyond any side: one test a
+            # coordinate, each over a 1-D view (a reduction along axis 0 cost 6 times more)
+            xy = cand.view("<u2").reshape(-1)
+            if xy[0::2].max() >= wire.width or xy[1::2].max() >= wire.height:
+                return None
+            if not np.isfinite(strength).all():
+                return None
+        return {"seq": wire.seq, "stamp_ns": wire.stamp_ns, "width": wire.width,
+                "height": wire.height, "encoding": wire.encoding, "data": data,
+                "candidates": cand, "strength": strength, "params_id": wire.params_id}
+
+
+PreFrame._FAST = msgspec.msgpack.Decoder(_PreFrameWire)
+
 
 @dataclass(frozen=True, kw_only=True)
 class Estimate(_Message):
@@ -553,6 +695,17 @@ class Estimate(_Message):
         elif m["valid"] is None:  # None means "derive" to the constructor only
             raise _error(cls.KEY, "valid", "must be true or false", None)
         return super()._from_map(m)
+
+    @classmethod
+    def _from_wire(cls, wire: Any) -> dict[str, Any] | None:
+        values = {name: getattr(wire, name) for name in cls._field_names()}
+        values["features"] = list(map(list, wire.features))  # [id, x, y] lists, as checked
+        if wire.valid is msgspec.UNSET:  # derived from npi, as the constructor does
+            values["valid"] = wire.npi >= MIN_VALID_NPI
+        return values
+
+
+Estimate._FAST = msgspec.msgpack.Decoder(_EstimateWire)
 
 
 @dataclass(frozen=True, kw_only=True)

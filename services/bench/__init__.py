@@ -7,6 +7,7 @@ One module a benchmark, each also run under pytest by ``tests/bench`` (``-m benc
   Zenoh skeleton of the same processes;
 * :mod:`.net`: latency and throughput over loopback, TCP, mutual TLS and the multi-host chain;
 * :mod:`.tuner`: one tuning cycle of the auto-tuner;
+* :mod:`.messages`: decoding and encoding the hot-path messages, msgspec against the checks;
 * :mod:`.controller`: the fuzzy controller against a proportional one and scikit-fuzzy;
 * :mod:`.idle`: the CPU each process of ``vistrack up`` takes at 30 fps, from /proc;
 * :mod:`.faults`: hostile and extreme input on the live system, crash and hang to a new
@@ -43,6 +44,12 @@ def _tuner(out=sys.stdout) -> dict[str, float]:
     from .tuner import bench_tuner
 
     return bench_tuner(out=out)
+
+
+def _messages(out=sys.stdout) -> dict[str, float]:
+    from .messages import bench_messages
+
+    return bench_messages(out=out)
 
 
 def _controller(out=sys.stdout) -> dict[str, float]:
@@ -94,6 +101,7 @@ BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": _tracker,
                                                        "net": _net,
                                                        "pipeline": _pipeline,
                                                        "tuner": _tuner,
+                                                       "messages": _messages,
                                                        "controller": _controller,
                                                        "idle": _idle,
                                                        "faults": _faults,

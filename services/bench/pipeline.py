@@ -51,6 +51,7 @@ from ...common.params import TrackerParams
 from ...common.vision import Preprocessed, Tracker, preprocess, warm_up
 from ..fuzzy_controller.control import FuzzyController, FuzzySurface
 from ..motion_estimation.service import estimate_message
+from .messages import pipeline_messages
 
 ECHO_PEER = """
 import json, sys, time, zenoh
@@ -287,19 +288,8 @@ def in_process(frames: list[np.ndarray]) -> float:
 def message_sizes(frames: list[np.ndarray]) -> tuple[int, int, int, int]:
     """Bytes of our camera frame, pre-processed frame, estimate and command for these frames,
     encoded as the services encode them."""
-    params = TrackerParams()
-    tracker = Tracker(params)
-    for f in frames[:2]:
-        pre = preprocess(f, params)
-        est = tracker.update(pre)
-    frame = Frame.from_image(frames[1], seq=1, stamp_ns=time.time_ns())
-    pre_msg = PreFrame(seq=1, stamp_ns=frame.stamp_ns, width=frame.width, height=frame.height,
-                       data=pre.filtered, candidates=pre.candidates, strength=pre.strength,
-                       params_id=0)
-    est_msg = estimate_message(est, seq=1, stamp_ns=frame.stamp_ns, params_id=0)
-    cmd = CmdVel(seq=1, stamp_ns=frame.stamp_ns, vx=0.1, vy=-0.1, wz=0.0)
-    return (len(frame.encode()), len(pre_msg.encode()), len(est_msg.encode()),
-            len(cmd.encode()))
+    frame, pre, est, cmd = pipeline_messages(frames)
+    return len(frame.encode()), len(pre.encode()), len(est.encode()), len(cmd.encode())
 
 
 #: The parts of a loop's work per frame that :func:`stage_costs` times.

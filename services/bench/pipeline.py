@@ -536,7 +536,8 @@ def print_cpu_table(fig: dict[str, float], costs: dict[str, dict[str, float]],
             sums[k] += part[k]
         sums["ours"] += ours["total"]
         sums["skel"] += skel["total"]
-        cells = "".join(f"{part[k]:{w}.0f}" if name in costs else f"{'-':>{w}s}"
+        timed = costs.get(name, {})
+        cells = "".join(f"{part[k]:{w}.0f}" if k in timed else f"{'-':>{w}s}"
                         for k, w in (("decode", 8), ("work", 7), ("encode", 8)))
         print(f"{name:18s}{ours['total']:7.0f}{skel['total']:9.0f}"
               f"{ours['total'] - skel['total']:+7.0f}  |{ours['loop']:6.0f}{cells}"

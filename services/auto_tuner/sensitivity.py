@@ -89,9 +89,12 @@ TOLERANCE_RANGE = (0.0, 100.0)
 BUFFER_RANGE = (2, 1000)
 #: The buffer's work budget: the pixels of all the frames a cycle runs on, in megapixels. A
 #: cycle pre-processes every frame once per distinct pre-processing (13 of them), so that part
-#: of its cost grows with frames x pixels; 30 frames of 1280x720 (27.6 MP) fit, larger frames
-#: keep fewer (the latest), down to MIN_FRAMES.
-DEFAULT_MEGAPIXELS = 28.0
+#: of its cost grows with frames x pixels; 30 frames of 640x480 (9.2 MP) fit, larger frames
+#: keep fewer (the latest): 21 at 1280x720, 9 at 1920x1080, down to MIN_FRAMES. With all 30
+#: frames of 1280x720 a cycle took 7.0 to 7.7 s of CPU on this machine, too near the 8 s it
+#: may take; with 21, the optimum's ex and ey on all 30 frames stayed within the tolerance
+#: (``vistrack bench tuner``).
+DEFAULT_MEGAPIXELS = 20.0
 MEGAPIXELS_RANGE = (0.1, 1000.0)
 #: The fewest frames the budget leaves: t1, and three frames of tf and motion.
 MIN_FRAMES = 4
@@ -413,7 +416,7 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
         design's time, and analysed against pure error; the sweep is not replicated.
     max_megapixels : the work budget (:func:`frames_within`): the cycle runs on the latest
         frames whose pixels fit it, at least :data:`MIN_FRAMES`; None runs on all. Default
-        :data:`DEFAULT_MEGAPIXELS`, 30 frames of 1280x720.
+        :data:`DEFAULT_MEGAPIXELS` (30 frames of 640x480, 21 of 1280x720).
     """
     if not np.isfinite(tolerance) or tolerance < 0:
         raise ValueError(f"tolerance={tolerance!r} must be a number >= 0 (px)")

@@ -78,7 +78,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                default=DEFAULT_MEGAPIXELS, metavar="MP",
                help="work budget: the experiment runs on the latest frames of the buffer whose "
                     f"pixels fit, at least {MIN_FRAMES}; %(allowed)s (default "
-                    f"{DEFAULT_MEGAPIXELS:g}: 30 frames of 1280x720, as the service)")
+                    f"{DEFAULT_MEGAPIXELS:g}: 30 frames of 640x480, 21 of 1280x720, as the "
+                    "service)")
     parser.add_argument("--bounce", action="store_true",
                         help="fill the buffer by playing a shorter sequence back and forth")
     add_number(parser, "--repeats", lo=1, hi=20, integer=True, default=DEFAULT_REPEATS,

@@ -194,7 +194,7 @@ def _publish_until_confirmed(session: zenoh.Session, keys: Keys, publisher: zeno
                              new: TrackerParams, params_id: int, deadline: float
                              ) -> dict[str, Any]:
     """Publish the set (again every REPEAT_S) until CONFIRMING_SERVICE runs with
-    ``params_id``; return its params status map."""
+    ``params_id`` and the values set; return its params status map."""
     # seq: wall-clock microseconds, so it keeps increasing across invocations and stays above
     # the tuner's small seq on the same key (a jump down is a publisher restart for the
     # receivers' gap counters, a jump up would count phantom drops)

@@ -27,6 +27,10 @@ import msgpack
 import pytest
 import zenoh
 
+from vistrack.common.keys import Keys
+from vistrack.common.messages import pack
+from vistrack.common.params import TrackerParams
+
 from procs import Collector, Proc, router, services, zenoh_config
 
 pytestmark = pytest.mark.integration
@@ -282,6 +286,37 @@ def test_services_run_by_hand_run_numeric_libraries_on_one_thread(pipeline, endp
 def test_params_set_reaches_motion_estimation(pipeline, endpoint, session):
     with collecting(session, f"{ROOT}/motion/estimate") as est:
         _params_set_and_get(endpoint, est)
+
+
+def test_params_set_is_not_confirmed_by_another_set_with_its_id(endpoint, session):
+    """The tool takes the id after the largest in force; if the tuner takes the same id first
+    (its initial tuning, finishing meanwhile), motion-estimation runs that id with the tuner's
+    values and refuses the user's as stale. Confirming by the id alone then reported the user's
+    set as in force (seen in the multi-host test); it must say it was not confirmed, and who
+    runs that id. A stand-in motion-estimation (robot "race") answers its status with
+    params_id 2, then, once the set arrives, with the tuner's params_id 3."""
+    keys = Keys("race")
+    tuner = {"params_id": 3, "source": "tuner", "reason": "initial tuning",
+             **TrackerParams(search_size=12, corr_size=5).factors()}
+    state = {"params": {**tuner, "params_id": 2}}
+
+    def on_status(query: zenoh.Query) -> None:
+        query.reply(query.key_expr, pack({"service": "motion_estimation", **state}))
+
+    token = session.liveliness().declare_token(keys.alive("motion_estimation"))
+    queryable = session.declare_queryable(keys.status("motion_estimation"), on_status)
+    sub = session.declare_subscriber(keys.params, lambda _: state.update(params=tuner))
+    try:
+        run = tool(endpoint, "params", "set", "search_size=19", "--timeout", "3",
+                   "--robot", "race")
+    finally:
+        sub.undeclare()
+        queryable.undeclare()
+        token.undeclare()
+    assert run.returncode == 1, run.stdout + run.stderr
+    assert run.stderr.count("\n") == 1
+    assert "did not confirm params_id 3" in run.stderr
+    assert "runs params_id 3 from tuner" in run.stderr
 
 
 def _params_set_and_get(endpoint: str, est: Collector) -> None:

@@ -17,8 +17,9 @@ message its consumers would reject.
 
 The messages of the hot path (``camera/frame``, ``preprocessing/frame``, ``motion/estimate``)
 are decoded first by msgspec, which parses and type-checks the map in C against a
-:class:`msgspec.Struct` holding the same rules (types, ranges, finiteness), with the array
-fields taken as zero-copy views of the payload; the cross-field checks follow in numpy. Only a
+:class:`msgspec.Struct` holding the same rules (types, ranges, finiteness), with the images
+taken as zero-copy views of the payload (candidates and strengths are copied: aligned, as
+numba wants them); the cross-field checks follow in numpy. Only a
 payload msgspec refuses goes through the checks above, which name the field and the allowed
 range: so the accepted messages and the errors are exactly those of the checks, at C speed for
 valid messages. One difference: msgspec skips a field it does not know without reading its
@@ -621,8 +622,11 @@ class PreFrame(_Message):
         n = len(wire.candidates)
         if data is None or n % 4 or len(wire.strength) != n:
             return None
-        cand = _read_only(np.frombuffer(wire.candidates, "<i2").reshape(-1, 2))
-        strength = _read_only(np.frombuffer(wire.strength, "<f4"))
+        # copied (5 KiB each), not viewed: at their offsets in the payload they are unaligned,
+        # and numba compiles (seconds, on the first frame) and runs other code for unaligned
+        # arrays than for the aligned ones it was warmed up with
+        cand = _read_only(np.frombuffer(wire.candidates, "<i2").reshape(-1, 2).copy())
+        strength = _read_only(np.frombuffer(wire.strength, "<f4").copy())
         if cand.size:
             # as unsigned, a negative coordinate is >= 32768, beyond any side: one test a
             # coordinate, each over a 1-D view (a reduction along axis 0 cost 6 times more)

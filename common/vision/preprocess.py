@@ -389,13 +389,58 @@ def threshold_candidates(grad: np.ndarray, thres_percent: float,
     return _top_k(np.ascontiguousarray(grad, np.float32), k, int(margin))
 
 
+def candidates_of(filtered: np.ndarray, params: TrackerParams) -> tuple[np.ndarray, np.ndarray]:
+    """The THRES_PERCENT candidates of a filtered frame and their strengths: the gradient
+    strength and threshold steps of :func:`preprocess`."""
+    grad = STRENGTHS[params.strength](filtered)
+    # a candidate must hold a correlation window plus one pixel for the Sobel support
+    return threshold_candidates(grad, params.thres_percent, margin=params.corr_half + 1)
+
+
+class DeferredPreprocessed(Preprocessed):
+    """A :class:`Preprocessed` whose candidates are computed when first read.
+
+    The tracker reads them only on a first frame and when it re-detects (a few frames in a
+    hundred); the gradient strength and threshold are about two thirds of pre-processing.
+    The values are those :func:`candidates_of` gives for ``filtered`` and ``params``, computed
+    once, so whether they are read early, late or never, nothing else changes.
+    """
+
+    __slots__ = ()
+
+    def __init__(self, filtered: np.ndarray, params: TrackerParams) -> None:
+        object.__setattr__(self, "filtered", filtered)
+        object.__setattr__(self, "_params", params)
+        object.__setattr__(self, "_computed", None)
+
+    def _get(self) -> tuple[np.ndarray, np.ndarray]:
+        got = self.__dict__["_computed"]
+        if got is None:
+            got = candidates_of(self.filtered, self.__dict__["_params"])
+            object.__setattr__(self, "_computed", got)
+        return got  # type: ignore[no-any-return]
+
+    @property  # type: ignore[misc]
+    def candidates(self) -> np.ndarray:  # type: ignore[override]
+        return self._get()[0]
+
+    @property  # type: ignore[misc]
+    def strength(self) -> np.ndarray:  # type: ignore[override]
+        return self._get()[1]
+
+    @property
+    def computed(self) -> bool:
+        """Whether the candidates have been computed (read) yet."""
+        return self.__dict__["_computed"] is not None
+
+
 def preprocess(gray: np.ndarray, params: TrackerParams) -> Preprocessed:
-    """Filter, gradient and threshold one 8-bit grey frame (H, W) uint8."""
+    """Filter, gradient and threshold one 8-bit grey frame (H, W) uint8.
+
+    The filter runs now; the gradient strength and threshold when the candidates are first
+    read (:class:`DeferredPreprocessed`): same values, only when they are needed.
+    """
     if gray.ndim != 2 or gray.dtype != np.uint8:
         raise ValueError(f"expected a (H, W) uint8 frame, got {gray.shape} {gray.dtype}")
     filtered = gaussian_filter(gray, params.blur_sigma)
-    grad = STRENGTHS[params.strength](filtered)
-    # a candidate must hold a correlation window plus one pixel for the Sobel support
-    cands, strength = threshold_candidates(grad, params.thres_percent,
-                                           margin=params.corr_half + 1)
-    return Preprocessed(np.ascontiguousarray(filtered), cands, strength)
+    return DeferredPreprocessed(np.ascontiguousarray(filtered), params)

@@ -12,6 +12,7 @@ attribute           key suffix                      message (common.messages)
 ``params``          ``tuner/params``                ``Params``
 ``report``          ``tuner/report``                ``Report``
 ``cmd_vel``         ``control/cmd_vel``             ``CmdVel``
+``demand``          ``motion/demand``               ``Demand``
 ``pose``            ``sim/pose``                    ``Pose``
 ==================  ==============================  ==========================
 
@@ -40,6 +41,7 @@ CONTRACT_SUFFIXES: dict[str, str] = {
     "params": "tuner/params",
     "report": "tuner/report",
     "cmd_vel": "control/cmd_vel",
+    "demand": "motion/demand",
     "pose": "sim/pose",
 }
 
@@ -86,7 +88,7 @@ class Keys:
     ----------
     robot : the robot id.
     root : ``"vistrack/<robot>"``.
-    frame, pre_frame, estimate, params, report, cmd_vel, pose : the contract keys
+    frame, pre_frame, estimate, params, report, cmd_vel, demand, pose : the contract keys
         (see the module docstring).
     """
 
@@ -105,6 +107,7 @@ class Keys:
     params: str
     report: str
     cmd_vel: str
+    demand: str
     pose: str
 
     def alive(self, service: str) -> str:

@@ -451,6 +451,7 @@ class _PreFrameWire(_FrameWire):
     candidates: memoryview
     strength: memoryview
     params_id: _ParamsId
+    deferred: bool = False  # absent: an older publisher's
 
 
 class _EstimateWire(msgspec.Struct):
@@ -556,10 +557,15 @@ class PreFrame(_Message):
         gradient first.
     strength : (N,) float32 array, finite gradient magnitude of each candidate.
     params_id : ``params_id`` of the parameters used (THRES_PERCENT).
+    deferred : True when the candidates were not computed (``candidates`` and ``strength``
+        are then empty) because motion-estimation said on ``motion/demand`` that it would not
+        read them; a reader that needs them computes them from ``data``. Absent (a publisher
+        that predates the field): False.
     """
 
     KEY: ClassVar[str] = "preprocessing/frame"
-    _CHECKS: ClassVar[dict[str, _Check]] = {**_SEQ, **_IMAGE, "params_id": _PARAMS_ID}
+    _CHECKS: ClassVar[dict[str, _Check]] = {**_SEQ, **_IMAGE, "params_id": _PARAMS_ID,
+                                            "deferred": _bool}
 
     seq: int
     stamp_ns: int
@@ -570,6 +576,7 @@ class PreFrame(_Message):
     candidates: np.ndarray
     strength: np.ndarray
     params_id: int
+    deferred: bool = False
 
     def _validate(self) -> None:
         _check_image(self.KEY, self)
@@ -588,6 +595,8 @@ class PreFrame(_Message):
         if len(strength) != len(cand):
             raise _error(self.KEY, "strength", f"must have one value per candidate "
                                                f"({len(cand)})", strength)
+        if self.deferred and len(cand):
+            raise _error(self.KEY, "candidates", "must be empty when deferred is true", cand)
         strength = strength.astype("<f4", copy=False)
         if not np.isfinite(strength).all():
             raise _error(self.KEY, "strength", "must be finite", strength)
@@ -599,7 +608,14 @@ class PreFrame(_Message):
                 "height": self.height, "encoding": self.encoding,
                 "data": _bin_of(self.data, "u1"),
                 "candidates": _bin_of(self.candidates, "<i2"),
-                "strength": _bin_of(self.strength, "<f4"), "params_id": self.params_id}
+                "strength": _bin_of(self.strength, "<f4"), "params_id": self.params_id,
+                "deferred": self.deferred}
+
+    @classmethod
+    def _from_map(cls, m: dict[str, Any]) -> PreFrame:
+        if "deferred" not in m:  # an older publisher's: its candidates are all there
+            m = {**m, "deferred": False}
+        return super()._from_map(m)
 
     @classmethod
     def _arrays_from_wire(cls, values: dict[str, Any]) -> dict[str, Any]:
@@ -620,7 +636,7 @@ class PreFrame(_Message):
     def _from_wire(cls, wire: Any) -> dict[str, Any] | None:
         data = _image_view(wire)
         n = len(wire.candidates)
-        if data is None or n % 4 or len(wire.strength) != n:
+        if data is None or n % 4 or len(wire.strength) != n or (wire.deferred and n):
             return None
         # copied (5 KiB each), not viewed: at their offsets in the payload they are unaligned,
         # and numba compiles (seconds, on the first frame) and runs other code for unaligned
@@ -637,7 +653,8 @@ class PreFrame(_Message):
                 return None
         return {"seq": wire.seq, "stamp_ns": wire.stamp_ns, "width": wire.width,
                 "height": wire.height, "encoding": wire.encoding, "data": data,
-                "candidates": cand, "strength": strength, "params_id": wire.params_id}
+                "candidates": cand, "strength": strength, "params_id": wire.params_id,
+                "deferred": wire.deferred}
 
 
 PreFrame._FAST = msgspec.msgpack.Decoder(_PreFrameWire)
@@ -839,6 +856,25 @@ class CmdVel(_Message):
 
 
 @dataclass(frozen=True, kw_only=True)
+class Demand(_Message):
+    """What motion-estimation will read of the pre-processed frames (``motion/demand``).
+
+    Parameters
+    ----------
+    seq, stamp_ns : as in :class:`Frame` (``stamp_ns`` of the estimate it follows).
+    candidates : whether the next frames need their candidates (the tracker selects or
+        re-detects features); pre-processing leaves them out (``deferred``) while False.
+    """
+
+    KEY: ClassVar[str] = "motion/demand"
+    _CHECKS: ClassVar[dict[str, _Check]] = {**_SEQ, "candidates": _bool}
+
+    seq: int
+    stamp_ns: int
+    candidates: bool
+
+
+@dataclass(frozen=True, kw_only=True)
 class Pose(_Message):
     """Simulator ground truth (``sim/pose``).
 
@@ -863,11 +899,11 @@ class Pose(_Message):
     ty: float
 
 
-Message = Frame | PreFrame | Estimate | Params | Report | CmdVel | Pose
+Message = Frame | PreFrame | Estimate | Params | Report | CmdVel | Demand | Pose
 
 #: Contract key suffix -> message class.
 MESSAGE_TYPES: dict[str, type[_Message]] = {
-    cls.KEY: cls for cls in (Frame, PreFrame, Estimate, Params, Report, CmdVel, Pose)}
+    cls.KEY: cls for cls in (Frame, PreFrame, Estimate, Params, Report, CmdVel, Demand, Pose)}
 
 
 def decode_any(key: str, payload: bytes | bytearray | memoryview) -> Message:

@@ -20,6 +20,7 @@ CONTRACT = {
     "params": "vistrack/robot/tuner/params",
     "report": "vistrack/robot/tuner/report",
     "cmd_vel": "vistrack/robot/control/cmd_vel",
+    "demand": "vistrack/robot/motion/demand",
     "pose": "vistrack/robot/sim/pose",
 }
 

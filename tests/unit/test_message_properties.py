@@ -16,6 +16,7 @@ from vistrack.common.messages import (
     MAX_SIDE,
     MESSAGE_TYPES,
     CmdVel,
+    Demand,
     Estimate,
     Frame,
     MessageError,
@@ -48,6 +49,7 @@ def _good_maps() -> dict[str, dict]:
                effects={"tf": {"a": 0.5}}, significant={"tf": {"99": [], "95": []}},
                optimum={"search_size": 15}, sweep={"tf": [[1.0]]}),
         CmdVel(**common, vx=0.1, vy=-0.1, wz=0.0, stale=False),
+        Demand(**common, candidates=True),
         Pose(**common, x=0.0, y=1.0, theta=0.5, tx=2.0, ty=3.0),
     ]
     return {m.KEY: msgpack.unpackb(m.encode()) for m in messages}

@@ -14,6 +14,7 @@ from vistrack.common.messages import (
     MESSAGE_TYPES,
     SCHEMA_VERSION,
     CmdVel,
+    Demand,
     Estimate,
     Frame,
     MessageError,
@@ -63,6 +64,8 @@ def make(cls):
                       sweep={"search_size": [10, 20], "tf": [[1.0, 2.0]]})
     if cls is CmdVel:
         return CmdVel(**common, vx=0.2, vy=0.0, wz=-0.1, stale=False)
+    if cls is Demand:
+        return Demand(**common, candidates=False)
     if cls is Pose:
         return Pose(**common, x=1.0, y=2.0, theta=0.5, tx=3.0, ty=4.0)
     raise AssertionError(cls)
@@ -190,7 +193,7 @@ def test_decode_accepts_bytearray_and_memoryview():
 # -- rejections ---------------------------------------------------------------------------
 
 # fields added to the contract later: a message from an older publisher lacks them
-OPTIONAL = {(Estimate, "valid")}
+OPTIONAL = {(Estimate, "valid"), (PreFrame, "deferred")}
 
 
 @pytest.mark.parametrize(("cls", "name"), [
@@ -211,6 +214,34 @@ def test_an_estimate_without_valid_from_an_older_publisher_decodes(npi, valid):
     del m["valid"]
     m["npi"] = npi
     assert Estimate.decode(repack(m)).valid is valid
+
+
+def test_a_pre_frame_without_deferred_from_an_older_publisher_has_its_candidates():
+    m = raw_map(make(PreFrame))
+    assert m["deferred"] is False
+    del m["deferred"]
+    for decode in (PreFrame.decode, lambda p: PreFrame._from_map(unpack(p))):
+        msg = decode(repack(m))
+        assert msg.deferred is False and len(msg.candidates) == 3
+
+
+def test_a_deferred_pre_frame_has_no_candidates():
+    """``deferred``: the candidates were left out; a message that says so and still carries
+    some contradicts itself and is refused, on the fast path and by the checks alike."""
+    fields = {k: v for k, v in dataclasses.asdict(make(PreFrame)).items()}
+    empty = {**fields, "candidates": np.empty((0, 2), np.int16),
+             "strength": np.empty(0, np.float32), "deferred": True}
+    msg = PreFrame.decode(PreFrame(**empty).encode())
+    assert msg.deferred is True and msg.candidates.shape == (0, 2) and msg.strength.size == 0
+    with pytest.raises(MessageError, match="must be empty when deferred") as info:
+        PreFrame(**{**fields, "deferred": True})
+    assert info.value.field == "candidates"
+    m = raw_map(make(PreFrame))
+    m["deferred"] = True
+    err = expect_error(PreFrame, repack(m), "candidates")
+    assert "must be empty when deferred" in str(err)
+    m["deferred"] = 1
+    expect_error(PreFrame, repack(m), "deferred")
 
 
 def test_estimate_valid_is_sent_and_checked():
@@ -445,7 +476,8 @@ def test_fuzz_mutated_valid_messages():
 
 
 # a value valid on its own may break a cross-field rule reported on the other field
-RELATED = {("PreFrame", "candidates"): {"candidates", "strength"}}
+RELATED = {("PreFrame", "candidates"): {"candidates", "strength"},
+           ("PreFrame", "deferred"): {"deferred", "candidates"}}  # deferred: none sent
 
 TYPE_CONFUSION = [None, True, False, -1, 0, 2**63, -2**63, 1.5, NAN, INF, "", "x", b"",
                   b"\x00" * 4, [], [1], [[1, 2, 3]], {}, {"a": 1}]

@@ -3,24 +3,35 @@
 Reads   ``vistrack/<robot>/preprocessing/frame``   (latest only: drops are counted)
         ``vistrack/<robot>/tuner/params``          (reliable: applied between frames)
 Writes  ``vistrack/<robot>/motion/estimate``       (one per processed frame)
+        ``vistrack/<robot>/motion/demand``         (reliable: when it changes, and every s)
 
 The tracker is the library's :class:`~vistrack.common.vision.Tracker`, fed the filtered frame
 and candidates computed upstream, so the pipeline computes exactly what ``vistrack track`` does.
 Estimates keep the camera frame's ``seq``; when it goes back (the camera restarted), or the
 frame size changes, the track starts again (``first: true``).
+
+The tracker reads a frame's candidates only to select features (a first frame, a re-detection
+once fewer than ``redetect_fraction * max_features`` survive). ``motion/demand`` tells
+pre-processing whether the next frames need them: yes while the features left are within
+twice the recent losses (plus a few) of that threshold. A frame that comes ``deferred`` when
+the tracker does read them (a loss larger than foreseen, a new track) has them computed here
+from its filtered frame with the same function and parameters: the estimates are those of
+``vistrack track`` either way, only where the work is done differs.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import logging
 import time
 
 import numpy as np
 
 from ...common.bus import Node
-from ...common.messages import Estimate, PreFrame
+from ...common.messages import Demand, Estimate, PreFrame
 from ...common.vision import Preprocessed, Tracker, warm_up
+from ...common.vision.preprocess import DeferredPreprocessed
 from ..runtime import (
     ParamsInForce,
     add_service_args,
@@ -44,6 +55,42 @@ def estimate_message(e, *, seq: int, stamp_ns: int, params_id: int) -> Estimate:
                     valid=e.valid, features=e.features(), params_id=params_id)
 
 
+#: Recent frames whose losses foresee the next frame's (``motion/demand``).
+LOSS_WINDOW = 30
+#: Features kept in hand beyond twice the largest recent loss before candidates are asked for.
+DEMAND_MARGIN = 4
+#: Seconds between reminders of the demand in force (a pre-processing that restarted).
+DEMAND_REMIND_S = 1.0
+
+
+class DemandSignal:
+    """Whether the next frames will need their candidates, published on ``motion/demand``
+    when it changes and every :data:`DEMAND_REMIND_S` s."""
+
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.losses: collections.deque[int] = collections.deque(maxlen=LOSS_WINDOW)
+        self.wanted = True
+        self.seq = 0
+        self.next_remind = 0.0
+
+    def reset(self) -> None:
+        self.losses.clear()
+
+    def after(self, tracker: Tracker, npi: int, lost: int, stamp_ns: int) -> None:
+        """Decide and publish, once a frame has been tracked (``lost`` features on it)."""
+        self.losses.append(lost)
+        p = tracker.params
+        wanted = npi - 2 * max(self.losses) - DEMAND_MARGIN < p.redetect_fraction * p.max_features
+        now = time.monotonic()
+        if wanted != self.wanted or now >= self.next_remind:
+            self.wanted = wanted
+            self.next_remind = now + DEMAND_REMIND_S
+            self.node.publish(self.node.keys.demand, Demand(
+                seq=self.seq, stamp_ns=stamp_ns, candidates=wanted).encode(), reliable=True)
+            self.seq += 1
+
+
 def loop(node: Node, args: argparse.Namespace) -> None:
     state = ParamsInForce.from_args(args)
     state.publish_status(node)
@@ -52,6 +99,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     node.subscribe(node.keys.params, latest=False)
     node.subscribe(node.keys.pre_frame, latest=True)
     node.advertise(node.keys.estimate, reliable=False)
+    node.advertise(node.keys.demand, reliable=True)
+    demand = DemandSignal(node)
     last_seq = -1
 
     def on_params(payload: bytes) -> None:
@@ -66,20 +115,28 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             return
         # decoded arrays are read-only views of the payload; numba would compile (and cache)
         # a second specialisation of every kernel for read-only inputs, 40 ms on frame one
-        pre = Preprocessed(np.array(msg.data), msg.candidates, msg.strength)
+        filtered = np.array(msg.data)
+        pre = DeferredPreprocessed(filtered, state.params) if msg.deferred else \
+            Preprocessed(filtered, msg.candidates, msg.strength)
         if msg.seq <= last_seq:
             log.info("camera restarted (seq %d after %d): new track", msg.seq, last_seq)
             tracker.reset()
         last_seq = msg.seq
+        lost = tracker.lost_total
         try:
             est = tracker.update(pre, seq=msg.seq, t_start=t0)
         except ValueError as e:  # the only one: the frame size changed (another camera)
             log.warning("%s: restarting the track", e)
             tracker.reset()
+            lost = 0
             est = tracker.update(pre, seq=msg.seq, t_start=t0)
         node.publish(node.keys.estimate, estimate_message(
             est, seq=msg.seq, stamp_ns=msg.stamp_ns, params_id=state.params_id).encode(),
             reliable=False)
+        if isinstance(pre, DeferredPreprocessed) and pre.computed:
+            node.status.extra["candidates_here"] = \
+                node.status.extra.get("candidates_here", 0) + 1
+        demand.after(tracker, est.npi, tracker.lost_total - lost, msg.stamp_ns)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
         node.status.extra.update(npi=est.npi, lost=tracker.lost_total,
                                  redetections=tracker.redetections)
@@ -87,6 +144,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     def recover() -> None:
         # a frame that failed may have left the track half-updated: start a new one
         tracker.reset()
+        demand.reset()
 
     ready(node)
     dispatch(node, {node.keys.params: on_params, node.keys.pre_frame: on_frame}, log,

@@ -2,10 +2,17 @@
 
 Reads   ``vistrack/<robot>/camera/frame``          (latest only: a slow stage drops, counted)
         ``vistrack/<robot>/tuner/params``          (reliable: applied between frames)
+        ``vistrack/<robot>/motion/demand``         (reliable: whether candidates are read)
 Writes  ``vistrack/<robot>/preprocessing/frame``   (filtered frame + candidates + strength)
 
 A pre-processed frame keeps its camera frame's ``seq``: downstream sees the camera's gaps, and
 a ``seq`` that goes back (the camera restarted) tells motion-estimation to start a new track.
+
+The candidates (gradient strength and threshold, two thirds of the work) are computed only
+while motion-estimation says on ``motion/demand`` that it will read them (a first frame, a
+re-detection ahead); otherwise the frame goes out ``deferred``, without them, and
+motion-estimation computes them from the filtered frame itself should it need them after
+all. Until a demand arrives, and always with ``--candidates always``, every frame has them.
 
 ``--source ros2:TOPIC`` reads a ROS 2 camera's ``sensor_msgs/msg/Image`` (or
 ``CompressedImage``) topic over ``rmw_zenoh`` in place of ``camera/frame``, with no camera
@@ -24,10 +31,12 @@ import time
 from collections.abc import Callable
 from contextlib import nullcontext
 
+import numpy as np
+
 from ...common import rmw_zenoh as rmw
 from ...common import ros2types as r2
 from ...common.bus import Node
-from ...common.messages import Frame, PreFrame
+from ...common.messages import Demand, Frame, PreFrame
 from ...common.vision import preprocess, warm_up
 from ..camera import ros2cam
 from ..runtime import (
@@ -55,8 +64,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                integer=True, default=ros2cam.default_domain(), metavar="ID",
                help="ROS domain id of ros2:TOPIC, %(allowed)s (default: $ROS_DOMAIN_ID, "
                     "else 0)")
+    parser.add_argument("--candidates", choices=("on-demand", "always"), default="on-demand",
+                        help="compute the candidates of every frame (always), or only while "
+                             "motion-estimation asks for them on motion/demand (on-demand, "
+                             "the default: other frames go out deferred, without them)")
     add_service_args(parser, tracker_params=True)
 
+
+NO_CANDIDATES = np.empty((0, 2), np.int16)
+NO_STRENGTH = np.empty(0, np.float32)
 
 #: ``--source`` of the camera service's frames.
 FRAME_SOURCE = "camera/frame"
@@ -75,14 +91,33 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     state = ParamsInForce.from_args(args)
     state.publish_status(node)
     warm_up()
+    always = getattr(args, "candidates", "always") == "always"
+    wanted = True  # until motion-estimation says otherwise
     node.subscribe(node.keys.params, latest=False)
+    if not always:
+        node.subscribe(node.keys.demand, latest=False)
     node.advertise(node.keys.pre_frame, reliable=False)
+    node.status.extra["deferred"] = 0
+
+    def on_demand(payload: bytes) -> None:
+        nonlocal wanted
+        msg = decode_or_reject(Demand, payload, node, log)
+        if msg is not None and msg.candidates != wanted:
+            wanted = msg.candidates
+            log.debug("candidates %s from seq %d on", "wanted" if wanted else "deferred",
+                      msg.seq)
 
     def process(frame: Frame, t0: float) -> None:
         pre = preprocess(frame.data, state.params)
-        out = PreFrame(seq=frame.seq, stamp_ns=frame.stamp_ns, width=frame.width,
-                       height=frame.height, data=pre.filtered, candidates=pre.candidates,
-                       strength=pre.strength, params_id=state.params_id)
+        if wanted:
+            out = PreFrame(seq=frame.seq, stamp_ns=frame.stamp_ns, width=frame.width,
+                           height=frame.height, data=pre.filtered, candidates=pre.candidates,
+                           strength=pre.strength, params_id=state.params_id)
+        else:
+            out = PreFrame(seq=frame.seq, stamp_ns=frame.stamp_ns, width=frame.width,
+                           height=frame.height, data=pre.filtered, candidates=NO_CANDIDATES,
+                           strength=NO_STRENGTH, params_id=state.params_id, deferred=True)
+            node.status.extra["deferred"] += 1
         node.publish(node.keys.pre_frame, out.encode(), reliable=False)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
 
@@ -93,7 +128,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             process(frame, t0)
 
     handlers: dict[str, Callable[[bytes], object]] = {
-        node.keys.params: lambda payload: state.apply(payload, node, log)}
+        node.keys.params: lambda payload: state.apply(payload, node, log),
+        node.keys.demand: on_demand}
     if args.source == FRAME_SOURCE:
         node.subscribe(node.keys.frame, latest=True)
         handlers[node.keys.frame] = on_frame

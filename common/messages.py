@@ -282,12 +282,40 @@ def peek_seq(payload: bytes | bytearray | memoryview) -> int | None:
     return peek_int(payload, "seq")
 
 
+class _Peek(msgspec.Struct):
+    """The fields :func:`peek_int` reads fast: msgspec skips every other field (a bin by its
+    length, without reading it)."""
+
+    seq: Any = None
+    stamp_ns: Any = None
+
+
+_PEEK = msgspec.msgpack.Decoder(_Peek)
+
+
 def peek_int(payload: bytes | bytearray | memoryview, name: str) -> int | None:
     """The non-negative integer field ``name`` of a payload map, without decoding the rest.
 
     Returns None if the payload is not a map, has no such field, or it is not an int >= 0.
     Never raises. See :func:`peek_seq`.
+
+    ``seq`` and ``stamp_ns`` are read by msgspec (0.4 us for a 64 KiB frame, against 3 to 5 us
+    for msgpack's incremental unpacker, on every message's arrival); a payload msgspec does
+    not take (not a map of string keys, malformed past the field) goes the slow way below,
+    which gives the same answer.
     """
+    if name in ("seq", "stamp_ns"):
+        try:
+            value = getattr(_PEEK.decode(payload), name)
+        except (msgspec.DecodeError, TypeError):
+            pass
+        else:
+            return value if type(value) is int and value >= 0 else None
+    return _peek_int_unpacker(payload, name)
+
+
+def _peek_int_unpacker(payload: bytes | bytearray | memoryview, name: str) -> int | None:
+    """:func:`peek_int` with msgpack's incremental unpacker: any field, any payload."""
     view = memoryview(payload)
     for chunk in (view[:64], view):
         unpacker = msgpack.Unpacker(raw=False, strict_map_key=False, **_UNPACK_LIMITS)
@@ -727,6 +755,46 @@ class Estimate(_Message):
 
 
 Estimate._FAST = msgspec.msgpack.Decoder(_EstimateWire)
+
+
+def encode_estimate(*, seq: int, stamp_ns: int, npi: int, xc: float, yc: float, xe: float,
+                    ye: float, dx: float, dy: float, scale: float, t_ms: float, first: bool,
+                    ids: np.ndarray, points: np.ndarray, params_id: int,
+                    valid: bool | None = None) -> bytes:
+    """``Estimate(...).encode()`` byte for byte, with the features given as arrays: ``ids``
+    (N,) integers >= 0 and ``points`` (N, 2) finite x, y.
+
+    The hot path of motion-estimation: the same checks as the constructor's, the features'
+    with numpy over the arrays rather than item by item, and no message object (the
+    features go to the encoder as tuples, which it writes as the arrays lists are written).
+    About a third of building and encoding an :class:`Estimate` of 100 features.
+
+    Raises
+    ------
+    MessageError
+        As the constructor would, naming the field.
+    """
+    key = Estimate.KEY
+    checks = Estimate._CHECKS
+    ids = np.asarray(ids)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if ids.ndim != 1 or len(ids) != len(pts) or (ids.size and ids.dtype.kind not in "iu"):
+        raise _error(key, "features", "ids must be (N,) integers, one per point", ids)
+    if ids.size and ids.min() < 0:
+        raise _error(key, "features", "ids must be >= 0", ids)
+    if not np.isfinite(pts).all():
+        raise _error(key, "features", "x, y must be finite numbers", pts)
+    values: dict[str, Any] = {
+        "seq": seq, "stamp_ns": stamp_ns, "npi": npi, "xc": xc, "yc": yc, "xe": xe, "ye": ye,
+        "dx": dx, "dy": dy, "scale": scale, "t_ms": t_ms, "first": first}
+    for name, value in values.items():
+        values[name] = checks[name](key, name, value)
+    values["features"] = list(zip(ids.tolist(), pts[:, 0].tolist(), pts[:, 1].tolist(),
+                                  strict=True))
+    values["params_id"] = checks["params_id"](key, "params_id", params_id)
+    values["valid"] = _bool(key, "valid", values["npi"] >= MIN_VALID_NPI if valid is None
+                            else valid)
+    return pack(values)
 
 
 @dataclass(frozen=True, kw_only=True)

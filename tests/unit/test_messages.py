@@ -585,6 +585,38 @@ def test_peek_int_reads_stamp_ns_of_every_message():
     assert peek_int(msgpack.packb({"stamp_ns": 1.5}), "stamp_ns") is None
 
 
+def test_peek_int_fast_and_slow_agree():
+    """seq and stamp_ns are peeked by msgspec, anything msgspec refuses by the unpacker: both
+    give the same answer on valid, mutated and foreign payloads."""
+    from vistrack.common.messages import _peek_int_unpacker
+
+    rng = np.random.default_rng(RNG_SEED + 3)
+    payloads = [msgpack.packb({"stamp_ns": 5, 1: 2}), msgpack.packb({"seq": [1], "v": 1}),
+                msgpack.packb({"seq": 2**64 - 1}), msgpack.packb([1, 2])]
+    for cls in ALL:
+        good = make(cls).encode()
+        payloads.append(good)
+        for _ in range(200):
+            mutated = bytearray(good)
+            for _ in range(rng.integers(1, 4)):
+                mutated[rng.integers(min(len(mutated), 40))] = rng.integers(256)
+            payloads.append(bytes(mutated[:len(mutated) - rng.integers(0, 3)]))
+    answers = set()
+    for p in payloads:
+        for name in ("seq", "stamp_ns"):
+            fast, slow = peek_int(p, name), _peek_int_unpacker(p, name)
+            answers.add(fast)
+            if fast != slow:
+                # the one difference (as in decoding): msgspec skips a field it does not
+                # know without reading its name, so a name that is not UTF-8 does not hide
+                # the field asked for
+                with pytest.raises(UnicodeDecodeError):
+                    msgpack.unpackb(p, raw=False)
+                lenient = msgpack.unpackb(p, raw=False, unicode_errors="surrogateescape")
+                assert slow is None and fast == lenient[name], (p[:40], name)
+    assert len(answers) > 10  # found, not found, and other values
+
+
 def test_error_is_a_value_error():
     assert issubclass(MessageError, ValueError)
     assert math.isnan(NAN)
@@ -674,3 +706,46 @@ def test_the_fast_path_accepts_and_refuses_exactly_what_the_checks_do(cls):
             assert_same(cls.decode(payload), expected)
             outcomes["ok"] += 1
     assert outcomes["ok"] > 30 and outcomes["error"] > 200, outcomes  # both sides exercised
+
+
+# -- the motion-estimation hot path: an estimate encoded from the tracker's arrays ---------
+
+def test_encode_estimate_writes_what_the_message_writes():
+    """For the tracker's own estimates (first frame, tracking, none left), byte for byte."""
+    from vistrack.common import synthetic
+    from vistrack.common.messages import encode_estimate
+    from vistrack.common.vision import Tracker
+
+    tracker = Tracker(TrackerParams())
+    estimates = [tracker.process(f) for f in synthetic.builtin_sequence(4)]
+    tracker.reset()
+    estimates.append(tracker.process(np.full((8, 8), 7, np.uint8)))  # no feature
+    for e in estimates:
+        fields = dict(seq=e.seq, stamp_ns=123, npi=e.npi, xc=e.xc, yc=e.yc, xe=e.xe,
+                      ye=e.ye, dx=e.dx, dy=e.dy, scale=e.scale, t_ms=e.t_ms, first=e.first,
+                      params_id=4, valid=e.valid)
+        expected = Estimate(**fields, features=e.features()).encode()
+        assert encode_estimate(**fields, ids=e.ids, points=e.points) == expected
+        del fields["valid"]  # derived from npi, as the constructor does
+        assert encode_estimate(**fields, ids=e.ids, points=e.points) == \
+            Estimate(**fields, features=e.features()).encode()
+
+
+@pytest.mark.parametrize(("change", "name", "words"), [
+    ({"points": np.array([[1.0, np.nan]])}, "features", "finite"),
+    ({"ids": np.array([-1])}, "features", ">= 0"),
+    ({"ids": np.array([0, 1])}, "features", "one per point"),
+    ({"ids": np.array([0.5])}, "features", "integers"),
+    ({"scale": 0.0}, "scale", "> 0"),
+    ({"xc": math.inf}, "xc", "finite"),
+    ({"params_id": -1}, "params_id", "in 0.."),
+])
+def test_encode_estimate_refuses_what_the_constructor_refuses(change, name, words):
+    from vistrack.common.messages import encode_estimate
+
+    fields = dict(seq=1, stamp_ns=2, npi=1, xc=1.0, yc=2.0, xe=0.0, ye=0.0, dx=0.0, dy=0.0,
+                  scale=1.0, t_ms=0.5, first=True, params_id=0, ids=np.array([3]),
+                  points=np.array([[1.0, 2.0]]))
+    with pytest.raises(MessageError) as info:
+        encode_estimate(**{**fields, **change})
+    assert info.value.field == name and words in str(info.value)

@@ -29,6 +29,7 @@ its experiments, which would take a core for seconds, are left out of the measur
 
 from __future__ import annotations
 
+import collections
 import math
 import os
 import socket
@@ -49,8 +50,10 @@ from ...common.keys import Keys
 from ...common.messages import CmdVel, Estimate, Frame, PreFrame, peek_int
 from ...common.params import TrackerParams
 from ...common.vision import Preprocessed, Tracker, preprocess, warm_up
+from ...common.vision.preprocess import DeferredPreprocessed
 from ..fuzzy_controller.control import FuzzyController, FuzzySurface
-from ..motion_estimation.service import estimate_message
+from ..motion_estimation.service import LOSS_WINDOW, estimate_payload, wants_candidates
+from ..preprocessing.service import NO_CANDIDATES, NO_STRENGTH
 from .messages import pipeline_messages
 
 ECHO_PEER = """
@@ -301,7 +304,9 @@ def stage_costs(frames: list[np.ndarray], passes: int = 3) -> dict[str, dict[str
     frames, best of ``passes``) rather than inside the services, which would perturb the run:
     process -> ``decode`` (and validate its inputs), ``work`` (its computation), ``encode``
     (build, validate and encode its output). The camera's work (reading its source) is not
-    timed; the auto-tuner's (run with ``--no-tune``) is keeping a copy of every frame."""
+    timed; the auto-tuner's (run with ``--no-tune``) is keeping a copy of every frame.
+    Pre-processing computes the candidates of a frame only when motion-estimation's
+    ``motion/demand`` asks for them (as the services do by default), else sends it deferred."""
     warm_up()
     params = TrackerParams()
     ctrl = FuzzyController(FuzzySurface.compile())
@@ -316,6 +321,8 @@ def stage_costs(frames: list[np.ndarray], passes: int = 3) -> dict[str, dict[str
 
     for p in range(passes):
         tracker = Tracker(params)
+        losses: collections.deque[int] = collections.deque(maxlen=LOSS_WINDOW)
+        wanted = True
         times.clear()
         for k, f in enumerate(frames):
             stamp = time.time_ns()
@@ -325,18 +332,24 @@ def stage_costs(frames: list[np.ndarray], passes: int = 3) -> dict[str, dict[str
             frame = Frame.decode(payload)
             t = lap("preprocessing", "decode", t)
             pre = preprocess(frame.data, params)
+            cands = (pre.candidates, pre.strength) if wanted else (NO_CANDIDATES, NO_STRENGTH)
             t = lap("preprocessing", "work", t)
             pre_payload = PreFrame(seq=k, stamp_ns=stamp, width=frame.width,
                                    height=frame.height, data=pre.filtered,
-                                   candidates=pre.candidates, strength=pre.strength,
-                                   params_id=0).encode()
+                                   candidates=cands[0], strength=cands[1],
+                                   params_id=0, deferred=not wanted).encode()
             t = lap("preprocessing", "encode", t)
             pre_msg = PreFrame.decode(pre_payload)
             t = lap("motion-estimation", "decode", t)
-            est = tracker.update(Preprocessed(pre_msg.data, pre_msg.candidates,
-                                              pre_msg.strength))
+            filtered = np.array(pre_msg.data)
+            lost = tracker.lost_total
+            est = tracker.update(
+                DeferredPreprocessed(filtered, params) if pre_msg.deferred
+                else Preprocessed(filtered, pre_msg.candidates, pre_msg.strength))
+            losses.append(tracker.lost_total - lost)
+            wanted = wants_candidates(est.npi, losses, params)
             t = lap("motion-estimation", "work", t)
-            est_payload = estimate_message(est, seq=k, stamp_ns=stamp, params_id=0).encode()
+            est_payload = estimate_payload(est, seq=k, stamp_ns=stamp, params_id=0)
             t = lap("motion-estimation", "encode", t)
             e = Estimate.decode(est_payload)
             t = lap("fuzzy-controller", "decode", t)

@@ -29,7 +29,8 @@ import time
 import numpy as np
 
 from ...common.bus import Node
-from ...common.messages import Demand, Estimate, PreFrame
+from ...common.messages import Demand, Estimate, PreFrame, encode_estimate
+from ...common.params import TrackerParams
 from ...common.vision import Preprocessed, Tracker, warm_up
 from ...common.vision.preprocess import DeferredPreprocessed
 from ..runtime import (
@@ -55,12 +56,28 @@ def estimate_message(e, *, seq: int, stamp_ns: int, params_id: int) -> Estimate:
                     valid=e.valid, features=e.features(), params_id=params_id)
 
 
+def estimate_payload(e, *, seq: int, stamp_ns: int, params_id: int) -> bytes:
+    """``estimate_message(...).encode()``, byte for byte, built from the estimate's arrays
+    without the message object (:func:`~vistrack.common.messages.encode_estimate`)."""
+    return encode_estimate(seq=seq, stamp_ns=stamp_ns, npi=e.npi, xc=e.xc, yc=e.yc, xe=e.xe,
+                           ye=e.ye, dx=e.dx, dy=e.dy, scale=e.scale, t_ms=e.t_ms,
+                           first=e.first, ids=e.ids, points=e.points, params_id=params_id,
+                           valid=e.valid)
+
+
 #: Recent frames whose losses foresee the next frame's (``motion/demand``).
 LOSS_WINDOW = 30
 #: Features kept in hand beyond twice the largest recent loss before candidates are asked for.
 DEMAND_MARGIN = 4
 #: Seconds between reminders of the demand in force (a pre-processing that restarted).
 DEMAND_REMIND_S = 1.0
+
+
+def wants_candidates(npi: int, losses: collections.deque[int], params: TrackerParams) -> bool:
+    """Whether the next frame may re-detect: the features left (``npi``) are within twice the
+    largest recent loss, plus :data:`DEMAND_MARGIN`, of the re-detection threshold."""
+    return npi - 2 * max(losses, default=0) - DEMAND_MARGIN < \
+        params.redetect_fraction * params.max_features
 
 
 class DemandSignal:
@@ -80,8 +97,7 @@ class DemandSignal:
     def after(self, tracker: Tracker, npi: int, lost: int, stamp_ns: int) -> None:
         """Decide and publish, once a frame has been tracked (``lost`` features on it)."""
         self.losses.append(lost)
-        p = tracker.params
-        wanted = npi - 2 * max(self.losses) - DEMAND_MARGIN < p.redetect_fraction * p.max_features
+        wanted = wants_candidates(npi, self.losses, tracker.params)
         now = time.monotonic()
         if wanted != self.wanted or now >= self.next_remind:
             self.wanted = wanted
@@ -130,8 +146,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             tracker.reset()
             lost = 0
             est = tracker.update(pre, seq=msg.seq, t_start=t0)
-        node.publish(node.keys.estimate, estimate_message(
-            est, seq=msg.seq, stamp_ns=msg.stamp_ns, params_id=state.params_id).encode(),
+        node.publish(node.keys.estimate, estimate_payload(
+            est, seq=msg.seq, stamp_ns=msg.stamp_ns, params_id=state.params_id),
             reliable=False)
         if isinstance(pre, DeferredPreprocessed) and pre.computed:
             node.status.extra["candidates_here"] = \

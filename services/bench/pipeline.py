@@ -52,7 +52,7 @@ from ...common.params import TrackerParams
 from ...common.vision import Preprocessed, Tracker, preprocess, warm_up
 from ...common.vision.preprocess import DeferredPreprocessed
 from ..fuzzy_controller.control import FuzzyController, FuzzySurface
-from ..motion_estimation.service import LOSS_WINDOW, estimate_payload, wants_candidates
+from ..motion_estimation.service import READ_WINDOW, estimate_payload, wants_candidates
 from ..preprocessing.service import NO_CANDIDATES, NO_STRENGTH
 from .messages import pipeline_messages
 
@@ -321,7 +321,7 @@ def stage_costs(frames: list[np.ndarray], passes: int = 3) -> dict[str, dict[str
 
     for p in range(passes):
         tracker = Tracker(params)
-        losses: collections.deque[int] = collections.deque(maxlen=LOSS_WINDOW)
+        redetected: collections.deque[bool] = collections.deque(maxlen=READ_WINDOW)
         wanted = True
         times.clear()
         for k, f in enumerate(frames):
@@ -342,12 +342,12 @@ def stage_costs(frames: list[np.ndarray], passes: int = 3) -> dict[str, dict[str
             pre_msg = PreFrame.decode(pre_payload)
             t = lap("motion-estimation", "decode", t)
             filtered = np.array(pre_msg.data)
-            lost = tracker.lost_total
+            before = tracker.redetections
             est = tracker.update(
                 DeferredPreprocessed(filtered, params) if pre_msg.deferred
                 else Preprocessed(filtered, pre_msg.candidates, pre_msg.strength))
-            losses.append(tracker.lost_total - lost)
-            wanted = wants_candidates(est.npi, losses, params)
+            redetected.append(tracker.redetections > before)
+            wanted = wants_candidates(est.npi, redetected, params)
             t = lap("motion-estimation", "work", t)
             est_payload = estimate_payload(est, seq=k, stamp_ns=stamp, params_id=0)
             t = lap("motion-estimation", "encode", t)

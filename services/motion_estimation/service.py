@@ -12,11 +12,10 @@ frame size changes, the track starts again (``first: true``).
 
 The tracker reads a frame's candidates only to select features (a first frame, a re-detection
 once fewer than ``redetect_fraction * max_features`` survive). ``motion/demand`` tells
-pre-processing whether the next frames need them: yes while the features left are within
-twice the recent losses (plus a few) of that threshold. A frame that comes ``deferred`` when
-the tracker does read them (a loss larger than foreseen, a new track) has them computed here
-from its filtered frame with the same function and parameters: the estimates are those of
-``vistrack track`` either way, only where the work is done differs.
+pre-processing whether the next frames need them (:func:`wants_candidates`). A frame that
+comes ``deferred`` when the tracker does read them (a first re-detection, a new track) has them
+computed here from its filtered frame with the same function and parameters: the estimates are
+those of ``vistrack track`` either way, only where the work is done differs.
 """
 
 from __future__ import annotations
@@ -65,19 +64,22 @@ def estimate_payload(e, *, seq: int, stamp_ns: int, params_id: int) -> bytes:
                            valid=e.valid)
 
 
-#: Recent frames whose losses foresee the next frame's (``motion/demand``).
-LOSS_WINDOW = 30
-#: Features kept in hand beyond twice the largest recent loss before candidates are asked for.
-DEMAND_MARGIN = 4
+#: Frames over which a re-detection keeps candidates coming (``motion/demand``).
+READ_WINDOW = 30
 #: Seconds between reminders of the demand in force (a pre-processing that restarted).
 DEMAND_REMIND_S = 1.0
 
 
-def wants_candidates(npi: int, losses: collections.deque[int], params: TrackerParams) -> bool:
-    """Whether the next frame may re-detect: the features left (``npi``) are within twice the
-    largest recent loss, plus :data:`DEMAND_MARGIN`, of the re-detection threshold."""
-    return npi - 2 * max(losses, default=0) - DEMAND_MARGIN < \
-        params.redetect_fraction * params.max_features
+def wants_candidates(npi: int, redetected: collections.deque[bool],
+                     params: TrackerParams) -> bool:
+    """Whether the next frames should come with their candidates: when fewer features than
+    the re-detection threshold are left (the next frame selects, for sure), and while
+    re-detections are frequent (one in the last :data:`READ_WINDOW` frames, a track's first
+    frame aside), so that pre-processing computes them in its own process rather than
+    motion-estimation on the frame's path. Otherwise a re-detection that comes (features
+    left near the threshold can hover above it for hundreds of frames) has them computed
+    here, on that frame alone."""
+    return npi < params.redetect_fraction * params.max_features or any(redetected)
 
 
 class DemandSignal:
@@ -86,18 +88,18 @@ class DemandSignal:
 
     def __init__(self, node: Node) -> None:
         self.node = node
-        self.losses: collections.deque[int] = collections.deque(maxlen=LOSS_WINDOW)
+        self.redetected: collections.deque[bool] = collections.deque(maxlen=READ_WINDOW)
         self.wanted = True
         self.seq = 0
         self.next_remind = 0.0
 
     def reset(self) -> None:
-        self.losses.clear()
+        self.redetected.clear()
 
-    def after(self, tracker: Tracker, npi: int, lost: int, stamp_ns: int) -> None:
-        """Decide and publish, once a frame has been tracked (``lost`` features on it)."""
-        self.losses.append(lost)
-        wanted = wants_candidates(npi, self.losses, tracker.params)
+    def after(self, tracker: Tracker, npi: int, redetected: bool, stamp_ns: int) -> None:
+        """Decide and publish, once a frame has been tracked (and ``redetected`` or not)."""
+        self.redetected.append(redetected)
+        wanted = wants_candidates(npi, self.redetected, tracker.params)
         now = time.monotonic()
         if wanted != self.wanted or now >= self.next_remind:
             self.wanted = wanted
@@ -138,13 +140,13 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             log.info("camera restarted (seq %d after %d): new track", msg.seq, last_seq)
             tracker.reset()
         last_seq = msg.seq
-        lost = tracker.lost_total
+        redetections = tracker.redetections
         try:
             est = tracker.update(pre, seq=msg.seq, t_start=t0)
         except ValueError as e:  # the only one: the frame size changed (another camera)
             log.warning("%s: restarting the track", e)
             tracker.reset()
-            lost = 0
+            redetections = 0
             est = tracker.update(pre, seq=msg.seq, t_start=t0)
         node.publish(node.keys.estimate, estimate_payload(
             est, seq=msg.seq, stamp_ns=msg.stamp_ns, params_id=state.params_id),
@@ -152,7 +154,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         if isinstance(pre, DeferredPreprocessed) and pre.computed:
             node.status.extra["candidates_here"] = \
                 node.status.extra.get("candidates_here", 0) + 1
-        demand.after(tracker, est.npi, tracker.lost_total - lost, msg.stamp_ns)
+        demand.after(tracker, est.npi, tracker.redetections > redetections, msg.stamp_ns)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
         node.status.extra.update(npi=est.npi, lost=tracker.lost_total,
                                  redetections=tracker.redetections)

@@ -3,7 +3,7 @@ pipeline``).
 
 Prints the table: a raw Zenoh round trip, the raw Zenoh skeleton of the five processes (paced
 and unpaced, receiving in Zenoh's callbacks and in RingChannel(1) loops), the stages in one
-process, and our five processes at 30 fps and unpaced; then where each process's CPU goes,
+process, and our five processes at 30 fps (256x256 and 1280x720) and unpaced; then where each process's CPU goes,
 unpaced, by thread and by part of its loop. Asserts only that every figure was measured and
 that the ratios and sums are those of the figures, never a time.
 """
@@ -39,6 +39,10 @@ def test_bench_pipeline(capsys):
     assert fig["throughput_ratio_skeleton_loop"] == pytest.approx(fig["free_rate_hz"]
                                                                   / fig["skeleton_loop_rate_hz"])
     assert fig["free_dropped"] >= 0
+    assert fig["paced_720_lat_p99_ms"] >= fig["paced_720_lat_p50_ms"] > 0
+    assert fig["cpu_ratio_skeleton_loop_plus_in_process"] == pytest.approx(
+        fig["free_cpu_us_per_frame"] / (fig["skeleton_loop_cpu_us_per_frame"]
+                                        + 1e6 / fig["in_process_fps"]))
     # the CPU table: every process measured by thread, adding up to the run's total
     for run in ("free", "skeleton_loop"):
         total = 0.0

@@ -147,6 +147,16 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _cpu_s(pids: list[int]) -> float:
+    """User + system CPU seconds used so far by these processes (all their threads)."""
+    total = 0
+    for pid in pids:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
+
+
 #: Zenoh's runtime threads by name prefix (zenoh 1.x names its tokio pools): ``rx`` reads the
 #: links and runs subscriber callbacks (so our hand-off of a payload into the loop's inbox),
 #: ``tx`` writes them; ``net``, ``acc``, ``app`` and the rest are its other pools.

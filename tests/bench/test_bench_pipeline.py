@@ -3,9 +3,9 @@ pipeline``).
 
 Prints the table: a raw Zenoh round trip, the raw Zenoh skeleton of the five processes (paced
 and unpaced, receiving in Zenoh's callbacks and in RingChannel(1) loops), the stages in one
-process, and our five processes at 30 fps (256x256 and 1280x720) and unpaced; then where each process's CPU goes,
-unpaced, by thread and by part of its loop. Asserts only that every figure was measured and
-that the ratios and sums are those of the figures, never a time.
+process, and our five processes at 30 fps (256x256 and 1280x720) and unpaced; then where each
+process's CPU goes, unpaced, by thread and by part of its loop. Asserts only that every figure
+was measured and that the ratios and sums are those of the figures, never a time.
 """
 
 from __future__ import annotations

@@ -30,6 +30,7 @@ its experiments, which would take a core for seconds, are left out of the measur
 from __future__ import annotations
 
 import collections
+import dataclasses
 import math
 import os
 import socket
@@ -300,9 +301,12 @@ def in_process(frames: list[np.ndarray]) -> float:
 
 def message_sizes(frames: list[np.ndarray]) -> tuple[int, int, int, int]:
     """Bytes of our camera frame, pre-processed frame, estimate and command for these frames,
-    encoded as the services encode them."""
+    encoded as the services encode them; the pre-processed frame as most go out, deferred
+    (without candidates: see ``motion/demand``)."""
     frame, pre, est, cmd = pipeline_messages(frames)
-    return len(frame.encode()), len(pre.encode()), len(est.encode()), len(cmd.encode())
+    deferred = dataclasses.replace(pre, candidates=NO_CANDIDATES, strength=NO_STRENGTH,
+                                   deferred=True)
+    return len(frame.encode()), len(deferred.encode()), len(est.encode()), len(cmd.encode())
 
 
 #: The parts of a loop's work per frame that :func:`stage_costs` times.
@@ -505,8 +509,8 @@ def bench_pipeline(out: TextIO = sys.stdout, seconds: float = 5.0) -> dict[str, 
         skel_loop["cpu_us_per_frame"] + 1e6 / fig["in_process_fps"])
     print("# vistrack bench pipeline: 256x256 built-in frames, 5 processes over a local "
           "Zenoh router", file=out)
-    print(f"# message sizes: frame {sizes[0]}, pre-processed {sizes[1]}, estimate {sizes[2]}, "
-          f"command {sizes[3]} bytes", file=out)
+    print(f"# message sizes: frame {sizes[0]}, pre-processed {sizes[1]} (deferred, as most go "
+          f"out), estimate {sizes[2]}, command {sizes[3]} bytes", file=out)
     rows = [
         ("raw zenoh one-way, 64 KiB, back to back (median / p99)",
          f"{fig['raw_one_way_ms']:.3f} / {fig['raw_one_way_p99_ms']:.3f} ms"),

@@ -1,0 +1,222 @@
+"""Long sequences rendered from real frames by known smooth homographies, with exact ground truth.
+
+The Middlebury pairs (:mod:`.groundtruth`) hold one step of motion each. To measure large
+motion and long-run drift, a real frame is viewed through a moving virtual camera: frame k is
+the source warped by a homography M_k (source px -> frame px), so a point p of frame j lies at
+``M_k M_j^-1 p`` in frame k, exactly, for any p. The camera's motion is smooth (sums of
+sinusoids): its translation speed sweeps from standing still up to ``max_step`` px a frame
+(12 by default), with a little rotation (a few degrees), zoom (a few percent) and perspective.
+The view never leaves the source image, so no frame shows a border or a reflection.
+
+Shared by the accuracy benchmark (``vistrack bench accuracy``) and the tests. Pure numpy and
+OpenCV; deterministic for a given seed.
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from . import groundtruth
+
+#: The Middlebury sequences whose frame10 the scoreboard's long sequences are rendered from.
+SOURCES = ("Dimetrodon", "RubberWhale", "Venus", "Grove2", "Urban2")
+
+
+@dataclass(frozen=True, eq=False)
+class RenderedSequence:
+    """Frames rendered from one source image, and the homography of each.
+
+    Attributes
+    ----------
+    name : what it was rendered from.
+    frames : list of (H, W) uint8 frames.
+    homographies : (n, 3, 3) float64; ``homographies[k]`` maps source px to frame k's px.
+    """
+
+    name: str
+    frames: list[np.ndarray]
+    homographies: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def map(self, points: np.ndarray, src: int, dst: int) -> np.ndarray:
+        """The true positions in frame ``dst`` of points (N, 2) x, y of frame ``src``, px."""
+        pts = np.asarray(points, np.float64).reshape(-1, 2)
+        h = self.homographies[dst] @ np.linalg.inv(self.homographies[src])
+        q = np.hstack([pts, np.ones((len(pts), 1))]) @ h.T
+        return q[:, :2] / q[:, 2:3]
+
+
+def _about(center: tuple[float, float], m: np.ndarray) -> np.ndarray:
+    """``m`` applied about ``center`` instead of the origin."""
+    cx, cy = center
+    t = np.array([[1.0, 0.0, cx], [0.0, 1.0, cy], [0.0, 0.0, 1.0]])
+    ti = np.array([[1.0, 0.0, -cx], [0.0, 1.0, -cy], [0.0, 0.0, 1.0]])
+    return t @ m @ ti
+
+
+def _smooth(rng: np.random.Generator, t: np.ndarray, omega: float) -> np.ndarray:
+    """A smooth path in [-1, 1]: two sinusoids of random phase, the second 1.7x as fast."""
+    a = np.sin(omega * t + rng.uniform(0, 2 * np.pi))
+    b = np.sin(1.7 * omega * t + rng.uniform(0, 2 * np.pi))
+    path = 0.7 * a + 0.3 * b
+    return path / max(float(np.abs(path).max()), 1e-9)
+
+
+def homographies(source_size: tuple[int, int], size: tuple[int, int], n: int, *,
+                 max_step: float = 12.0, rotation_deg: float = 3.0, zoom: float = 0.04,
+                 tilt: float = 0.02, travel: float = 0.2, seed: int = 0) -> np.ndarray:
+    """The camera path: (n, 3, 3) homographies, source px -> frame px.
+
+    Parameters
+    ----------
+    source_size, size : (width, height) of the source image and of the frames, px.
+    n : frames.
+    max_step : the fastest translation of the view, px a frame: the frame centre's largest
+        displacement between two frames; the speed sweeps from about 0 up to it.
+    rotation_deg : largest rotation of the view about its centre, degrees (either way).
+    zoom : largest zoom, as a fraction (the view is scaled within 1 -/+ zoom).
+    tilt : largest perspective: a frame's corner moves by up to about this fraction of its
+        distance to the centre from the perspective terms alone.
+    travel : farthest the view's centre goes from the source's, as a fraction of the frame's
+        size along each axis (less where the source has less room).
+    seed : the path's random phases.
+
+    The translation spans the largest box that keeps every frame's view inside the source
+    (2 px in) whatever the rotation, zoom and tilt of the moment; its frequency is then set so
+    that the peak speed is ``max_step``.
+
+    Raises
+    ------
+    ValueError
+        If the frame does not fit in the source with the rotation, zoom and tilt asked for.
+    """
+    sw, sh = source_size
+    w, h = size
+    rng = np.random.default_rng(seed)
+    t = np.arange(n, dtype=np.float64)
+    centre_v = ((w - 1) / 2.0, (h - 1) / 2.0)
+    centre_s = ((sw - 1) / 2.0, (sh - 1) / 2.0)
+    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], np.float64)
+    # slow paths for rotation, zoom and tilt (a period of ~60 frames)
+    rot = np.deg2rad(rotation_deg) * _smooth(rng, t, 0.1)
+    scl = np.exp(np.log1p(zoom) * _smooth(rng, t, 0.1))
+    px = tilt / (0.5 * w) * _smooth(rng, t, 0.1)
+    py = tilt / (0.5 * h) * _smooth(rng, t, 0.1)
+    phases = rng.uniform(0, 2 * np.pi, 4)
+
+    def local(k: int) -> np.ndarray:
+        """Frame k's px -> source px about the view centre, before the translation."""
+        c, s = np.cos(rot[k]), np.sin(rot[k])
+        rs = np.array([[c / scl[k], -s / scl[k], 0.0], [s / scl[k], c / scl[k], 0.0],
+                       [0.0, 0.0, 1.0]])
+        persp = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [px[k], py[k], 1.0]])
+        return _about(centre_v, rs @ persp)
+
+    def shift(x: float, y: float) -> np.ndarray:
+        return np.array([[1.0, 0.0, centre_s[0] - centre_v[0] + x],
+                         [0.0, 1.0, centre_s[1] - centre_v[1] + y], [0.0, 0.0, 1.0]])
+
+    def fits(ax: float, ay: float) -> bool:
+        # every frame at every corner of the translation box: the path stays inside it
+        for k in range(n):
+            lk = local(k)
+            for sx in (-1.0, 1.0):
+                for sy in (-1.0, 1.0):
+                    q = corners @ (shift(sx * ax, sy * ay) @ lk).T
+                    q = q[:, :2] / q[:, 2:3]
+                    if q.min() < 2 or q[:, 0].max() > sw - 3 or q[:, 1].max() > sh - 3:
+                        return False
+        return True
+
+    if not fits(0.0, 0.0):
+        raise ValueError(f"a {w}x{h} frame with rotation {rotation_deg} deg, zoom {zoom} and "
+                         f"tilt {tilt} does not fit in the {sw}x{sh} source")
+    # the view wanders at most a fifth of its size from the middle, so that many of the first
+    # frame's features stay in view through the whole sequence and their drift is measured
+    mx = min(max(sw - w, 0) / 2.0, travel * w)
+    my = min(max(sh - h, 0) / 2.0, travel * h)
+    lo, hi = 0.0, 1.0
+    for _ in range(20):  # the largest box, in proportion to the margins, that fits
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if fits(mid * mx, mid * my) else (lo, mid)
+    ax, ay = lo * mx, lo * my
+
+    def build(omega: float) -> np.ndarray:
+        # the view centre's path in the source: two sinusoids an axis, in the box
+        x = ax * (0.75 * np.sin(omega * t + phases[0]) + 0.25 * np.sin(0.61 * omega * t
+                                                                        + phases[1]))
+        y = ay * (0.75 * np.sin(0.83 * omega * t + phases[2]) + 0.25 * np.sin(0.47 * omega * t
+                                                                               + phases[3]))
+        return np.stack([np.linalg.inv(shift(x[k], y[k]) @ local(k)) for k in range(n)])
+
+    def peak(hs: np.ndarray) -> float:
+        c = np.array([centre_v[0], centre_v[1], 1.0])
+        steps = []
+        for k in range(n - 1):
+            q = hs[k + 1] @ np.linalg.inv(hs[k]) @ c
+            steps.append(np.hypot(q[0] / q[2] - c[0], q[1] / q[2] - c[1]))
+        return max(steps, default=0.0)
+
+    omega = max_step / max(ax, ay, 1e-9)
+    hs = build(omega)
+    for _ in range(8):  # the speed grows about in proportion to omega
+        got = peak(hs)
+        if got <= 0 or abs(got - max_step) < 0.01:
+            break
+        omega *= max_step / got
+        hs = build(omega)
+    return hs
+
+
+def render(source: np.ndarray, hs: np.ndarray, size: tuple[int, int], *, noise: float = 1.0,
+           seed: int = 0) -> list[np.ndarray]:
+    """Frames of ``source`` (grey uint8) seen through homographies ``hs`` (source -> frame),
+    ``size`` (width, height), bicubic, with Gaussian noise of ``noise`` grey levels (a camera's
+    own; 0 for none), rounded to uint8."""
+    rng = np.random.default_rng(seed)
+    src = source.astype(np.float32)
+    frames = []
+    for m in hs:
+        f = cv2.warpPerspective(src, m, size, flags=cv2.INTER_CUBIC,
+                                borderMode=cv2.BORDER_REFLECT)
+        if noise > 0:
+            f = f + np.float32(noise) * rng.standard_normal(f.shape, dtype=np.float32)
+        frames.append(np.ascontiguousarray(np.clip(np.rint(f), 0, 255), dtype=np.uint8))
+    return frames
+
+
+def sequence(source: np.ndarray, name: str, *, n: int = 60, size: tuple[int, int] = (256, 256),
+             max_step: float = 12.0, noise: float = 1.0, seed: int | None = None
+             ) -> RenderedSequence:
+    """A long sequence of ``n`` frames rendered from one grey ``source`` image.
+
+    ``seed`` defaults to one derived from ``name``, so a sequence is the same on every run.
+    See :func:`homographies` for the path (``max_step`` px a frame at the fastest).
+    """
+    if seed is None:
+        seed = zlib.crc32(name.encode())
+    hs = homographies((source.shape[1], source.shape[0]), size, n, max_step=max_step,
+                      seed=seed)
+    return RenderedSequence(name, render(source, hs, size, noise=noise, seed=seed + 1), hs)
+
+
+def middlebury_sequences(n: int = 60, *, size: tuple[int, int] = (256, 256),
+                         names: tuple[str, ...] = SOURCES) -> list[RenderedSequence]:
+    """A long sequence from frame10 of each Middlebury sequence found (:data:`SOURCES`);
+    empty when the shared data is absent."""
+    out = []
+    for name in names:
+        folder = groundtruth.middlebury(name)
+        if folder is None:
+            continue
+        image = cv2.imread(str(folder / "frame10.png"), cv2.IMREAD_GRAYSCALE)
+        if image is None:
+            continue
+        out.append(sequence(image, f"{name} rendered", n=n, size=size))
+    return out

@@ -51,6 +51,13 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "cell_cap": (0, 2000),
     "max_residual": (1.0, 255.0),
     "redetect_fraction": (0.0, 1.0),
+    "levels": (1, 6),
+    "uniqueness": (0.0, 10.0),
+    "noise_sigma": (0.0, 50.0),
+    "max_fb_error": (0.0, 100.0),
+    "consensus": (0.0, 100.0),
+    "refine_size": (0, 64),
+    "quality_level": (0.0, 1.0),
 }
 
 #: Fewest features for a meaningful estimate (``valid`` of ``motion/estimate``): the centroid
@@ -58,11 +65,19 @@ BOUNDS: dict[str, tuple[float, float]] = {
 #: outlier rejection needs three pairs to outvote one mismatch.
 MIN_VALID_NPI = 3
 
+#: What turns the tracker into the paper's: the single-level search of Eq. (1), integer
+#: positions, and no test of a match beyond the paper's losses (:meth:`TrackerParams.paper`).
+PAPER_TRACKER: dict[str, Any] = {"levels": 1, "subpixel": False, "uniqueness": 0.0,
+                                 "max_fb_error": 0.0, "consensus": 0.0,
+                                 "reject_border": False,
+                                 "guided_retry": False, "refine_size": 0}
+
 #: The paper's five factors, in Table 2's order (A..E of the 2^(5-1) design).
 FACTORS = ("max_features", "thres_percent", "search_size", "corr_size", "ungroup_size")
 
 _INT_FIELDS = {"max_features", "search_size", "corr_size", "ungroup_size", "grid_rows",
-               "grid_cols", "cell_cap"}
+               "grid_cols", "cell_cap", "levels", "refine_size"}
+_BOOL_FIELDS = {"subpixel", "reject_border", "guided_retry"}
 
 
 @dataclass(frozen=True)
@@ -85,7 +100,7 @@ class TrackerParams:
         structure tensor, default) or ``"gradient"`` (Sobel magnitude, the paper's literal
         measure); see :mod:`vistrack.common.vision.preprocess`.
     subpixel : refine each SSD minimum to sub-pixel precision (Gauss-Newton on Eq. (1), a
-        parabola through the minimum and its neighbours where that cannot run).
+        parabola through the minimum and its neighbours where that cannot run); on by default.
     search : how the SSD search of Eq. (1) finds its argmin, see
         :func:`vistrack.common.vision.ssd.track_ssd`: ``"pruned"`` (default: exact, skips the
         displacements a bound rules out, so its cost barely grows with CORR_SIZE) or
@@ -95,6 +110,31 @@ class TrackerParams:
         correlation window at the best match exceeds this.
     redetect_fraction : re-detect features when fewer than this fraction of ``max_features``
         survive.
+    levels : pyramid levels of the coarse-to-fine search (1..6): Eq. (1) is searched at the
+        coarsest level that holds a feature's template and refined level by level, so a search
+        of SEARCH_SIZE // 2 px reaches 2^(levels - 1) times as far; 1 is the paper's
+        single-level search. See :mod:`vistrack.common.vision.pyramid`.
+    uniqueness : a match fails when a displacement outside its minimum's 3x3 neighbourhood
+        has S <= uniqueness * S_min + 2 noise_sigma^2 sum W (repetitive texture); 0 turns the
+        test off.
+    noise_sigma : the camera's noise, grey levels: what noise alone adds to S at a perfect
+        match (the uniqueness test), and the texture floor a candidate's strength must clear
+        (what a uniform patch with this noise reaches).
+    max_fb_error : forward-backward bound, px: a match tracked back from frame t+1 must
+        return to within this of where it started; 0 turns the check off.
+    consensus : a match whose displacement departs from the median of its 6 nearest tracked
+        neighbours' by more than this, px (or by more than three robust sigmas of theirs,
+        where they disagree more), is rejected; 0 turns the check off.
+    reject_border : a match whose minimum lies on the border of the search window fails (the
+        true minimum may lie outside it).
+    guided_retry : a feature that found no trustworthy minimum around its own prediction is
+        searched again around the frame's dominant motion (the median displacement of the
+        features found).
+    refine_size : width of the wide sub-pixel window, px: its estimate is taken where it
+        agrees with the correlation window's; 0 (or not wider than CORR_SIZE) refines over the
+        correlation window only.
+    quality_level : a candidate's strength must also reach this fraction of the frame's
+        strongest (OpenCV's ``goodFeaturesToTrack`` qualityLevel).
     """
 
     max_features: int = 100
@@ -108,10 +148,19 @@ class TrackerParams:
     cell_cap: int = 0
     weights: str = "uniform"
     strength: str = "min_eigen"
-    subpixel: bool = False
+    subpixel: bool = True
     search: str = "pruned"
     max_residual: float = 40.0
     redetect_fraction: float = 0.5
+    levels: int = 3
+    uniqueness: float = 1.25
+    noise_sigma: float = 2.0
+    max_fb_error: float = 1.0
+    consensus: float = 2.0
+    reject_border: bool = True
+    guided_retry: bool = True
+    refine_size: int = 21
+    quality_level: float = 0.01
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -132,9 +181,9 @@ class TrackerParams:
                     raise ParamError(f"search={value!r} is not allowed: use one of "
                                      f"{', '.join(SEARCH_KINDS)}")
                 continue
-            if name == "subpixel":
+            if name in _BOOL_FIELDS:
                 if not isinstance(value, bool):
-                    raise ParamError(f"subpixel={value!r} must be true or false")
+                    raise ParamError(f"{name}={value!r} must be true or false")
                 continue
             lo, hi = BOUNDS[name]
             if name in _INT_FIELDS:
@@ -167,6 +216,11 @@ class TrackerParams:
         return self.search_size // 2
 
     @property
+    def refine_half(self) -> int:
+        """Half-width of the wide sub-pixel window (0: none)."""
+        return self.refine_size // 2 if self.refine_size // 2 > self.corr_half else 0
+
+    @property
     def effective_cell_cap(self) -> int:
         if self.cell_cap:
             return self.cell_cap
@@ -194,6 +248,12 @@ class TrackerParams:
         merged = dataclasses.asdict(base if base is not None else cls())
         merged.update(values)
         return cls(**merged)
+
+    @classmethod
+    def paper(cls, **changes: Any) -> TrackerParams:
+        """The paper's tracker (:data:`PAPER_TRACKER`: one level, integer positions, no test
+        of a match), with ``changes`` applied: what the factorial design of the paper timed."""
+        return cls.from_mapping({**PAPER_TRACKER, **changes})
 
     def factors(self) -> dict[str, float]:
         """The five design factors as a dict (the fields of ``tuner/params``)."""

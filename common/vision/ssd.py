@@ -38,9 +38,14 @@ loads into gathers), and their lengths are padded to a multiple of VEC so that n
 remainder runs.
 
 Sub-pixel refinement minimises the same Eq. (1) over a continuous displacement (Gauss-Newton
-from the integer minimum). A parabola through the minimum and its neighbours, the classic
-shortcut, is biased towards integer positions ("pixel locking"): on the Middlebury sequences its
-median end-point error was 2 to 4 times that of Gauss-Newton, so it is only the fallback.
+from the integer minimum, :func:`_refine`), its residual corrected for the smoothing that
+bilinear interpolation adds at a fraction of a pixel. A parabola through the minimum and its
+neighbours, the classic shortcut, is biased towards integer positions ("pixel locking"): on the
+Middlebury sequences its median end-point error was 2 to 4 times that of Gauss-Newton, so it is
+only the fallback.
+
+:func:`_search_level` also says why a search found no trustworthy minimum (the ``status``
+codes below); :mod:`.pyramid` builds the coarse-to-fine tracker on it.
 """
 
 from __future__ import annotations
@@ -256,6 +261,18 @@ def _ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound):  # pragma: no co
     return acc
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _mark(bnd, lanes, mask, total, lim):  # pragma: no cover - numba
+    """``mask[q]`` = 1 where displacement lane q's bound is at most ``lim`` (one vectorised
+    pass); returns how many."""
+    passing = 0
+    for q in range(total):
+        hit = (bnd[q] <= lim) & lanes[q]
+        mask[q] = hit
+        passing += hit
+    return passing
+
+
 @nb.njit(cache=True, nogil=True)
 def _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol, width, total, n, wts, uniform,
             bnd, mscale, lanes, mask):  # pragma: no cover - numba
@@ -287,13 +304,9 @@ def _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol, width, total, n, 
                 best = v
                 best_k = rank
     lim = best * mscale
-    # mark the displacements that pass their bound (one vectorised pass) and compare their
-    # number with those among the 9 already scored
-    passing = 0
-    for q in range(total):
-        hit = (bnd[q] <= lim) & lanes[q]
-        mask[q] = hit
-        passing += hit
+    # mark the displacements that pass their bound and compare their number with those among
+    # the 9 already scored
+    passing = _mark(bnd, lanes, mask, total, lim)
     near = 0
     for r in range(max(py - 1, 0), min(py + 2, nrow)):
         for k in range(max(px - 1, 0), min(px + 2, ncol)):
@@ -376,6 +389,291 @@ def _search_full(prev, curr, ax, ay, lo_x, lo_y, nrow, ncol, n, wts, uniform, re
     return np.int64(best), best_k
 
 
+# -- the status of a feature after a search ----------------------------------------------------
+# Why a feature was found or not; :func:`_search_level` sets the first four, the coarse-to-fine
+# tracker of :mod:`.pyramid` the others.
+
+#: found
+OK = 0
+#: its window left the image: the template leaves frame t, or no search position fits frame t+1
+LEFT = 1
+#: the minimum lies on an edge of the search that the image cut short: it may be a piece of a
+#: minimum outside the image (the feature is leaving it)
+CUT = 2
+#: the minimum lies on the border of the search window: the true one may lie outside it
+BORDER = 3
+#: a second minimum, away from the first, is nearly as good: repetitive or ambiguous texture
+AMBIGUOUS = 4
+#: the coarse-to-fine refinement did not settle within its steps
+RUNAWAY = 5
+#: tracked back from frame t+1, the match does not return to where the feature started
+FB = 6
+#: its displacement departs from its nearest neighbours' (a lookalike taken for it)
+DISAGREES = 7
+#: the RMS residual at the match exceeds ``max_residual`` (set by the tracker)
+RESIDUAL = 8
+STATUS_NAMES = ("ok", "left", "cut", "border", "ambiguous", "runaway", "fb", "disagrees",
+                "residual")
+
+
+@nb.njit(cache=True, nogil=True)
+def _ambiguous_pruned(pf, cf, w, ax, ay, lo_x, lo_y, nrow, ncol, width, total, n, wts, uniform,
+                      bnd, mscale, lanes, mask, best_k, lim):  # pragma: no cover - numba
+    """Whether a displacement outside the 3x3 neighbourhood of the minimum (rank ``best_k``)
+    has S <= ``lim``. The bounds ``bnd`` of the search (times ``mscale``) rule out most of
+    them in one vectorised pass (``lanes``, ``mask`` as in :func:`_search`); the others are
+    scored, each abandoned once above ``lim``."""
+    br = best_k // ncol
+    bk = best_k - br * ncol
+    passing = _mark(bnd, lanes, mask, total, lim * mscale)
+    for r in range(max(br - 1, 0), min(br + 2, nrow)):
+        for k in range(max(bk - 1, 0), min(bk + 2, ncol)):
+            passing -= mask[r * width + k]
+    if passing == 0:
+        return False
+    cap = np.int64(lim) if lim < BIG else BIG
+    for r in range(nrow):
+        for k in range(ncol):
+            if not mask[r * width + k] or (abs(r - br) <= 1 and abs(k - bk) <= 1):
+                continue
+            if _ssd_at(pf, cf, w, ax, ay, lo_x + k, lo_y + r, n, wts, uniform, cap) <= lim:
+                return True
+    return False
+
+
+@nb.njit(cache=True, nogil=True)
+def _ambiguous_full(acc, nrow, ncol, stride, best_k, lim):  # pragma: no cover - numba
+    """:func:`_ambiguous_pruned` over the sums of an exhaustive search (``acc``, displacement
+    (r, k) at ``r * stride + k``)."""
+    br = best_k // ncol
+    bk = best_k - br * ncol
+    for r in range(nrow):
+        for k in range(ncol):
+            if (abs(r - br) > 1 or abs(k - bk) > 1) and acc[r * stride + k] <= lim:
+                return True
+    return False
+
+
+@nb.njit(cache=True, nogil=True)
+def _weights_info(wts):  # pragma: no cover - numba
+    """(uniform, wmin per row, mscale) of the weights W: uniform weights skip the
+    multiplications; wmin bounds each row of a weighted window; the bounds compare with
+    mscale * S, m unless the weights are so large (> 2^28) that m * S could overflow int64,
+    and then 0 with every wmin 0, so that nothing is ruled out."""
+    m = wts.shape[0]
+    uniform = True
+    wmax = 0
+    wmin = np.empty(m, np.int64)
+    for j in range(m):
+        lo = wts[j, 0]
+        for i in range(m):
+            lo = min(lo, wts[j, i])
+            wmax = max(wmax, wts[j, i])
+            if wts[j, i] != 1:
+                uniform = False
+        wmin[j] = max(lo, 0)
+    mscale = m
+    if float(wmax) * m * m * m * 65025.0 >= 2.0**62:
+        wmin[:] = 0
+        mscale = 0
+    return uniform, wmin, mscale
+
+
+@nb.njit(cache=True, nogil=True)
+def _search_level(prev, curr, anchors, centers, active, n, s, wts, exhaustive, ratio,
+                  allowance, out_q, out_ssd, out_status):  # pragma: no cover - numba
+    """The searches of Eq. (1) of the ``active`` features on one pair of frames.
+
+    For feature f: the first (row-major) minimum of S over the displacements whose centre lies
+    within ``s`` of ``centers[f]`` (and whose window fits frame t+1), the template centred at
+    ``anchors[f]``; pruned (:func:`_search`) or, with ``exhaustive``, every displacement in
+    full (:func:`_search_full`). Results: ``out_q[f]`` (x, y) and ``out_ssd[f]`` (S there),
+    ``out_status[f]``:
+
+    * LEFT: the template leaves frame t or no displacement fits frame t+1 (nothing else set);
+    * CUT: the minimum is on an edge of the search that the image cut short (nothing set);
+    * AMBIGUOUS (only when ``ratio > 0``): a displacement outside the minimum's 3x3
+      neighbourhood has S <= ratio * S_min + allowance;
+    * BORDER: the minimum is on the border of the search window;
+    * OK otherwise.
+    """
+    h, w = prev.shape
+    m = 2 * n + 1
+    n_feat = anchors.shape[0]
+    count = 0
+    for f in range(n_feat):
+        if active[f]:
+            out_status[f] = LEFT
+            out_ssd[f] = np.inf
+            count += 1
+    if count == 0 or m > h or m > w:
+        return
+    uniform, wmin, mscale = _weights_info(wts)
+    pf = prev.ravel()
+    cf = curr.ravel()
+    side = 2 * s + 1
+    # the pruned search's buffers (empty for the exhaustive one, which needs no bounds)
+    prune = 0 if exhaustive else 1
+    rs = np.empty(prune * (h * w + w + VEC), np.int16)
+    bufs = np.empty((2, prune * (ROW_BLOCK + w + 2 * m)), np.int16)
+    if not exhaustive:
+        # the row sums of frame t+1, where the active features' searches reach
+        reach = np.empty((count, 2), np.int64)
+        c = 0
+        for f in range(n_feat):
+            if active[f]:
+                reach[c, 0] = centers[f, 0]
+                reach[c, 1] = centers[f, 1]
+                c += 1
+        _row_sums(curr, n, s, reach, rs, bufs)
+    width_max = (side + LANES - 1) // LANES * LANES
+    size = prune * ((side * width_max + VEC - 1) // VEC * VEC)
+    # int32 bounds (twice the vector width) unless they could overflow: large weighted windows
+    top = m * 255
+    use32 = float(wmin.sum()) * top * top < 2.0**31
+    bnd32 = np.empty(size if use32 else 0, np.int32)
+    bnd64 = np.empty(0 if use32 else size, np.int64)
+    blk = np.empty(prune * ((side + m - 1) * width_max + VEC), np.int16)
+    lanes = np.zeros(size, np.uint8)
+    mask = np.empty(size, np.uint8)
+    # the exhaustive search's buffers: frame t+1 around a search in rows of ``stride``, and
+    # the sums of every displacement, in int32 where no S can overflow (|W| * 255^2 per pixel)
+    stride = side + m - 1
+    full = (1 - prune) * ((side * stride + FULL_VEC - 1) // FULL_VEC * FULL_VEC)
+    reg = np.empty((1 - prune) * ((side + m) * stride + m) + full, np.uint8)
+    wsum = 0.0
+    for j in range(m):
+        for i in range(m):
+            wsum += abs(float(wts[j, i]))
+    full32 = wsum * 65025.0 < 2.0**31
+    acc32 = np.empty(full if full32 else 0, np.int32)
+    acc64 = np.empty(0 if full32 else full, np.int64)
+    lanes_nrow = lanes_ncol = -1
+    trs = np.empty(m, np.int32)
+    for f in range(n_feat):
+        if not active[f]:
+            continue
+        ax = anchors[f, 0]
+        ay = anchors[f, 1]
+        cx = centers[f, 0]
+        cy = centers[f, 1]
+        if ax - n < 0 or ay - n < 0 or ax + n >= w or ay + n >= h:
+            continue  # the template itself leaves frame t
+        # valid centres: the whole correlation window inside frame t+1
+        lo_x = max(cx - s, n)
+        hi_x = min(cx + s, w - 1 - n)
+        lo_y = max(cy - s, n)
+        hi_y = min(cy + s, h - 1 - n)
+        if lo_x > hi_x or lo_y > hi_y:
+            continue
+        ncol = hi_x - lo_x + 1
+        nrow = hi_y - lo_y + 1
+        width = total = 0
+        if exhaustive:
+            if full32:
+                best, best_k = _search_full(prev, curr, ax, ay, lo_x, lo_y, nrow, ncol, n, wts,
+                                            uniform, reg, acc32)
+            else:
+                best, best_k = _search_full(prev, curr, ax, ay, lo_x, lo_y, nrow, ncol, n, wts,
+                                            uniform, reg, acc64)
+        else:
+            width = (ncol + LANES - 1) // LANES * LANES
+            for j in range(m):
+                trow = prev[ay - n + j, ax - n:ax + n + 1]
+                acc = 0
+                for i in range(m):
+                    acc += trow[i]
+                trs[j] = acc
+            if nrow != lanes_nrow or ncol != lanes_ncol:
+                # which bound lanes are displacements: the same for every search inside the
+                # image
+                lanes[:] = 0
+                for r in range(nrow):
+                    lanes[r * width:r * width + ncol] = 1
+                lanes_nrow = nrow
+                lanes_ncol = ncol
+            if use32:
+                total = _bounds(rs, w, trs, wmin, uniform, lo_x, lo_y, nrow, ncol, width, n,
+                                blk, bnd32)
+                best, best_k = _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol,
+                                       width, total, n, wts, uniform, bnd32, mscale, lanes,
+                                       mask)
+            else:
+                total = _bounds(rs, w, trs, wmin, uniform, lo_x, lo_y, nrow, ncol, width, n,
+                                blk, bnd64)
+                best, best_k = _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol,
+                                       width, total, n, wts, uniform, bnd64, mscale, lanes,
+                                       mask)
+        qx = lo_x + best_k % ncol
+        qy = lo_y + best_k // ncol
+        # a minimum on an edge that the image cut short may be a piece of a minimum outside
+        # the image: the feature is leaving the image, so it is lost rather than pinned there
+        if ((qx == lo_x and lo_x > cx - s) or (qx == hi_x and hi_x < cx + s)
+                or (qy == lo_y and lo_y > cy - s) or (qy == hi_y and hi_y < cy + s)):
+            out_status[f] = CUT
+            continue
+        out_q[f, 0] = qx
+        out_q[f, 1] = qy
+        out_ssd[f] = best
+        status = OK
+        if abs(qx - cx) == s or abs(qy - cy) == s:
+            status = BORDER
+        if ratio > 0.0:
+            lim = ratio * float(best) + allowance
+            if exhaustive:
+                if full32:
+                    amb = _ambiguous_full(acc32, nrow, ncol, ncol + m - 1, best_k, lim)
+                else:
+                    amb = _ambiguous_full(acc64, nrow, ncol, ncol + m - 1, best_k, lim)
+            elif use32:
+                amb = _ambiguous_pruned(pf, cf, w, ax, ay, lo_x, lo_y, nrow, ncol, width, total,
+                                        n, wts, uniform, bnd32, mscale, lanes, mask, best_k,
+                                        lim)
+            else:
+                amb = _ambiguous_pruned(pf, cf, w, ax, ay, lo_x, lo_y, nrow, ncol, width, total,
+                                        n, wts, uniform, bnd64, mscale, lanes, mask, best_k,
+                                        lim)
+            if amb:
+                status = AMBIGUOUS
+        out_status[f] = status
+
+
+@nb.njit(cache=True, nogil=True)
+def _track(prev, curr, anchors, centers, n, s, wts, subpixel, exhaustive,
+           out_pos, out_ssd, out_ok):  # pragma: no cover - numba
+    """The searches of :func:`track_ssd` (:func:`_search_level` over every feature, no
+    uniqueness test), results into ``out_pos``, ``out_ssd``, ``out_ok``."""
+    n_feat = anchors.shape[0]
+    q = np.zeros((n_feat, 2), np.int64)
+    status = np.empty(n_feat, np.int8)
+    active = np.ones(n_feat, np.bool_)
+    _search_level(prev, curr, anchors, centers, active, n, s, wts, exhaustive, 0.0, 0.0, q,
+                  out_ssd, status)
+    for f in range(n_feat):
+        # a minimum on the search window's border is kept: the paper's search
+        out_ok[f] = status[f] == OK or status[f] == BORDER
+        out_pos[f, 0] = q[f, 0] if out_ok[f] else np.nan
+        out_pos[f, 1] = q[f, 1] if out_ok[f] else np.nan
+        if not out_ok[f]:
+            out_ssd[f] = np.inf
+    if subpixel:
+        # a pass of its own after all the searches: interleaved with them it ran ~1.5x slower
+        # (caches and branch predictors shared with the search code)
+        uniform, _, _ = _weights_info(wts)
+        _subpixel(prev, curr, anchors, n, wts, uniform, out_pos, out_ssd, out_ok)
+
+
+#: the sub-pixel estimate of the wide window is taken where it agrees with the correlation
+#: window's to within this, px (see :func:`_subpixel`)
+AGREE_PX = 0.1
+#: Gauss-Newton stops once a step is below this, px, or after GN_ITERATIONS
+GN_STEP_PX = 1e-3
+GN_ITERATIONS = 10
+#: the largest |W (2 gradient)| * |second difference| term of the sums of :func:`_refine`, per
+#: unit of weight (2 * 255 * 4 * 255): what decides whether they fit int32
+_REFINE_TERM = 520200.0
+
+
 @nb.njit(cache=True, nogil=True)
 def _patch(img, x0, y0, rows, cols, out, stride):  # pragma: no cover - numba
     """Copy img[y0:y0 + rows, x0:x0 + cols] into ``out`` (int32, rows ``stride`` apart), with 0
@@ -422,13 +720,43 @@ def _corners(gx, gy, cp, off, stride, acc):  # pragma: no cover - numba
 
 
 @nb.njit(cache=True, nogil=True)
+def _refine_scratch(wts):  # pragma: no cover - numba
+    """The weights of a (2h+1)^2 window in :func:`_refine`'s layout (rows R = m + 3 apart,
+    zero beyond the window, the length a multiple of VEC) and its scratch: (wpad, tp, cp, g32,
+    g64, narrow). ``narrow``: the sums fit int32 (twice the vector width) rather than int64."""
+    m = wts.shape[0]
+    stride = m + 3
+    rsize = (m * stride + VEC - 1) // VEC * VEC
+    wpad = np.zeros(rsize, np.int32)
+    wmax = 0
+    for j in range(m):
+        for i in range(m):
+            wpad[j * stride + i] = wts[j, i]
+            wmax = max(wmax, abs(np.int64(wts[j, i])))
+    tp = np.zeros(rsize + 3 * stride + 3, np.int32)
+    cp = np.zeros(rsize + 3 * stride + 3, np.int32)
+    narrow = float(wmax) * _REFINE_TERM * m * m < 2.0**31
+    g32 = np.empty((2, rsize if narrow else 0), np.int32)
+    g64 = np.empty((2, 0 if narrow else rsize), np.int64)
+    return wpad, tp, cp, g32, g64, narrow
+
+
+@nb.njit(cache=True, nogil=True)
 def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, acc):  # pragma: no cover
-    """Minimise Eq. (1) over a continuous displacement, starting at the integer minimum.
+    """Minimise Eq. (1) over a continuous position of the window of the template centred at
+    the pixel (ax, ay) of frame t, by Gauss-Newton from (x0, y0) in frame t+1.
 
     Inverse-compositional Gauss-Newton for a translation (Baker and Matthews 2004): the template
     gradient and the 2x2 normal matrix are computed once, each iteration samples frame t+1
     bilinearly. Returns (converged, x, y); it gives up (False) if the window would leave the
     image, the template has no texture, or the estimate strays more than 1 px from (x0, y0).
+
+    Bilinear interpolation at a fraction f of a pixel adds f (1 - f) / 2 times the second
+    derivative to a smooth image (exactly so for a quadratic one), which pulls a plain
+    estimate towards whole pixels ("pixel locking"; on the rendered sequences of
+    :mod:`vistrack.common.rendered` it made the median error 15 to 25 % larger). The residual
+    is corrected by that term, the second derivative taken from the template's second
+    differences: four more sums, computed with the normal matrix.
 
     The gradient-weighted sum of the bilinear samples splits into four integer correlations of
     the gradient with frame t+1 at the corners of the pixel holding the estimate, so an
@@ -437,10 +765,10 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, acc):  # pragma
 
     Pixel (j, i) of the window sits at flat index q = j * R + i, R = m + 3 (the pad columns and
     the tail carry zero weight), so that each sum is one long loop that LLVM vectorises.
-    ``wpad``: the weights in that layout, its length a multiple of VEC; ``tp``: frame t around
-    the window with a 1 px margin; ``cp``: frame t+1 around (x0, y0) with the margin the
-    estimate can use (it stays within 1 px); ``gx``, ``gy``: scratch; ``acc``: the integer type
-    of the sums, np.int32 where they cannot overflow (twice the vector width) or np.int64.
+    ``wpad``, ``tp``, ``cp``, ``gx``, ``gy``: from :func:`_refine_scratch` (``tp``: frame t
+    around the window with a 1 px margin; ``cp``: frame t+1 around (x0, y0) with the margin the
+    estimate can use, within 1 px); ``acc``: the integer type of the sums, np.int32 where they
+    cannot overflow (twice the vector width) or np.int64.
     """
     h, w = prev.shape
     m = 2 * n + 1
@@ -448,8 +776,8 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, acc):  # pragma
     size = wpad.shape[0]
     if ax - n - 1 < 0 or ay - n - 1 < 0 or ax + n + 1 >= w or ay + n + 1 >= h:
         return False, x0, y0
-    ix = int(x0)
-    iy = int(y0)
+    ix = int(np.floor(x0))
+    iy = int(np.floor(y0))
     _patch(prev, ax - n - 1, ay - n - 1, m + 2, m + 2, tp, stride)
     # the bilinear samples never leave the image (the loop gives up first), so the part of
     # this patch outside it is never read
@@ -463,12 +791,12 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, acc):  # pragma
     down = tp[2 * stride + 1:2 * stride + 1 + size]
     up = tp[1:1 + size]
     mid = tp[stride + 1:stride + 1 + size]
-    # frame t+1 at the integer minimum, for the first step (which samples no other pixel)
-    c0 = cp[stride + 1:stride + 1 + size]
-    h11 = h12 = h22 = tx = ty = s0x = s0y = acc(0)
+    h11 = h12 = h22 = tx = ty = axx = axy = ayx = ayy = acc(0)
     for q in range(size):
         ddx = right[q] - left[q]
         ddy = down[q] - up[q]
+        dxx = right[q] + left[q] - 2 * mid[q]
+        dyy = down[q] + up[q] - 2 * mid[q]
         gxq = wpad[q] * ddx
         gyq = wpad[q] * ddy
         gx[q] = gxq
@@ -478,8 +806,10 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, acc):  # pragma
         h22 = acc(h22 + gyq * ddy)
         tx = acc(tx + gxq * mid[q])
         ty = acc(ty + gyq * mid[q])
-        s0x = acc(s0x + gxq * c0[q])
-        s0y = acc(s0y + gyq * c0[q])
+        axx = acc(axx + gxq * dxx)
+        axy = acc(axy + gxq * dyy)
+        ayx = acc(ayx + gyq * dxx)
+        ayy = acc(ayy + gyq * dyy)
     # the normal matrix of the half-gradient: the same floats as summing it in float64
     f11 = 0.25 * h11
     f12 = 0.25 * h12
@@ -489,216 +819,84 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, acc):  # pragma
         return False, x0, y0
     x = x0
     y = y0
-    # the pixel whose corner correlations are in sx.., sy..: at first the minimum's, whose
-    # corner 00 is all the first step needs
-    cbx = ix
-    cby = iy
-    full = False
-    sx00 = s0x
-    sy00 = s0y
-    sx01 = sx10 = sx11 = sy01 = sy10 = sy11 = 0
-    for _ in range(10):
+    cbx = cby = -(1 << 30)  # the pixel whose corner correlations are in sx.., sy..
+    sx00 = sx01 = sx10 = sx11 = sy00 = sy01 = sy10 = sy11 = 0
+    for _ in range(GN_ITERATIONS):
         if x - n < 0 or y - n < 0 or x + n + 1 >= w - 1 or y + n + 1 >= h - 1:
             return False, x0, y0
         bx0 = int(np.floor(x))
         by0 = int(np.floor(y))
         fx = x - bx0
         fy = y - by0
-        if bx0 != cbx or by0 != cby or not (full or fx == 0.0 and fy == 0.0):
+        if bx0 != cbx or by0 != cby:
             off = (by0 - iy + 1) * stride + bx0 - ix + 1
             sx00, sx01, sx10, sx11, sy00, sy01, sy10, sy11 = _corners(gx, gy, cp, off,
                                                                       stride, acc)
             cbx = bx0
             cby = by0
-            full = True
         w00 = (1 - fx) * (1 - fy)
         w01 = fx * (1 - fy)
         w10 = (1 - fx) * fy
         w11 = fx * fy
-        # sum over the window of gradient * (bilinear sample - template)
-        b1 = 0.5 * (w00 * sx00 + w01 * sx01 + w10 * sx10 + w11 * sx11 - tx)
-        b2 = 0.5 * (w00 * sy00 + w01 * sy01 + w10 * sy10 + w11 * sy11 - ty)
+        # the interpolation terms of the sample (the template's pixels need none)
+        cx = 0.5 * fx * (1.0 - fx)
+        cy = 0.5 * fy * (1.0 - fy)
+        # sum over the window of gradient * (bilinear sample - template - correction)
+        b1 = 0.5 * (w00 * sx00 + w01 * sx01 + w10 * sx10 + w11 * sx11 - tx - cx * axx
+                    - cy * axy)
+        b2 = 0.5 * (w00 * sy00 + w01 * sy01 + w10 * sy10 + w11 * sy11 - ty - cx * ayx
+                    - cy * ayy)
         ddx = (f22 * b1 - f12 * b2) / det
         ddy = (f11 * b2 - f12 * b1) / det
         x -= ddx
         y -= ddy
         if abs(x - x0) > 1.0 or abs(y - y0) > 1.0:
             return False, x0, y0
-        if ddx * ddx + ddy * ddy < 1e-4:
+        if ddx * ddx + ddy * ddy < GN_STEP_PX * GN_STEP_PX:
             break
     return True, x, y
 
 
 @nb.njit(cache=True, nogil=True)
-def _track(prev, curr, anchors, centers, n, s, wts, subpixel, exhaustive,
-           out_pos, out_ssd, out_ok):  # pragma: no cover - numba
-    """The searches of :func:`track_ssd`, results into ``out_pos``, ``out_ssd``, ``out_ok``:
-    pruned (:func:`_search`) or, with ``exhaustive``, every displacement in full
-    (:func:`_search_full`)."""
-    h, w = prev.shape
-    m = 2 * n + 1
-    n_feat = anchors.shape[0]
-    for f in range(n_feat):
-        out_ok[f] = False
-        out_ssd[f] = np.inf
-        out_pos[f, 0] = np.nan
-        out_pos[f, 1] = np.nan
-    if n_feat == 0 or m > h or m > w:
-        return
-    # uniform weights skip the multiplications; wmin bounds each row of a weighted window
-    uniform = True
-    wmax = 0
-    wmin = np.empty(m, np.int64)
-    for j in range(m):
-        lo = wts[j, 0]
-        for i in range(m):
-            lo = min(lo, wts[j, i])
-            wmax = max(wmax, wts[j, i])
-            if wts[j, i] != 1:
-                uniform = False
-        wmin[j] = max(lo, 0)
-    # the bounds compare with m * S, which fits int64 unless the weights are huge (> 2^28):
-    # then they are all 0 and compared with 0 * S, so that nothing is ruled out
-    mscale = m
-    if float(wmax) * m * m * m * 65025.0 >= 2.0**62:
-        wmin[:] = 0
-        mscale = 0
-    pf = prev.ravel()
-    cf = curr.ravel()
-    side = 2 * s + 1
-    # the pruned search's buffers (empty for the exhaustive one, which needs no bounds)
-    prune = 0 if exhaustive else 1
-    rs = np.empty(prune * (h * w + w + VEC), np.int16)
-    bufs = np.empty((2, prune * (ROW_BLOCK + w + 2 * m)), np.int16)
-    if not exhaustive:
-        _row_sums(curr, n, s, centers, rs, bufs)
-    width_max = (side + LANES - 1) // LANES * LANES
-    size = prune * ((side * width_max + VEC - 1) // VEC * VEC)
-    # int32 bounds (twice the vector width) unless they could overflow: large weighted windows
-    top = m * 255
-    use32 = float(wmin.sum()) * top * top < 2.0**31
-    bnd32 = np.empty(size if use32 else 0, np.int32)
-    bnd64 = np.empty(0 if use32 else size, np.int64)
-    blk = np.empty(prune * ((side + m - 1) * width_max + VEC), np.int16)
-    lanes = np.zeros(size, np.uint8)
-    mask = np.empty(size, np.uint8)
-    # the exhaustive search's buffers: frame t+1 around a search in rows of ``stride``, and
-    # the sums of every displacement, in int32 where no S can overflow (|W| * 255^2 per pixel)
-    stride = side + m - 1
-    full = (1 - prune) * ((side * stride + FULL_VEC - 1) // FULL_VEC * FULL_VEC)
-    reg = np.empty((1 - prune) * ((side + m) * stride + m) + full, np.uint8)
-    wsum = 0.0
-    for j in range(m):
-        for i in range(m):
-            wsum += abs(float(wts[j, i]))
-    full32 = wsum * 65025.0 < 2.0**31
-    acc32 = np.empty(full if full32 else 0, np.int32)
-    acc64 = np.empty(0 if full32 else full, np.int64)
-    lanes_nrow = lanes_ncol = -1
-    trs = np.empty(m, np.int32)
-    for f in range(n_feat):
-        ax = anchors[f, 0]
-        ay = anchors[f, 1]
-        cx = centers[f, 0]
-        cy = centers[f, 1]
-        if ax - n < 0 or ay - n < 0 or ax + n >= w or ay + n >= h:
-            continue  # the template itself leaves frame t
-        # valid centres: the whole correlation window inside frame t+1
-        lo_x = max(cx - s, n)
-        hi_x = min(cx + s, w - 1 - n)
-        lo_y = max(cy - s, n)
-        hi_y = min(cy + s, h - 1 - n)
-        if lo_x > hi_x or lo_y > hi_y:
-            continue
-        ncol = hi_x - lo_x + 1
-        nrow = hi_y - lo_y + 1
-        if exhaustive:
-            if full32:
-                best, best_k = _search_full(prev, curr, ax, ay, lo_x, lo_y, nrow, ncol, n, wts,
-                                            uniform, reg, acc32)
-            else:
-                best, best_k = _search_full(prev, curr, ax, ay, lo_x, lo_y, nrow, ncol, n, wts,
-                                            uniform, reg, acc64)
-            _store(out_pos, out_ssd, out_ok, f, best, best_k, lo_x, lo_y, hi_x, hi_y, ncol,
-                   cx, cy, s)
-            continue
-        width = (ncol + LANES - 1) // LANES * LANES
-        for j in range(m):
-            trow = prev[ay - n + j, ax - n:ax + n + 1]
-            acc = 0
-            for i in range(m):
-                acc += trow[i]
-            trs[j] = acc
-        if nrow != lanes_nrow or ncol != lanes_ncol:
-            # which bound lanes are displacements: the same for every search inside the image
-            lanes[:] = 0
-            for r in range(nrow):
-                lanes[r * width:r * width + ncol] = 1
-            lanes_nrow = nrow
-            lanes_ncol = ncol
-        if use32:
-            total = _bounds(rs, w, trs, wmin, uniform, lo_x, lo_y, nrow, ncol, width, n, blk,
-                            bnd32)
-            best, best_k = _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol, width,
-                                   total, n, wts, uniform, bnd32, mscale, lanes, mask)
-        else:
-            total = _bounds(rs, w, trs, wmin, uniform, lo_x, lo_y, nrow, ncol, width, n, blk,
-                            bnd64)
-            best, best_k = _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol, width,
-                                   total, n, wts, uniform, bnd64, mscale, lanes, mask)
-        _store(out_pos, out_ssd, out_ok, f, best, best_k, lo_x, lo_y, hi_x, hi_y, ncol, cx, cy,
-               s)
-    if subpixel:
-        # a pass of its own after all the searches: interleaved with them it ran ~1.5x slower
-        # (caches and branch predictors shared with the search code)
-        _subpixel(prev, curr, anchors, centers, n, s, wts, uniform, out_pos, out_ssd, out_ok)
+def _refine_with(prev, curr, ax, ay, x0, y0, n, scratch):  # pragma: no cover - numba
+    """:func:`_refine` with the scratch of :func:`_refine_scratch`, in int32 or int64."""
+    wpad, tp, cp, g32, g64, narrow = scratch
+    if narrow:
+        return _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g32[0], g32[1], np.int32)
+    return _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g64[0], g64[1], np.int64)
 
 
 @nb.njit(cache=True, nogil=True)
-def _store(out_pos, out_ssd, out_ok, f, best, best_k, lo_x, lo_y, hi_x, hi_y, ncol, cx, cy,
-           s):  # pragma: no cover - numba
-    """Record feature ``f``'s minimum (S ``best`` at ``rank`` best_k of the search), unless it
-    sits on an edge of the search that the image cut short."""
-    qx = lo_x + best_k % ncol
-    qy = lo_y + best_k // ncol
-    # a minimum on an edge that the image cut short may be a piece of a minimum outside the
-    # image: the feature is leaving the image, so it is lost rather than pinned to the edge
-    if ((qx == lo_x and lo_x > cx - s) or (qx == hi_x and hi_x < cx + s)
-            or (qy == lo_y and lo_y > cy - s) or (qy == hi_y and hi_y < cy + s)):
-        return
-    out_pos[f, 0] = qx
-    out_pos[f, 1] = qy
-    out_ssd[f] = best
-    out_ok[f] = True
+def _parabola(pf, cf, w, h, ax, ay, qx, qy, n, wts, uniform, best):  # pragma: no cover
+    """The sub-pixel offsets (ox, oy), each within +-0.5, of a parabola per axis through S at
+    the integer minimum (qx, qy) and its two neighbours, where both neighbours' windows fit
+    frame t+1 (else 0): the fallback where Gauss-Newton cannot run."""
+    ox = oy = 0.0
+    if n < qx < w - 1 - n:
+        sl = _ssd_at(pf, cf, w, ax, ay, qx - 1, qy, n, wts, uniform, BIG)
+        sr = _ssd_at(pf, cf, w, ax, ay, qx + 1, qy, n, wts, uniform, BIG)
+        den = sl - 2 * best + sr
+        if den > 0:
+            ox = min(max(0.5 * (sl - sr) / den, -0.5), 0.5)
+    if n < qy < h - 1 - n:
+        su = _ssd_at(pf, cf, w, ax, ay, qx, qy - 1, n, wts, uniform, BIG)
+        sd = _ssd_at(pf, cf, w, ax, ay, qx, qy + 1, n, wts, uniform, BIG)
+        den = su - 2 * best + sd
+        if den > 0:
+            oy = min(max(0.5 * (su - sd) / den, -0.5), 0.5)
+    return ox, oy
 
 
 @nb.njit(cache=True, nogil=True)
-def _subpixel(prev, curr, anchors, centers, n, s, wts, uniform, out_pos, out_ssd,
+def _subpixel(prev, curr, anchors, n, wts, uniform, out_pos, out_ssd,
               out_ok):  # pragma: no cover - numba
-    """Refine the integer minima in ``out_pos`` in place (see ``track_ssd``'s ``subpixel``)."""
+    """Refine the integer minima in ``out_pos`` in place: Gauss-Newton (:func:`_refine`) from
+    each, or a parabola per axis (:func:`_parabola`) where it cannot run (window at the
+    border, no texture)."""
     h, w = prev.shape
-    m = 2 * n + 1
     pf = prev.ravel()
     cf = curr.ravel()
-    # scratch of _refine: weights and windows in rows of m + 3, zero beyond the window; the
-    # slices of _refine reach 3 rows and 3 pixels past the weights
-    stride = m + 3
-    rsize = (m * stride + VEC - 1) // VEC * VEC
-    wpad = np.zeros(rsize, np.int32)
-    for j in range(m):
-        for i in range(m):
-            wpad[j * stride + i] = wts[j, i]
-    tp = np.zeros(rsize + 3 * stride + 3, np.int32)
-    cp = np.zeros(rsize + 3 * stride + 3, np.int32)
-    # the sums of _refine in int32 (twice the vector width) where no partial sum can overflow
-    # (|W| * 255 * 255 per pixel), else in int64
-    wmax = 0
-    for j in range(m):
-        for i in range(m):
-            wmax = max(wmax, abs(np.int64(wts[j, i])))
-    narrow = float(wmax) * 65025.0 * m * m < 2.0**31
-    g32 = np.empty((2, rsize if narrow else 0), np.int32)
-    g64 = np.empty((2, 0 if narrow else rsize), np.int64)
+    scratch = _refine_scratch(wts)
     for f in range(anchors.shape[0]):
         if not out_ok[f]:
             continue
@@ -706,34 +904,13 @@ def _subpixel(prev, curr, anchors, centers, n, s, wts, uniform, out_pos, out_ssd
         ay = anchors[f, 1]
         qx = int(out_pos[f, 0])
         qy = int(out_pos[f, 1])
-        if narrow:
-            refined, fx, fy = _refine(prev, curr, ax, ay, float(qx), float(qy), n, wpad, tp,
-                                      cp, g32[0], g32[1], np.int32)
-        else:
-            refined, fx, fy = _refine(prev, curr, ax, ay, float(qx), float(qy), n, wpad, tp,
-                                      cp, g64[0], g64[1], np.int64)
+        refined, x, y = _refine_with(prev, curr, ax, ay, float(qx), float(qy), n, scratch)
         if not refined:
-            # parabola through S at the minimum and its two neighbours, per axis; only where
-            # both neighbours are valid positions of the same search
-            cx = centers[f, 0]
-            cy = centers[f, 1]
-            best = out_ssd[f]
-            if max(cx - s, n) < qx < min(cx + s, w - 1 - n):
-                sl = _ssd_at(pf, cf, w, ax, ay, qx - 1, qy, n, wts, uniform, BIG)
-                sr = _ssd_at(pf, cf, w, ax, ay, qx + 1, qy, n, wts, uniform, BIG)
-                den = sl - 2 * best + sr
-                if den > 0:
-                    off = 0.5 * (sl - sr) / den
-                    fx += min(max(off, -0.5), 0.5)
-            if max(cy - s, n) < qy < min(cy + s, h - 1 - n):
-                su = _ssd_at(pf, cf, w, ax, ay, qx, qy - 1, n, wts, uniform, BIG)
-                sd = _ssd_at(pf, cf, w, ax, ay, qx, qy + 1, n, wts, uniform, BIG)
-                den = su - 2 * best + sd
-                if den > 0:
-                    off = 0.5 * (su - sd) / den
-                    fy += min(max(off, -0.5), 0.5)
-        out_pos[f, 0] = fx
-        out_pos[f, 1] = fy
+            ox, oy = _parabola(pf, cf, w, h, ax, ay, qx, qy, n, wts, uniform, out_ssd[f])
+            x = qx + ox
+            y = qy + oy
+        out_pos[f, 0] = x
+        out_pos[f, 1] = y
 
 
 def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: np.ndarray, *,
@@ -751,8 +928,9 @@ def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: 
     search_half : half-width of the search window; (2 s + 1)^2 displacements are scored.
     weights : (2n+1, 2n+1) int32 W(i, j) >= 0, see :func:`window_weights`.
     subpixel : refine the integer minimum to a continuous one: Gauss-Newton on Eq. (1) with
-        bilinear sampling, falling back to a parabola per axis through the minimum and its
-        neighbours where Gauss-Newton cannot run (window at the border, no texture).
+        bilinear sampling (:func:`_refine`), falling back to a parabola per axis through the
+        minimum and its neighbours where Gauss-Newton cannot run (window at the border, no
+        texture).
     search : how the argmin is found; both give the same positions, S and ``ok``:
         ``"pruned"`` (default) visits only the displacements the bounds cannot rule out (see
         the module notes), ``"exhaustive"`` scores every displacement in full, the paper's

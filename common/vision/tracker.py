@@ -6,10 +6,15 @@ numbers in one process or across the services.
 Per frame t -> t+1:
 
 1. prediction (Section 4): constant velocity from finite differences,
-   ``x_pred = x_t + (x_t - x_{t-1})`` (zero velocity for a feature's first step);
-2. SSD search of Eq. (1) around the prediction (:mod:`.ssd`);
-3. a feature is lost when its window leaves the image or its RMS residual exceeds
-   ``max_residual`` grey levels;
+   ``x_pred = x_t + (x_t - x_{t-1})``; a feature's first step is predicted by the image motion
+   of the frame before (zero on a track's second frame);
+2. coarse-to-fine SSD search of Eq. (1) around the prediction, refined to sub-pixel
+   (:mod:`.pyramid`, :mod:`.ssd`);
+3. a feature is lost when its window leaves the image, and rejected (lost too) when its match
+   cannot be trusted: the minimum on the search window's border, a second minimum nearly as
+   good, a failed refinement, a forward-backward error above ``max_fb_error`` or an RMS
+   residual above ``max_residual`` grey levels. The counts by reason are kept
+   (:attr:`Tracker.lost_by`);
 4. when fewer than ``redetect_fraction * max_features`` survive, new features are chosen among
    the frame's candidates (:mod:`.features`) away from the survivors; ids are never reused, and a
    feature keeps its id while it is tracked;
@@ -30,7 +35,8 @@ from ..params import MIN_VALID_NPI, TrackerParams
 from .features import select_features
 from .motion import _incremental_motion, centroid_scatter
 from .preprocess import Preprocessed, preprocess
-from .ssd import track_ssd, window_weights
+from .pyramid import Pyramid, build_pyramid, track_pyramid
+from .ssd import BORDER, OK, RESIDUAL, STATUS_NAMES, window_weights
 
 
 @dataclass(frozen=True)
@@ -98,6 +104,7 @@ class Tracker:
     def reset(self) -> None:
         """Forget every feature; the next frame is a first frame."""
         self._prev: np.ndarray | None = None
+        self._prev_pyr: Pyramid | None = None
         self._pos = np.empty((0, 2), np.float64)
         self._vel = np.empty((0, 2), np.float64)
         self._ids = np.empty(0, np.int64)
@@ -105,9 +112,29 @@ class Tracker:
         self._acc_dx = 0.0
         self._acc_dy = 0.0
         self._acc_scale = 1.0
+        self._motion = (0.0, 0.0)  # the image motion of the last frame, px
         self._frame = 0
-        self.lost_total = 0
+        self._lost = np.zeros(len(STATUS_NAMES), np.int64)
         self.redetections = 0
+
+    @property
+    def lost_total(self) -> int:
+        """Features lost since the start: their window left the image, or their match was
+        rejected."""
+        return int(self._lost.sum())
+
+    @property
+    def rejected_total(self) -> int:
+        """Features lost because their match could not be trusted (not because their window
+        left the image)."""
+        return int(self._lost[BORDER:].sum())
+
+    @property
+    def lost_by(self) -> dict[str, int]:
+        """Features lost since the start, by reason: ``left`` (the window left the image),
+        ``cut`` (the minimum on an image edge: leaving it), ``border``, ``ambiguous``,
+        ``runaway``, ``fb``, ``residual`` (rejected, see the module notes)."""
+        return {name: int(v) for name, v in zip(STATUS_NAMES[1:], self._lost[1:], strict=True)}
 
     @property
     def params(self) -> TrackerParams:
@@ -144,13 +171,15 @@ class Tracker:
         if not first and self._prev is not None and self._prev.shape != frame.shape:
             raise ValueError(f"frame size {frame.shape[::-1]} differs from the previous "
                              f"{self._prev.shape[::-1]} (width, height)")
+        pyr = build_pyramid(frame, p.levels)
         if first:
             self._add_features(pre, frame.shape)
         else:
-            self._track(frame)
+            self._track(pyr)
             if len(self._pos) < p.redetect_fraction * p.max_features:
                 self._add_features(pre, frame.shape)
         self._prev = frame
+        self._prev_pyr = pyr
         if len(self._pos):
             xc, yc, xe, ye = centroid_scatter(self._pos)
         else:
@@ -166,22 +195,31 @@ class Tracker:
         self._frame += 1
         return est
 
-    def _track(self, frame: np.ndarray) -> None:
+    def _track(self, pyr: Pyramid) -> None:
         p = self._params
         assert self._prev is not None
         if len(self._pos) == 0:
+            self._motion = (0.0, 0.0)
             return
-        anchors, centers = _predict(self._pos, self._vel)
-        match, ssd, ok = track_ssd(self._prev, frame, anchors, centers, corr_half=p.corr_half,
-                                   search_half=p.search_half, weights=self._weights,
-                                   subpixel=p.subpixel, search=p.search)
+        prev = self._prev_pyr
+        if prev is None or prev.levels != pyr.levels:  # the levels changed with the params
+            prev = build_pyramid(self._prev, p.levels)
+        # what noise alone adds to S at a perfect match: both frames' noise, over the window
+        allowance = 2.0 * p.noise_sigma ** 2 * self._wsum
+        found, ssd, status = track_pyramid(
+            prev, pyr, self._pos, self._pos + self._vel, corr_half=p.corr_half,
+            search_half=p.search_half, weights=self._weights, subpixel=p.subpixel,
+            search=p.search, uniqueness=p.uniqueness, allowance=allowance,
+            reject_border=p.reject_border, guided_retry=p.guided_retry,
+            max_fb_error=p.max_fb_error, consensus=p.consensus, wide_half=p.refine_half)
         pos, vel, ids, lost, moved, dx, dy, scale = _advance(
-            self._pos, match, anchors, ssd, ok, self._ids, self._wsum, float(p.max_residual))
+            self._pos, found, ssd, status, self._ids, self._wsum, float(p.max_residual))
         if moved:
             self._acc_dx += dx
             self._acc_dy += dy
             self._acc_scale *= scale
-        self.lost_total += int(lost)
+        self._motion = (dx, dy) if moved else (0.0, 0.0)
+        self._lost += lost
         self._pos = pos
         self._vel = vel
         self._ids = ids
@@ -196,7 +234,8 @@ class Tracker:
             return
         new = pre.candidates[chosen].astype(np.float64)
         self._pos = np.concatenate([self._pos, new])
-        self._vel = np.concatenate([self._vel, np.zeros_like(new)])
+        # a new feature's first step is predicted by the image motion of the frame before
+        self._vel = np.concatenate([self._vel, np.tile(np.array(self._motion), (len(new), 1))])
         self._ids = np.concatenate([self._ids, np.arange(self._next_id,
                                                          self._next_id + len(new))])
         self._next_id += len(new)
@@ -205,33 +244,26 @@ class Tracker:
 
 
 @nb.njit(cache=True, nogil=True)
-def _predict(pos, vel):  # pragma: no cover - numba
-    """Template centres (the rounded positions) and search centres (constant velocity)."""
-    n = pos.shape[0]
-    anchors = np.empty((n, 2), np.int64)
-    centers = np.empty((n, 2), np.int64)
-    for i in range(n):
-        for c in range(2):
-            anchors[i, c] = int(np.rint(pos[i, c]))
-            centers[i, c] = int(np.rint(pos[i, c] + vel[i, c]))
-    return anchors, centers
+def _advance(pos, found, ssd, status, ids, wsum, max_residual):  # pragma: no cover - numba
+    """One frame's bookkeeping after the search, in one kernel rather than ~20 small numpy
+    calls: the survivors' new positions and velocities, the losses by reason (a found match
+    whose RMS residual exceeds ``max_residual`` is rejected as RESIDUAL) and the incremental
+    motion of the survivors.
 
-
-@nb.njit(cache=True, nogil=True)
-def _advance(pos, match, anchors, ssd, ok, ids, wsum, max_residual):  # pragma: no cover - numba
-    """One frame's bookkeeping after the SSD search, in one kernel rather than ~20 small numpy
-    calls: the new positions (the template sits at the rounded position, so the sub-pixel
-    part is carried along), the losses (window left the image or RMS residual above
-    ``max_residual``) and the incremental motion of the survivors.
-
-    Returns (positions, velocities, ids of the survivors, number lost, whether any survived,
-    dx, dy, scale).
+    Returns (positions, velocities, ids of the survivors, losses (len(STATUS_NAMES),) by
+    status, whether any survived, dx, dy, scale).
     """
     n = pos.shape[0]
     keep = np.empty(n, np.bool_)
+    lost = np.zeros(len(STATUS_NAMES), np.int64)
     kept = 0
     for i in range(n):
-        keep[i] = ok[i] and np.sqrt(ssd[i] / wsum) <= max_residual
+        st = status[i]
+        if st == OK and np.sqrt(ssd[i] / wsum) > max_residual:
+            st = RESIDUAL
+        keep[i] = st == OK
+        if st != OK:
+            lost[st] += 1
         kept += keep[i]
     new_pos = np.empty((kept, 2), np.float64)
     before = np.empty((kept, 2), np.float64)
@@ -241,17 +273,16 @@ def _advance(pos, match, anchors, ssd, ok, ids, wsum, max_residual):  # pragma: 
     for i in range(n):
         if keep[i]:
             for c in range(2):
-                q = pos[i, c] + (match[i, c] - anchors[i, c])
-                new_pos[j, c] = q
+                new_pos[j, c] = found[i, c]
                 before[j, c] = pos[i, c]
-                vel[j, c] = q - pos[i, c]
+                vel[j, c] = found[i, c] - pos[i, c]
             new_ids[j] = ids[i]
             j += 1
     dx = dy = 0.0
     scale = 1.0
     if kept:
         dx, dy, scale = _incremental_motion(before, new_pos)
-    return new_pos, vel, new_ids, n - kept, kept > 0, dx, dy, scale
+    return new_pos, vel, new_ids, lost, kept > 0, dx, dy, scale
 
 
 def track_frames(frames: Iterable[np.ndarray], params: TrackerParams | None = None) -> list[
@@ -277,6 +308,6 @@ def warm_up() -> None:
     from ..synthetic import sequence
 
     frames = sequence(3, size=(64, 64), seed=1)
-    for p in (TrackerParams(subpixel=True), TrackerParams(weights="gaussian"),
-              TrackerParams(subpixel=True, search="exhaustive")):
+    for p in (TrackerParams(), TrackerParams(weights="gaussian", subpixel=False),
+              TrackerParams(search="exhaustive")):
         track_frames(frames, p.replace(max_features=20, search_size=5, corr_size=5))

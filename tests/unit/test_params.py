@@ -31,7 +31,9 @@ def test_out_of_range_names_field_value_and_range(field):
                                          ("thres_percent", float("nan")),
                                          ("weights", "box"), ("subpixel", 1),
                                          ("strength", "harris"), ("search", "full"),
-                                         ("search", None)])
+                                         ("search", None), ("levels", 2.5),
+                                         ("reject_border", "yes"), ("guided_retry", 0),
+                                         ("max_fb_error", float("inf"))])
 def test_wrong_types_are_rejected(field, value):
     with pytest.raises(ParamError, match=field):
         TrackerParams(**{field: value})
@@ -58,3 +60,27 @@ def test_search_is_pruned_by_default_and_names_the_choices():
     with pytest.raises(ParamError) as err:
         TrackerParams(search="brute")
     assert str(err.value) == "search='brute' is not allowed: use one of pruned, exhaustive"
+
+
+def test_the_tracker_is_coarse_to_fine_with_its_checks_by_default():
+    """Three pyramid levels, sub-pixel refinement, the match tests and a 21 px sub-pixel
+    window; the texture floor of a camera with 2 grey levels of noise."""
+    p = TrackerParams()
+    assert (p.levels, p.subpixel, p.refine_size, p.refine_half) == (3, True, 21, 10)
+    assert (p.uniqueness, p.max_fb_error, p.consensus) == (1.25, 1.0, 2.0)
+    assert p.reject_border and p.guided_retry
+    assert (p.noise_sigma, p.quality_level) == (2.0, 0.01)
+    assert TrackerParams(corr_size=25).refine_half == 0  # not wider than the window: none
+
+
+def test_paper_is_the_papers_single_level_tracker():
+    """TrackerParams.paper(): one level, integer positions, no test of a match, no retry; the
+    five factors and the other knobs as given."""
+    p = TrackerParams.paper(search_size=21, search="exhaustive")
+    assert (p.levels, p.subpixel, p.refine_half, p.search_size, p.search) == (
+        1, False, 0, 21, "exhaustive")
+    assert (p.uniqueness, p.max_fb_error, p.consensus) == (0.0, 0.0, 0.0)
+    assert not p.reject_border and not p.guided_retry
+    assert p.factors() == TrackerParams(search_size=21).factors()
+    with pytest.raises(ParamError, match="levels=0 is out of range: allowed 1..6"):
+        TrackerParams.paper(levels=0)

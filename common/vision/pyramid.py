@@ -1,0 +1,607 @@
+"""Coarse-to-fine SSD tracking, and the checks that reject a match that cannot be trusted.
+
+A single-level search of Eq. (1) finds a displacement only within SEARCH_SIZE // 2 of the
+prediction, and widening the search gives repetitive texture more room for a false minimum. As
+in Bouguet's pyramidal Lucas-Kanade, the frames are reduced into a pyramid (level k: the frame
+filtered by the binomial [1 4 6 4 1]^2 / 256 and halved k times, as ``cv2.pyrDown`` does; its
+pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked coarse to fine
+(:func:`track_pyramid`):
+
+1. **start**: Eq. (1) is searched with the paper's windows at the coarsest level whose pixels
+   hold the feature's template, around its prediction: SEARCH_SIZE // 2 px of that level reach
+   2^k times as far in the frame, and the correlation window sees 2^k times as much of the
+   scene. The start fails when the minimum lies on an edge of the search that the image cut
+   short, on the border of the search window (the true minimum may lie outside it), or when a
+   displacement outside the minimum's 3x3 neighbourhood is nearly as good: S below
+   ``uniqueness`` times the minimum plus what the camera's noise alone adds to S at a perfect
+   match (2 sigma^2 sum W, sigma shrinking with each reduction; repetitive texture). A failed
+   start starts again one level finer; at the frame's own level the feature is not found;
+2. **refine**: at each finer level the displacement, doubled, is refined: with sub-pixel
+   refinement by Gauss-Newton on Eq. (1) (:func:`.ssd._refine`: Bouguet's scheme with an SSD
+   search at its coarse end), else, or where Gauss-Newton cannot run, by a descent on the
+   integer displacements (:func:`_descend`, at most DESCENT_STEPS moves, else the feature is
+   not found);
+3. **guided retry**: a feature that found no trustworthy minimum around its own prediction is
+   searched again around the frame's dominant motion (the median displacement of the features
+   found), with the same tests;
+4. **forward-backward check** (Kalal, Mikolajczyk and Matas 2010): every match is tracked
+   back from frame t+1 to frame t the same way, its prediction mirrored; it is rejected when it
+   does not return to within ``max_fb_error`` px of where it started;
+5. **consensus**: a match whose displacement departs from the median of its nearest
+   neighbours' by more than ``consensus`` px (and more than their own spread) is rejected: a
+   lookalike taken for the feature, which the other tests miss when the two match each other
+   both ways (a feature occluded next to a repetition of itself; :func:`_consensus`);
+6. **wide sub-pixel window**: Gauss-Newton again over a wider window (21 px by default), whose
+   estimate is taken where it agrees with the correlation window's (:func:`_widen`).
+
+With one level, no test and no retry this is the paper's single-level search, exactly
+:func:`.ssd.track_ssd`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numba as nb
+import numpy as np
+from numba.typed import List
+
+from ..params import SEARCH_KINDS
+from .ssd import (
+    AGREE_PX,
+    AMBIGUOUS,
+    BIG,
+    BORDER,
+    CUT,
+    DISAGREES,
+    FB,
+    LEFT,
+    OK,
+    RUNAWAY,
+    _parabola,
+    _refine_scratch,
+    _refine_with,
+    _search_level,
+    _ssd_at,
+    _weights_info,
+)
+
+#: most moves of a refinement descent at one level (the doubled match of the level above is
+#: within about a pixel of the minimum when that match was right)
+DESCENT_STEPS = 3
+#: fewest features found for a frame's dominant motion to guide a retry
+MIN_GUIDES = 3
+#: how many of a match's nearest neighbours its displacement is compared with (step 5)
+NEIGHBOURS = 6
+#: what one reduction (:func:`_reduce`: the kernel [1 4 6 4 1]^2 / 256) leaves of the
+#: variance of white noise: (sum of the squared weights)^2
+NOISE_GAIN = (70.0 / 256.0) ** 2
+
+
+@dataclass(frozen=True, eq=False)
+class Pyramid:
+    """A frame and its reductions.
+
+    Attributes
+    ----------
+    images : numba typed List of (h_k, w_k) uint8 C-contiguous arrays, level 0 (the frame)
+        first. The kernels take the list as it is: a level is then a contiguous array, which
+        they never copy (a view into one shared buffer would be, by its type, of unknown
+        layout, and copied wherever a kernel flattens it).
+    shapes : (height, width) of each level.
+    """
+
+    images: Any
+    shapes: tuple[tuple[int, int], ...]
+
+    @property
+    def levels(self) -> int:
+        return len(self.shapes)
+
+    def level(self, k: int) -> np.ndarray:
+        """Level k, (h, w) uint8."""
+        return self.images[k]
+
+
+def build_pyramid(frame: np.ndarray, levels: int) -> Pyramid:
+    """``levels`` levels of an (H, W) uint8 frame (fewer where a side would fall below 4 px):
+    level k + 1 is level k filtered by the binomial [1 4 6 4 1]^2 / 256 and every other pixel
+    kept (:func:`_reduce`), so that its pixel (x, y) lies at (2x, 2y) of level k."""
+    if levels < 1:
+        raise ValueError(f"levels={levels} must be at least 1")
+    frame = np.ascontiguousarray(frame, np.uint8)
+    if frame.ndim != 2:
+        raise ValueError(f"expected an (H, W) frame, got shape {frame.shape}")
+    shapes = [(int(frame.shape[0]), int(frame.shape[1]))]
+    while len(shapes) < levels and min(shapes[-1]) >= 8:
+        h, w = shapes[-1]
+        shapes.append(((h + 1) // 2, (w + 1) // 2))
+    return Pyramid(_build(frame, len(shapes)), tuple(shapes))
+
+
+@nb.njit(cache=True, nogil=True)
+def _build(frame, levels):  # pragma: no cover - numba
+    out = List()
+    out.append(frame)
+    for _ in range(1, levels):
+        src = out[-1]
+        h, w = src.shape
+        dst = np.empty(((h + 1) // 2, (w + 1) // 2), np.uint8)
+        _reduce(src, dst)
+        out.append(dst)
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _reduce(src, dst):  # pragma: no cover - numba
+    """One pyramid reduction (Burt and Adelson's, as ``cv2.pyrDown``): ``dst[y, x]`` is
+    ``src`` filtered by the binomial [1 4 6 4 1]^2 / 256 at (2x, 2y), edges replicated,
+    rounded."""
+    h, w = src.shape
+    dh, dw = dst.shape
+    # the vertical filter of five source rows, edge-padded by two each side, then the
+    # horizontal one over the whole row: contiguous loops that vectorise; every other value
+    # kept
+    col = np.empty(w + 4, np.uint32)
+    row = np.empty(w, np.uint32)
+    for y in range(dh):
+        c = 2 * y
+        r0 = src[max(c - 2, 0)]
+        r1 = src[max(c - 1, 0)]
+        r2 = src[c]
+        r3 = src[min(c + 1, h - 1)]
+        r4 = src[min(c + 2, h - 1)]
+        mid = col[2:w + 2]
+        for x in range(w):
+            mid[x] = (np.uint32(r0[x]) + np.uint32(r4[x]) + 4 * (np.uint32(r1[x])
+                      + np.uint32(r3[x])) + 6 * np.uint32(r2[x]))
+        col[0] = col[1] = col[2]
+        col[w + 2] = col[w + 3] = col[w + 1]
+        a = col[0:w]
+        b = col[1:w + 1]
+        d = col[3:w + 3]
+        e = col[4:w + 4]
+        for x in range(w):
+            row[x] = (a[x] + e[x] + 4 * (b[x] + d[x]) + 6 * mid[x] + 128) >> 8
+        out = dst[y]
+        for x in range(dw):
+            out[x] = row[2 * x]
+
+
+@nb.njit(cache=True, nogil=True)
+def _descend(prev, curr, ax, ay, cx, cy, n, wts, uniform, steps,
+             seen):  # pragma: no cover - numba
+    """Descent on the integer displacements from (cx, cy): the 3x3 around the centre are
+    scored (each abandoned once above the best; a score is kept for the next step) and the
+    best becomes the centre, until the centre is the best. Ties keep the centre, else the
+    first in row-major order.
+
+    Returns (status, qx, qy, S): OK; CUT when the minimum touches an image edge (it may be a
+    piece of one outside); LEFT when the template or the first window leaves the image;
+    RUNAWAY after ``steps`` moves. ``seen``: int64 scratch of (2 steps + 3)^2.
+    """
+    h, w = prev.shape
+    if (ax - n < 0 or ay - n < 0 or ax + n >= w or ay + n >= h or cx - n < 0 or cy - n < 0
+            or cx + n >= w or cy + n >= h):
+        return LEFT, cx, cy, np.inf
+    pf = prev.ravel()
+    cf = curr.ravel()
+    # scores around (cx, cy) by offset, -1 where not scored in full (an abandoned sum only
+    # bounds S from below, by the best of its moment)
+    seen[:, :] = -1
+    o = steps + 1
+    x = cx
+    y = cy
+    best = _ssd_at(pf, cf, w, ax, ay, x, y, n, wts, uniform, BIG)
+    seen[o, o] = best
+    for _ in range(steps + 1):
+        bx = x
+        by = y
+        edge = False
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                if dx == 0 and dy == 0:
+                    continue
+                qx = x + dx
+                qy = y + dy
+                if qx - n < 0 or qy - n < 0 or qx + n >= w or qy + n >= h:
+                    edge = True
+                    continue
+                known = seen[qy - cy + o, qx - cx + o]
+                if known >= 0:
+                    v = known
+                else:
+                    v = _ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, best)
+                    if v <= best:
+                        seen[qy - cy + o, qx - cx + o] = v
+                if v < best:
+                    best = v
+                    bx = qx
+                    by = qy
+        if bx == x and by == y:
+            return (CUT if edge else OK), x, y, float(best)
+        x = bx
+        y = by
+    return RUNAWAY, x, y, float(best)
+
+
+@nb.njit(cache=True, nogil=True)
+def _match(plevels, clevels, pts, preds, active, n, s, wts, exhaustive, ratio, allowance,
+           reject_border, subpixel, out_pos, out_ssd, out_status):  # pragma: no cover - numba
+    """Steps 1 and 2 of the module notes for the ``active`` features at ``pts`` (float x, y)
+    predicted at ``preds``: their position ``out_pos`` in frame t+1, S of Eq. (1) at its
+    nearest pixel ``out_ssd`` and ``out_status`` (OK, or why not found).
+
+    A feature's match is carried as the displacement of its template: at its start level k
+    the integer one of the search, d_k = q_k - round(p / 2^k). Refining at level j < k starts
+    from 2 d_(j+1): with ``subpixel``, by Gauss-Newton (:func:`.ssd._refine`, the template at
+    p / 2^j), which gives sub-pixel displacements (Bouguet's scheme), falling back to the
+    integer descent (:func:`_descend`) where it cannot run; without, by the descent.
+    """
+    levels = len(plevels)
+    n_feat = pts.shape[0]
+    uniform, _, _ = _weights_info(wts)
+    scratch = _refine_scratch(wts)
+    at = np.full(n_feat, -1, np.int64)  # the level of the feature's match; -1 none yet
+    disp = np.zeros((n_feat, 2), np.float64)  # its displacement there
+    pending = active.copy()
+    for f in range(n_feat):
+        if active[f]:
+            out_status[f] = LEFT
+            out_ssd[f] = np.inf
+            out_pos[f, 0] = np.nan
+            out_pos[f, 1] = np.nan
+    anchors = np.empty((n_feat, 2), np.int64)
+    centers = np.empty((n_feat, 2), np.int64)
+    lq = np.zeros((n_feat, 2), np.int64)
+    lssd = np.empty(n_feat, np.float64)
+    lstatus = np.empty(n_feat, np.int8)
+    seen = np.empty((2 * DESCENT_STEPS + 3, 2 * DESCENT_STEPS + 3), np.int64)
+    for k in range(levels - 1, -1, -1):
+        prev = plevels[k]
+        curr = clevels[k]
+        scale = 2.0 ** k
+        for f in range(n_feat):
+            for c in range(2):
+                anchors[f, c] = int(np.rint(pts[f, c] / scale))
+                centers[f, c] = int(np.rint(preds[f, c] / scale))
+        # refine the matches of the level above, their displacement doubled
+        for f in range(n_feat):
+            if at[f] != k + 1:
+                continue
+            ax = anchors[f, 0]
+            ay = anchors[f, 1]
+            dx = 2.0 * disp[f, 0]
+            dy = 2.0 * disp[f, 1]
+            done = False
+            if subpixel:
+                good, x, y = _refine_with(prev, curr, ax, ay, ax + dx, ay + dy, n, scratch)
+                if good:
+                    disp[f, 0] = x - ax
+                    disp[f, 1] = y - ay
+                    done = True
+            if not done:
+                st, qx, qy, ssd = _descend(prev, curr, ax, ay, ax + int(np.rint(dx)),
+                                           ay + int(np.rint(dy)), n, wts, uniform,
+                                           DESCENT_STEPS, seen)
+                if st != OK:
+                    out_status[f] = st
+                    at[f] = -2
+                    continue
+                x = float(qx)
+                y = float(qy)
+                if subpixel and k == 0:
+                    x, y = _from_integer(prev, curr, ax, ay, qx, qy, n, wts, uniform, ssd,
+                                         scratch)
+                disp[f, 0] = x - ax
+                disp[f, 1] = y - ay
+            at[f] = k
+        # start the features not matched yet; a failed start starts again a level finer.
+        # Each reduction averages the noise: its variance shrinks by NOISE_GAIN a level
+        _search_level(prev, curr, anchors, centers, pending, n, s, wts, exhaustive, ratio,
+                      allowance * NOISE_GAIN ** k, lq, lssd, lstatus)
+        for f in range(n_feat):
+            if not pending[f]:
+                continue
+            st = lstatus[f]
+            good = st == OK or (st == BORDER and not reject_border)
+            if not good and k > 0:
+                continue
+            pending[f] = False
+            if not good:
+                out_status[f] = st
+                at[f] = -2
+                continue
+            x = float(lq[f, 0])
+            y = float(lq[f, 1])
+            if subpixel and k == 0:
+                x, y = _from_integer(prev, curr, anchors[f, 0], anchors[f, 1], lq[f, 0],
+                                     lq[f, 1], n, wts, uniform, lssd[f], scratch)
+            disp[f, 0] = x - anchors[f, 0]
+            disp[f, 1] = y - anchors[f, 1]
+            at[f] = k
+    # positions, and S of Eq. (1) at the nearest pixel (the residual test)
+    prev = plevels[0]
+    curr = clevels[0]
+    h, w = prev.shape
+    pf = prev.ravel()
+    cf = curr.ravel()
+    for f in range(n_feat):
+        if at[f] != 0:
+            continue
+        ax = int(np.rint(pts[f, 0]))
+        ay = int(np.rint(pts[f, 1]))
+        qx = ax + int(np.rint(disp[f, 0]))
+        qy = ay + int(np.rint(disp[f, 1]))
+        if qx - n < 0 or qy - n < 0 or qx + n >= w or qy + n >= h:
+            out_status[f] = CUT  # the window reached past the image's edge
+            continue
+        out_status[f] = OK
+        out_pos[f, 0] = pts[f, 0] + disp[f, 0]
+        out_pos[f, 1] = pts[f, 1] + disp[f, 1]
+        out_ssd[f] = float(_ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, BIG))
+
+
+@nb.njit(cache=True, nogil=True)
+def _track_frame(plevels, clevels, pts, preds, n, s, wts, exhaustive, ratio, allowance,
+                 reject_border, guided_retry, fb_bound, consensus, subpixel, wide, out_pos,
+                 out_ssd, out_status):  # pragma: no cover - numba
+    """The whole of :func:`track_pyramid` (steps 1 to 6 of the module notes)."""
+    n_feat = pts.shape[0]
+    for f in range(n_feat):
+        out_pos[f, 0] = np.nan
+        out_pos[f, 1] = np.nan
+        out_ssd[f] = np.inf
+        out_status[f] = LEFT
+    if n_feat == 0:
+        return
+    active = np.ones(n_feat, np.bool_)
+    _match(plevels, clevels, pts, preds, active, n, s, wts, exhaustive, ratio, allowance,
+           reject_border, subpixel, out_pos, out_ssd, out_status)
+    offset = preds - pts  # each feature's predicted displacement
+    # 3. guided retry around the frame's dominant motion
+    found = 0
+    retry = np.zeros(n_feat, np.bool_)
+    for f in range(n_feat):
+        st = out_status[f]
+        found += st == OK
+        retry[f] = st == CUT or st == BORDER or st == AMBIGUOUS or st == RUNAWAY
+    if guided_retry and found >= MIN_GUIDES and retry.any():
+        dx = np.empty(found, np.float64)
+        dy = np.empty(found, np.float64)
+        c = 0
+        for f in range(n_feat):
+            if out_status[f] == OK:
+                dx[c] = out_pos[f, 0] - pts[f, 0]
+                dy[c] = out_pos[f, 1] - pts[f, 1]
+                c += 1
+        gx = np.median(dx)
+        gy = np.median(dy)
+        guided = pts.copy()
+        for f in range(n_feat):
+            guided[f, 0] += gx
+            guided[f, 1] += gy
+        pos2 = np.empty((n_feat, 2), np.float64)
+        ssd2 = np.empty(n_feat, np.float64)
+        st2 = np.empty(n_feat, np.int8)
+        _match(plevels, clevels, pts, guided, retry, n, s, wts, exhaustive, ratio, allowance,
+               reject_border, subpixel, pos2, ssd2, st2)
+        for f in range(n_feat):
+            if retry[f]:
+                out_status[f] = st2[f]
+                out_ssd[f] = ssd2[f]
+                out_pos[f, 0] = pos2[f, 0]
+                out_pos[f, 1] = pos2[f, 1]
+                offset[f, 0] = gx
+                offset[f, 1] = gy
+    # 4. forward-backward check: back from frame t+1 to frame t, the prediction mirrored
+    if fb_bound > 0.0:
+        check = np.empty(n_feat, np.bool_)
+        back = np.zeros((n_feat, 2), np.float64)
+        for f in range(n_feat):
+            check[f] = out_status[f] == OK
+            if check[f]:
+                back[f, 0] = out_pos[f, 0]
+                back[f, 1] = out_pos[f, 1]
+        if check.any():
+            posb = np.empty((n_feat, 2), np.float64)
+            ssdb = np.empty(n_feat, np.float64)
+            stb = np.empty(n_feat, np.int8)
+            # the search back is held to the same tests as the forward one
+            _match(clevels, plevels, back, back - offset, check, n, s, wts, exhaustive, ratio,
+                   allowance, reject_border, subpixel, posb, ssdb, stb)
+            for f in range(n_feat):
+                if not check[f]:
+                    continue
+                ex = posb[f, 0] - pts[f, 0]
+                ey = posb[f, 1] - pts[f, 1]
+                if stb[f] != OK or ex * ex + ey * ey > fb_bound * fb_bound:
+                    out_status[f] = FB
+    # 5. consensus: a match must move as its nearest neighbours do
+    if consensus > 0.0:
+        _consensus(pts, out_pos, out_status, consensus)
+    # 6. the wide window's sub-pixel estimate, where it agrees
+    ok = np.empty(n_feat, np.bool_)
+    for f in range(n_feat):
+        ok[f] = out_status[f] == OK
+        if not ok[f]:
+            out_pos[f, 0] = np.nan
+            out_pos[f, 1] = np.nan
+            out_ssd[f] = np.inf
+    if subpixel and wide > n:
+        _widen(plevels[0], clevels[0], pts, wide, ok, out_pos)
+
+
+@nb.njit(cache=True, nogil=True)
+def _from_integer(prev, curr, ax, ay, qx, qy, n, wts, uniform, ssd,
+                  scratch):  # pragma: no cover - numba
+    """The sub-pixel position of the template at (ax, ay) from its integer minimum (qx, qy)
+    (S there ``ssd``): Gauss-Newton, or where it cannot run a parabola per axis."""
+    good, x, y = _refine_with(prev, curr, ax, ay, float(qx), float(qy), n, scratch)
+    if good:
+        return x, y
+    h, w = prev.shape
+    ox, oy = _parabola(prev.ravel(), curr.ravel(), w, h, ax, ay, qx, qy, n, wts, uniform, ssd)
+    return qx + ox, qy + oy
+
+
+@nb.njit(cache=True, nogil=True)
+def _consensus(pts, pos, status, bound):  # pragma: no cover - numba
+    """Reject (DISAGREES) the matches whose displacement departs from the median displacement
+    of their NEIGHBOURS nearest matched features by more than ``bound`` px, or by more than
+    three robust standard deviations of those neighbours' own, where they disagree more (a
+    motion boundary, several objects). A scene moves alike nearby; a match that moves
+    unlike all its neighbours is a lookalike taken for its feature (whose own patch may be
+    occluded), which the other tests cannot see when the two match each other both ways."""
+    n_feat = pts.shape[0]
+    idx = np.empty(n_feat, np.int64)
+    c = 0
+    for f in range(n_feat):
+        if status[f] == OK:
+            idx[c] = f
+            c += 1
+    if c <= NEIGHBOURS:
+        return
+    xs = np.empty(c, np.float64)
+    ys = np.empty(c, np.float64)
+    dxs = np.empty(c, np.float64)
+    dys = np.empty(c, np.float64)
+    for a in range(c):
+        f = idx[a]
+        xs[a] = pts[f, 0]
+        ys[a] = pts[f, 1]
+        dxs[a] = pos[f, 0] - pts[f, 0]
+        dys[a] = pos[f, 1] - pts[f, 1]
+    reject = np.zeros(c, np.bool_)
+    near_d = np.empty(NEIGHBOURS, np.float64)
+    near_i = np.empty(NEIGHBOURS, np.int64)
+    vx = np.empty(NEIGHBOURS, np.float64)
+    vy = np.empty(NEIGHBOURS, np.float64)
+    dev = np.empty(NEIGHBOURS, np.float64)
+    for a in range(c):
+        # the NEIGHBOURS nearest, kept sorted by insertion
+        near_d[:] = np.inf
+        for b in range(c):
+            if b == a:
+                continue
+            d = (xs[b] - xs[a]) ** 2 + (ys[b] - ys[a]) ** 2
+            if d >= near_d[NEIGHBOURS - 1]:
+                continue
+            j = NEIGHBOURS - 1
+            while j > 0 and near_d[j - 1] > d:
+                near_d[j] = near_d[j - 1]
+                near_i[j] = near_i[j - 1]
+                j -= 1
+            near_d[j] = d
+            near_i[j] = b
+        for j in range(NEIGHBOURS):
+            vx[j] = dxs[near_i[j]]
+            vy[j] = dys[near_i[j]]
+        mx = _median_small(vx)
+        my = _median_small(vy)
+        for j in range(NEIGHBOURS):
+            dev[j] = np.hypot(dxs[near_i[j]] - mx, dys[near_i[j]] - my)
+        spread = 1.4826 * _median_small(dev)
+        reject[a] = np.hypot(dxs[a] - mx, dys[a] - my) > max(bound, 3.0 * spread)
+    for a in range(c):
+        if reject[a]:
+            status[idx[a]] = DISAGREES
+
+
+@nb.njit(cache=True, nogil=True)
+def _median_small(v):  # pragma: no cover - numba
+    """The median of a few values, sorting ``v`` in place (insertion sort: no allocation)."""
+    n = v.shape[0]
+    for i in range(1, n):
+        x = v[i]
+        j = i
+        while j > 0 and v[j - 1] > x:
+            v[j] = v[j - 1]
+            j -= 1
+        v[j] = x
+    if n % 2:
+        return v[n // 2]
+    return 0.5 * (v[n // 2 - 1] + v[n // 2])
+
+
+@nb.njit(cache=True, nogil=True)
+def _widen(prev, curr, pts, wide, ok, out_pos):  # pragma: no cover - numba
+    """The wide window's estimate (:func:`.ssd._refine` over (2 wide + 1)^2, uniform weights)
+    from the correlation window's, taken where the two agree to within AGREE_PX: there the
+    neighbourhood moves as one and more pixels make it more precise; near a motion boundary
+    the wide window straddles two motions and the correlation window's estimate is kept."""
+    scratch = _refine_scratch(np.ones((2 * wide + 1, 2 * wide + 1), np.int32))
+    for f in range(pts.shape[0]):
+        if not ok[f]:
+            continue
+        ax = int(np.rint(pts[f, 0]))
+        ay = int(np.rint(pts[f, 1]))
+        x = ax + (out_pos[f, 0] - pts[f, 0])
+        y = ay + (out_pos[f, 1] - pts[f, 1])
+        good, xw, yw = _refine_with(prev, curr, ax, ay, x, y, wide, scratch)
+        if good and (xw - x) * (xw - x) + (yw - y) * (yw - y) <= AGREE_PX * AGREE_PX:
+            out_pos[f, 0] = pts[f, 0] + (xw - ax)
+            out_pos[f, 1] = pts[f, 1] + (yw - ay)
+
+
+def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions: np.ndarray,
+                  *, corr_half: int, search_half: int, weights: np.ndarray,
+                  subpixel: bool = False, search: str = "pruned", uniqueness: float = 0.0,
+                  allowance: float = 0.0, reject_border: bool = False,
+                  guided_retry: bool = False, max_fb_error: float = 0.0,
+                  consensus: float = 0.0, wide_half: int = 0
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Track features from frame t to frame t+1 coarse to fine (see the module notes).
+
+    Parameters
+    ----------
+    prev, curr : the pyramids of frames t and t+1 (:func:`build_pyramid`, same levels).
+    points : (N, 2) float x, y of the features in frame t, px (sub-pixel).
+    predictions : (N, 2) float x, y where each is expected in frame t+1, px.
+    corr_half, search_half, weights : n, SEARCH_SIZE // 2 and W(i, j) of Eq. (1), as in
+        :func:`.ssd.track_ssd`; the search half-width is in pixels of the start level.
+    subpixel : refine the matches to sub-pixel positions (:func:`.ssd._subpixel`).
+    search : ``"pruned"`` or ``"exhaustive"``, how the starts find their argmin.
+    uniqueness : a start fails when a displacement outside its minimum's 3x3 neighbourhood
+        has S <= uniqueness * S_min + allowance; 0 turns the test off.
+    allowance : what noise alone adds to S at a perfect match (2 sigma^2 sum W).
+    reject_border : a start fails when its minimum lies on the search window's border.
+    guided_retry : search the features that found no trustworthy minimum again around the
+        frame's dominant motion.
+    max_fb_error : the forward-backward bound, px; 0 turns the check off.
+    consensus : a match whose displacement departs from its nearest neighbours' by more than
+        this, px, is rejected (see :func:`_consensus`); 0 turns the check off.
+    wide_half : half-width of the wide sub-pixel window (0: the correlation window only).
+
+    Returns
+    -------
+    pos : (N, 2) float64 positions in frame t+1, NaN where not found;
+    ssd : (N,) float64 S of Eq. (1) at the integer match of the frame's level (inf where not
+        found);
+    status : (N,) int8, :data:`.ssd.OK` or why the feature was not found
+        (:data:`.ssd.STATUS_NAMES`).
+    """
+    if search not in SEARCH_KINDS:
+        raise ValueError(f"search={search!r} is not allowed: use one of "
+                         f"{', '.join(SEARCH_KINDS)}")
+    if prev.shapes != curr.shapes:
+        raise ValueError(f"pyramids of different shapes: {prev.shapes} and {curr.shapes}")
+    m = 2 * corr_half + 1
+    if weights.shape != (m, m):
+        raise ValueError(f"weights of shape {weights.shape} do not match corr_half={corr_half}")
+    pts = np.ascontiguousarray(points, np.float64).reshape(-1, 2)
+    preds = np.ascontiguousarray(predictions, np.float64).reshape(-1, 2)
+    if pts.shape != preds.shape:
+        raise ValueError(f"points {pts.shape} and predictions {preds.shape} differ in shape")
+    n_feat = len(pts)
+    pos = np.empty((n_feat, 2), np.float64)
+    ssd = np.empty(n_feat, np.float64)
+    status = np.empty(n_feat, np.int8)
+    _track_frame(prev.images, curr.images, pts, preds, int(corr_half),
+                 int(search_half), np.ascontiguousarray(weights, np.int32),
+                 search == "exhaustive", float(uniqueness), float(allowance),
+                 bool(reject_border), bool(guided_retry), float(max_fb_error),
+                 float(consensus), bool(subpixel), int(wide_half), pos,
+                 ssd, status)
+    return pos, ssd, status

@@ -1,0 +1,257 @@
+"""The coarse-to-fine tracker and its checks: the pyramid, the paper's search at one level, large
+motion, and matches that cannot be trusted (occluded, repetitive, on the search border)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from test_ssd import border_features, random_pair
+
+from vistrack.common import synthetic
+from vistrack.common.params import TrackerParams
+from vistrack.common.vision import Tracker, preprocess, track_ssd, window_weights
+from vistrack.common.vision.pyramid import build_pyramid, track_pyramid
+from vistrack.common.vision.ssd import AMBIGUOUS, BORDER, FB, OK, STATUS_NAMES
+
+from conftest import load_pair
+
+
+def shifted(image, dx, dy, interpolation=cv2.INTER_CUBIC):
+    m = np.float32([[1, 0, dx], [0, 1, dy]])
+    return cv2.warpAffine(image, m, image.shape[::-1], flags=interpolation,
+                          borderMode=cv2.BORDER_REFLECT)
+
+
+def test_pyramid_levels_are_opencvs_pyrdown():
+    """Each level is ``cv2.pyrDown`` of the one below (edges replicated), to the grey level;
+    a frame too small for another halving stops the pyramid early."""
+    rng = np.random.default_rng(4)
+    frame = rng.integers(0, 256, (77, 130), dtype=np.uint8)
+    pyr = build_pyramid(frame, 4)
+    assert pyr.levels == 4 and pyr.shapes == ((77, 130), (39, 65), (20, 33), (10, 17))
+    ref = frame
+    for k in range(1, 4):
+        ref = cv2.pyrDown(ref, borderType=cv2.BORDER_REPLICATE)
+        np.testing.assert_array_equal(pyr.level(k), ref)
+    assert build_pyramid(np.zeros((9, 300), np.uint8), 6).levels == 2
+    with pytest.raises(ValueError, match="levels=0"):
+        build_pyramid(frame, 0)
+
+
+@pytest.mark.parametrize("search", ["pruned", "exhaustive"])
+@pytest.mark.parametrize("corr_size,search_size", [(9, 15), (5, 10), (15, 30)])
+def test_one_level_is_todays_single_level_search(real_image, search, corr_size, search_size):
+    """levels = 1 with the checks off is the paper's search, exactly: the same positions, S and
+    losses as ``track_ssd``, features near the borders included."""
+    n, s = corr_size // 2, search_size // 2
+    wts = window_weights("uniform", n)
+    nxt = shifted(real_image, 2.4, -1.7)
+    anchors, centers = border_features(np.random.default_rng(corr_size), real_image.shape, 200,
+                                       n + s, 4)
+    pos, ssd, ok = track_ssd(real_image, nxt, anchors, centers, corr_half=n, search_half=s,
+                             weights=wts, search=search)
+    ppos, pssd, status = track_pyramid(build_pyramid(real_image, 1), build_pyramid(nxt, 1),
+                                       anchors.astype(float), centers.astype(float),
+                                       corr_half=n, search_half=s, weights=wts, search=search)
+    np.testing.assert_array_equal(status == OK, ok)
+    np.testing.assert_array_equal(ppos, pos)  # NaN where both lost it
+    np.testing.assert_array_equal(pssd, ssd)
+    assert ok.sum() > 100
+
+
+def test_one_level_paper_tracker_equals_a_track_ssd_loop(real_image):
+    """``TrackerParams.paper()`` tracks frame after frame exactly as the single-level search
+    with constant-velocity prediction, written out here with ``track_ssd``."""
+    frames = [real_image] + [shifted(real_image, 1.3 * k, -0.6 * k) for k in range(1, 5)]
+    params = TrackerParams.paper(redetect_fraction=0.0)
+    tracker = Tracker(params)
+    est = tracker.process(frames[0])
+    pos, vel = est.points.copy(), np.zeros_like(est.points)
+    wts = window_weights("uniform", params.corr_half)
+    prev = preprocess(frames[0], params).filtered  # what the tracker correlates on
+    for f in frames[1:]:
+        est = tracker.process(f)
+        cur = preprocess(f, params).filtered
+        anchors = np.rint(pos).astype(int)
+        match, _, ok = track_ssd(prev, cur, anchors, np.rint(pos + vel).astype(int),
+                                 corr_half=params.corr_half, search_half=params.search_half,
+                                 weights=wts)
+        new = pos[ok] + match[ok] - anchors[ok]
+        vel, pos, prev = new - pos[ok], new, cur
+        np.testing.assert_array_equal(est.points, pos)
+    assert len(pos) > 50
+
+
+@pytest.mark.parametrize("dx,dy", [(11.0, -7.5), (-20.3, 4.2), (0.4, 25.7)])
+def test_large_motion_is_found_beyond_the_single_level_search(real_image, dx, dy):
+    """A shift of up to ~26 px, 3.5 times SEARCH_SIZE // 2, with no velocity to predict it:
+    the coarse-to-fine tracker finds it to a tenth of a pixel; the single-level search, whose
+    reach is 7 px, cannot."""
+    big = np.ascontiguousarray(cv2.resize(real_image, (512, 512), interpolation=cv2.INTER_CUBIC))
+    a, b = big[128:384, 128:384], shifted(big, dx, dy)[128:384, 128:384]
+    tracker = Tracker(TrackerParams())
+    e0 = tracker.process(np.ascontiguousarray(a))
+    e1 = tracker.process(np.ascontiguousarray(b))
+    start = dict(zip(e0.ids.tolist(), e0.points, strict=True))
+    disp = e1.points - np.array([start[i] for i in e1.ids.tolist()])
+    assert e1.npi >= 60
+    assert np.median(np.hypot(disp[:, 0] - dx, disp[:, 1] - dy)) < 0.1
+    assert np.mean(np.hypot(disp[:, 0] - dx, disp[:, 1] - dy) > 1.0) <= 0.02
+    paper = Tracker(TrackerParams.paper())
+    paper.process(np.ascontiguousarray(a))
+    p1 = paper.process(np.ascontiguousarray(b))
+    assert abs(p1.dx - dx) > 3 or abs(p1.dy - dy) > 3
+
+
+def occluders():
+    """What covers the features: a uniform patch (an object, a hand), another real scene, and
+    a synthetic texture full of blobs alike."""
+    dim, _, _ = load_pair("Dimetrodon")
+    return {"grey": np.full((256, 256), 90, np.uint8),
+            "real": np.ascontiguousarray(dim[60:316, 160:416]),
+            "texture": synthetic.texture(256, seed=11)}
+
+
+@pytest.mark.parametrize("occluder", ["grey", "real", "texture"])
+@pytest.mark.parametrize("dx,dy", [(3.2, -2.1), (-5.5, 1.3)])
+def test_an_occluded_feature_is_rejected_not_reported_at_a_wrong_place(real_image, occluder,
+                                                                       dx, dy):
+    """In the next frame the scene moves by (dx, dy) and 21 px squares cover one feature in
+    four: every covered feature is lost (its patch is gone), none is reported anywhere, even
+    where the scene repeats itself nearby; the others are tracked to a fraction of a pixel."""
+    tracker = Tracker(TrackerParams(redetect_fraction=0.0))
+    e0 = tracker.process(real_image)
+    nxt = shifted(real_image, dx, dy)
+    other = occluders()[occluder]
+    inner = [(i, p) for i, p in zip(e0.ids.tolist(), e0.points, strict=True)
+             if 30 < p[0] < 226 and 30 < p[1] < 226]
+    covered = {i: p for i, p in inner[::4]}
+    for p in covered.values():
+        x, y = int(round(p[0] + dx)), int(round(p[1] + dy))
+        nxt[y - 10:y + 11, x - 10:x + 11] = other[y - 10:y + 11, x - 10:x + 11]
+    e1 = tracker.process(nxt)
+    assert len(covered) >= 8
+    ids = e1.ids.tolist()
+    reported = {i: e1.points[ids.index(i)] for i in covered if i in ids}
+    assert reported == {}, {i: (covered[i], q) for i, q in reported.items()}
+    start = dict(zip(e0.ids.tolist(), e0.points, strict=True))
+    err = [np.hypot(*(q - start[i] - (dx, dy))) for i, q in zip(ids, e1.points, strict=True)]
+    assert len(err) > 60 and np.median(err) < 0.1 and max(err) < 1.0
+    assert tracker.rejected_total >= len(covered)
+
+
+def test_a_match_that_moves_unlike_its_neighbours_is_rejected():
+    """The consensus step: a feature moving 9 px while all its neighbours move 1 px is taken
+    for a lookalike and rejected; a group of features moving together (another object) is
+    kept, and so are features in a gently varying motion (a zoom)."""
+    a, _ = random_pair(1, size=160)
+    # 3 x 3 grid of features in a shifted scene, plus 8 on a separately moving square
+    shift = np.roll(a, 1, axis=1)
+    obj = (slice(100, 140), slice(100, 140))
+    b = shift.copy()
+    b[100:140, 109:149] = a[obj]  # the square moved by 9 px
+    grid = np.array([[x, y] for x in (30, 50, 70) for y in (30, 50, 70)], float)
+    square = np.array([[x, y] for x in (112, 120, 128) for y in (112, 120, 128)
+                       if (x, y) != (120, 120)], float)
+    lone = np.array([[90.0, 40.0]])
+    b[34:47, 93:106] = a[34:47, 84:97]  # the lone feature's patch, as if moved by 9 px
+    b[34:47, 85:92] = 0
+    pts = np.vstack([grid, square, lone])
+    wts = window_weights("uniform", 4)
+    kw = dict(corr_half=4, search_half=12, weights=wts)
+    pyr0, pyr1 = build_pyramid(a, 1), build_pyramid(b, 1)
+    pos, _, status = track_pyramid(pyr0, pyr1, pts, pts, **kw)
+    assert (status == OK).all()
+    np.testing.assert_array_equal(pos[-1] - pts[-1], [9, 0])
+    pos, _, status = track_pyramid(pyr0, pyr1, pts, pts, consensus=2.0, **kw)
+    assert STATUS_NAMES[status[-1]] == "disagrees"
+    assert (status[:-1] == OK).all()
+    np.testing.assert_array_equal(pos[len(grid):-1] - square, 9 * np.eye(2)[[0] * 8])
+
+
+def test_repetitive_texture_is_ambiguous_not_matched():
+    """Vertical stripes with a period of 6 px: every shift by a period matches as well, so a
+    start whose window sees only stripes is ambiguous; a distinct patch is found."""
+    x = np.arange(128)
+    stripes = (127 + 100 * np.sin(2 * np.pi * x / 6.0)).astype(np.uint8)
+    frame = np.ascontiguousarray(np.tile(stripes, (128, 1)))
+    frame[60:70, 60:70] = 255  # one distinct square
+    nxt = np.roll(frame, 2, axis=1)
+    wts = window_weights("uniform", 4)
+    pts = np.array([[30.0, 30.0], [64.0, 64.0]])
+    pyr0, pyr1 = build_pyramid(frame, 1), build_pyramid(nxt, 1)
+    pos, _, status = track_pyramid(pyr0, pyr1, pts, pts, corr_half=4, search_half=7,
+                                   weights=wts, uniqueness=1.25, allowance=0.0)
+    assert STATUS_NAMES[status[0]] == "ambiguous" and status[0] == AMBIGUOUS
+    assert status[1] == OK and tuple(pos[1]) == (66.0, 64.0)
+    # the paper's search takes a minimum all the same
+    _, _, ok = track_ssd(frame, nxt, pts.astype(int), pts.astype(int), corr_half=4,
+                         search_half=7, weights=wts)
+    assert ok.all()
+
+
+def test_a_minimum_on_the_search_border_is_rejected():
+    """A smooth scene moves by 9 px, beyond the single-level reach (7): the search's minimum
+    lands on its border and, with reject_border, the feature is not reported there; two levels
+    reach 14 px and find it where it is."""
+    rng = np.random.default_rng(3)
+    smooth = cv2.GaussianBlur(rng.normal(128, 60, (128, 128)), (0, 0), 5)
+    a = np.clip((smooth - smooth.mean()) * 8 + 128, 0, 255).astype(np.uint8)
+    b = np.roll(a, 9, axis=1)
+    wts = window_weights("uniform", 4)
+    pts = np.array([[64.0, 64.0], [50.0, 70.0]])
+    kw = dict(corr_half=4, search_half=7, weights=wts)
+    pyr0, pyr1 = build_pyramid(a, 1), build_pyramid(b, 1)
+    pos, _, status = track_pyramid(pyr0, pyr1, pts, pts, **kw)
+    assert (status == OK).all() and (pos[:, 0] == pts[:, 0] + 7).all()  # pinned to the border
+    _, _, status = track_pyramid(pyr0, pyr1, pts, pts, reject_border=True, **kw)
+    assert (status == BORDER).all()
+    pos, _, status = track_pyramid(build_pyramid(a, 2), build_pyramid(b, 2), pts, pts,
+                                   reject_border=True, **kw)
+    assert (status == OK).all() and np.array_equal(pos, pts + [9, 0])
+
+
+def test_forward_backward_rejects_a_match_that_does_not_return():
+    """In frame t+1 a feature's patch is covered by a patch from far away: the search still
+    takes some minimum nearby, but tracked back from there it does not return to where it
+    started, and the forward-backward check rejects it (in most of these random scenes: the
+    way back can, by chance, land at the start)."""
+    wts = window_weights("uniform", 4)
+    pts = np.array([[40.0, 40.0]])
+    kw = dict(corr_half=4, search_half=7, weights=wts)
+    rejected = 0
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        a = cv2.GaussianBlur(rng.integers(0, 256, (96, 96)).astype(np.uint8), (3, 3), 0.8)
+        b = a.copy()
+        b[34:47, 34:47] = a[70:83, 70:83]
+        pyr0, pyr1 = build_pyramid(a, 1), build_pyramid(b, 1)
+        _, _, status = track_pyramid(pyr0, pyr1, pts, pts, **kw)
+        assert status[0] == OK  # without the check it is reported somewhere
+        _, _, status = track_pyramid(pyr0, pyr1, pts, pts, max_fb_error=1.0, **kw)
+        rejected += status[0] == FB
+    assert rejected >= 5
+
+
+def test_no_feature_is_reported_on_a_frame_of_another_scene(real_image):
+    """The camera cut to an unrelated scene: nearly every feature is rejected (gone), and
+    none of those kept is taken for the old scene's motion."""
+    tracker = Tracker(TrackerParams(redetect_fraction=0.0))
+    e0 = tracker.process(real_image)
+    e1 = tracker.process(synthetic.texture(256, seed=5))
+    assert e1.npi <= 0.1 * e0.npi
+    assert tracker.rejected_total + tracker.lost_by["cut"] >= 0.9 * e0.npi
+
+
+def test_track_pyramid_checks_its_input(real_image):
+    wts = window_weights("uniform", 4)
+    p1, p2 = build_pyramid(real_image, 2), build_pyramid(real_image[:200], 2)
+    with pytest.raises(ValueError, match="different shapes"):
+        track_pyramid(p1, p2, [[50, 50]], [[50, 50]], corr_half=4, search_half=7, weights=wts)
+    with pytest.raises(ValueError, match="search='full'"):
+        track_pyramid(p1, p1, [[50, 50]], [[50, 50]], corr_half=4, search_half=7, weights=wts,
+                      search="full")
+    pos, ssd, status = track_pyramid(p1, p1, np.empty((0, 2)), np.empty((0, 2)), corr_half=4,
+                                     search_half=7, weights=wts)
+    assert pos.shape == (0, 2) and ssd.shape == (0,) and status.shape == (0,)

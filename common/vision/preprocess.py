@@ -17,6 +17,7 @@ Two strengths (``TrackerParams.strength``):
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -389,12 +390,61 @@ def threshold_candidates(grad: np.ndarray, thres_percent: float,
     return _top_k(np.ascontiguousarray(grad, np.float32), k, int(margin))
 
 
+# The largest strength that a uniform patch with white Gaussian noise reaches, per unit of the
+# noise at the Sobel derivative (standard deviation, :func:`_sobel_sd`): the largest of 4
+# million samples (pixels of 16 512x512 uniform frames with noise of 1 to 8 grey levels,
+# filtered at blur_sigma 0, 0.5, 1 and 2 and rounded to uint8 as the frames are). The smaller
+# eigenvalue grows with the noise's variance (its largest ~61 times it, its mean ~5 times),
+# the gradient magnitude with its standard deviation (~6.6 times).
+_NOISE_PEAK = {"min_eigen": 61.0, "gradient": 6.6}
+_NOISE_POWER = {"min_eigen": 2, "gradient": 1}
+
+
+@functools.lru_cache(maxsize=32)
+def _sobel_gain(blur_sigma: float) -> float:
+    """Standard deviation of the 3x3 Sobel x derivative of unit white noise filtered as
+    :func:`gaussian_filter` filters it."""
+    if blur_sigma > 0:
+        k = 2 * int(np.ceil(3 * blur_sigma)) + 1
+        g1 = cv2.getGaussianKernel(k, blur_sigma).ravel()
+    else:
+        g1 = np.ones(1)
+    smooth = np.convolve(g1, [1.0, 2.0, 1.0])  # across the derivative
+    deriv = np.convolve(g1, [-1.0, 0.0, 1.0])  # along it
+    return float(np.linalg.norm(smooth) * np.linalg.norm(deriv))
+
+
+def _sobel_sd(noise_sigma: float, blur_sigma: float) -> float:
+    """Standard deviation of the Sobel derivative of a uniform patch: the camera's noise
+    through the filter, and the rounding of the filtered frame to whole grey levels (uniform,
+    variance 1/12, after the filter)."""
+    camera = noise_sigma * _sobel_gain(blur_sigma)
+    rounding = _sobel_gain(0.0) / np.sqrt(12.0)
+    return float(np.hypot(camera, rounding))
+
+
+def texture_floor(params: TrackerParams) -> float:
+    """The absolute texture floor: the largest strength a uniform patch reaches with the
+    camera's noise (``noise_sigma`` grey levels) after this pre-processing (~1660 for
+    ``min_eigen`` at the defaults); a candidate must exceed it."""
+    sd = _sobel_sd(params.noise_sigma, params.blur_sigma)
+    return _NOISE_PEAK[params.strength] * sd ** _NOISE_POWER[params.strength]
+
+
 def candidates_of(filtered: np.ndarray, params: TrackerParams) -> tuple[np.ndarray, np.ndarray]:
     """The THRES_PERCENT candidates of a filtered frame and their strengths: the gradient
-    strength and threshold steps of :func:`preprocess`."""
+    strength, threshold and texture floor steps of :func:`preprocess`."""
     grad = STRENGTHS[params.strength](filtered)
     # a candidate must hold a correlation window plus one pixel for the Sobel support
-    return threshold_candidates(grad, params.thres_percent, margin=params.corr_half + 1)
+    cands, strength = threshold_candidates(grad, params.thres_percent,
+                                           margin=params.corr_half + 1)
+    if len(strength):
+        # strongest first, so the candidates that pass are a prefix; strictly above, so that
+        # a frame without texture (strength 0 everywhere) has none even with both floors 0
+        floor = max(texture_floor(params), params.quality_level * float(strength[0]))
+        keep = int(np.count_nonzero(strength > floor))
+        cands, strength = cands[:keep], strength[:keep]
+    return cands, strength
 
 
 class DeferredPreprocessed(Preprocessed):
@@ -439,6 +489,11 @@ def preprocess(gray: np.ndarray, params: TrackerParams) -> Preprocessed:
 
     The filter runs now; the gradient strength and threshold when the candidates are first
     read (:class:`DeferredPreprocessed`): same values, only when they are needed.
+
+    The candidates are the THRES_PERCENT % strongest pixels that also have texture: a strength
+    above the noise floor (:func:`texture_floor`) and at least ``quality_level`` times the
+    frame's strongest, as OpenCV's ``goodFeaturesToTrack`` has it. An all-black, uniform or
+    saturated frame has none.
     """
     if gray.ndim != 2 or gray.dtype != np.uint8:
         raise ValueError(f"expected a (H, W) uint8 frame, got {gray.shape} {gray.dtype}")

@@ -55,12 +55,14 @@ def pre_frame(image: np.ndarray, seq: int) -> bytes:
 
 
 def test_motion_estimation_marks_an_estimate_without_features_invalid():
-    """Textured frames give valid estimates; a frame too small for any feature gives one
-    that says so, with every number finite, and the service goes on."""
+    """Textured frames give valid estimates; an all-black frame (a covered lens) and a frame
+    too small for any feature give ones that say so, with every number finite, and the
+    service goes on."""
     from vistrack.services.motion_estimation.service import loop
 
     textured = synthetic.sequence(3, size=(128, 128))
-    frames = [*textured, np.full((6, 6), 90, np.uint8), textured[0]]
+    frames = [*textured, np.zeros((128, 128), np.uint8), np.full((6, 6), 90, np.uint8),
+              textured[0]]
     with Running("motion_estimation", loop, parse("motion-estimation")) as node:
         def estimates() -> list[Estimate]:
             return [Estimate.decode(p) for p in node.published_on(node.keys.estimate)]
@@ -71,9 +73,10 @@ def test_motion_estimation_marks_an_estimate_without_features_invalid():
                      what="a subscription")
             wait_for(lambda seq=seq: len(estimates()) > seq, what=f"estimate {seq}")
         got = estimates()
-    assert [e.valid for e in got] == [True, True, True, False, True]
+    assert [e.valid for e in got] == [True, True, True, False, False, True]
     assert all(e.npi >= 10 for e in got if e.valid)
-    tiny = got[3]
+    assert got[3].npi == 0 and (got[3].xc, got[3].yc) == (63.5, 63.5)
+    tiny = got[4]
     assert tiny.npi == 0 and tiny.features == []
     assert (tiny.xc, tiny.yc, tiny.xe, tiny.ye) == (2.5, 2.5, 0.0, 0.0)
     for e in got:

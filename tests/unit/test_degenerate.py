@@ -26,18 +26,64 @@ def assert_finite(e) -> None:
     assert np.isfinite(e.points).all() and e.points.shape == (e.npi, 2)
 
 
+@pytest.mark.parametrize("value", [0, 128, 255])
+def test_black_uniform_and_saturated_frames_have_no_features(value):
+    """An all-black (covered lens), uniform or saturated frame has no texture: no feature, an
+    invalid estimate, every number finite."""
+    tracker = Tracker(TrackerParams())
+    for _ in range(3):
+        e = tracker.process(np.full((256, 256), value, np.uint8))
+        assert e.npi == 0 and not e.valid
+        assert_finite(e)
+
+
+def test_a_real_frame_then_a_black_one(real_image):
+    """The lens is covered: every feature is lost at once, the estimate is invalid and
+    finite, the motion accumulated so far is kept; when it is uncovered the track goes on."""
+    tracker = Tracker(TrackerParams())
+    e0 = tracker.process(real_image)
+    assert e0.valid and e0.npi > 50
+    shifted = cv2.warpAffine(real_image, np.float32([[1, 0, 2.0], [0, 1, 0]]),
+                             real_image.shape[::-1], borderMode=cv2.BORDER_REFLECT)
+    e1 = tracker.process(shifted)
+    assert abs(e1.dx - 2.0) < 0.1
+    black = tracker.process(np.zeros_like(real_image))
+    assert black.npi == 0 and not black.valid
+    assert_finite(black)
+    assert (black.dx, black.dy, black.scale) == (e1.dx, e1.dy, e1.scale)
+    again = tracker.process(real_image)
+    assert again.valid and again.npi > 50
+    assert_finite(again)
+
+
+@pytest.mark.parametrize("sigma", [0.5, 2.0])
+def test_a_uniform_scene_with_sensor_noise_has_no_features(sigma):
+    """A white wall: sensor noise is not texture (noise_sigma 2 grey levels by default)."""
+    rng = np.random.default_rng(2)
+    tracker = Tracker(TrackerParams())
+    for _ in range(3):
+        frame = np.clip(np.rint(160 + rng.normal(0, sigma, (256, 256))), 0, 255)
+        e = tracker.process(frame.astype(np.uint8))
+        assert e.npi == 0 and not e.valid
+
+
 @pytest.mark.parametrize(("shape", "value"), [
     ((8, 8), 100),        # holds no correlation window (9 x 9) plus its margin
+    ((8, 8), -1),         # the same, with texture
     ((5, 7), 3),          # smaller than the correlation window
+    ((5, 7), -1),
     ((1, 1), 0),
     ((1, 300), 200),
 ])
 def test_frames_too_small_for_a_feature_give_finite_estimates(shape, value):
     """A frame too small for any feature gave xc = NaN, which no message can carry."""
     tracker = Tracker(TrackerParams())
+    rng = np.random.default_rng(0)
     for _ in range(3):
-        e = tracker.process(np.full(shape, value, np.uint8))
-        assert e.npi == 0
+        frame = (rng.integers(0, 256, shape) if value < 0 else np.full(shape, value)
+                 ).astype(np.uint8)
+        e = tracker.process(frame)
+        assert e.npi == 0 and not e.valid
         assert_finite(e)
         # no feature, no centroid: the centre of the image, no scatter, no motion
         assert (e.xc, e.yc) == ((shape[1] - 1) / 2, (shape[0] - 1) / 2)

@@ -92,3 +92,62 @@ def test_existing_features_are_respected(real_image):
 def test_preprocess_rejects_colour_frames():
     with pytest.raises(ValueError, match="uint8"):
         preprocess(np.zeros((8, 8, 3), np.uint8), TrackerParams())
+
+
+# -- the texture floor ----------------------------------------------------------------------
+
+def noisy(value, sigma, seed, shape=(256, 256)):
+    rng = np.random.default_rng(seed)
+    return np.clip(np.rint(value + rng.normal(0, sigma, shape)), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("strength", ["min_eigen", "gradient"])
+@pytest.mark.parametrize("blur_sigma", [0.0, 0.5, 1.0])
+@pytest.mark.parametrize("sigma", [0.5, 1.0, 2.0])
+def test_a_uniform_patch_with_the_cameras_noise_has_no_candidate(strength, blur_sigma, sigma):
+    """The texture floor is what a uniform patch with the camera's noise reaches: frames of
+    pure noise at noise_sigma, or less, give no candidate (a white wall, a covered lens)."""
+    params = TrackerParams(strength=strength, blur_sigma=blur_sigma, noise_sigma=2.0)
+    for seed in range(3):
+        pre = preprocess(noisy(128, sigma, seed), params)
+        assert len(pre.candidates) == 0, (seed, pre.strength[:5])
+
+
+def test_more_noise_than_the_floor_allows_gives_candidates_of_noise():
+    """The floor is set by noise_sigma, not guessed from the frame: noise well above it makes
+    candidates (the tracker then rejects them: they match nothing in the next frame)."""
+    pre = preprocess(noisy(128, 8.0, 1), TrackerParams(noise_sigma=2.0))
+    assert len(pre.candidates) > 100
+    assert len(preprocess(noisy(128, 8.0, 1), TrackerParams(noise_sigma=8.0)).candidates) == 0
+
+
+@pytest.mark.parametrize("value", [0, 37, 255])
+def test_a_frame_without_texture_has_no_candidate_even_with_both_floors_off(value):
+    """Strength 0 everywhere: no candidate, even with noise_sigma and quality_level 0 (the
+    top THRES_PERCENT of zeros used to be 51 'features')."""
+    frame = np.full((256, 256), value, np.uint8)
+    for params in (TrackerParams(), TrackerParams(noise_sigma=0.0, quality_level=0.0)):
+        assert len(preprocess(frame, params).candidates) == 0
+
+
+def test_real_frames_keep_their_candidates(real_image):
+    """On a textured real frame the floors take nothing away: THRES_PERCENT keeps its
+    meaning, the same candidates in the same order."""
+    params = TrackerParams()
+    pre = preprocess(real_image, params)
+    off = preprocess(real_image, params.replace(noise_sigma=0.0, quality_level=0.0))
+    np.testing.assert_array_equal(pre.candidates, off.candidates)
+    assert len(pre.candidates) == round(real_image.size * params.thres_percent / 100)
+
+
+def test_quality_level_keeps_the_candidates_above_a_fraction_of_the_strongest(real_image):
+    """As goodFeaturesToTrack's qualityLevel: one bright spot on a dim scene keeps only the
+    candidates within the fraction of it; the others are dropped, strongest first kept."""
+    frame = (real_image // 8).astype(np.uint8)  # a dim scene
+    frame[100:104, 100:104] = 255  # and one bright corner
+    params = TrackerParams(quality_level=0.3)
+    pre = preprocess(frame, params)
+    full = preprocess(frame, params.replace(quality_level=0.0))
+    assert 0 < len(pre.candidates) < len(full.candidates)
+    assert (pre.strength >= 0.3 * full.strength[0]).all()
+    np.testing.assert_array_equal(pre.candidates, full.candidates[:len(pre.candidates)])

@@ -136,9 +136,22 @@ def add_param_flags(parser: argparse.ArgumentParser) -> None:
         lo, hi = BOUNDS[name]
         add_number(parser, flag, dest=name, lo=lo, hi=hi, integer=typ is int, default=None,
                    metavar="N", help=f"{text} (%(allowed)s, default {getattr(defaults, name)})")
-    parser.add_argument("--subpixel", action="store_true",
-                        help="refine each match to sub-pixel precision")
+    parser.add_argument("--subpixel", action=argparse.BooleanOptionalAction, default=None,
+                        help="refine each match to sub-pixel precision (default on)")
     add_search_flag(parser)
+    add_tracker_flags(parser)
+
+
+def add_tracker_flags(parser: argparse.ArgumentParser) -> None:
+    """``--levels N`` and ``--paper``: the coarse-to-fine search, or the paper's tracker."""
+    lo, hi = BOUNDS["levels"]
+    add_number(parser, "--levels", dest="levels", lo=lo, hi=hi, integer=True, default=None,
+               metavar="N",
+               help=f"pyramid levels of the coarse-to-fine search (%(allowed)s, default "
+                    f"{TrackerParams().levels}; 1: the paper's single-level search)")
+    parser.add_argument("--paper", action="store_true",
+                        help="the paper's tracker: single-level search, integer positions, no "
+                             "test of a match (flags given with it still apply)")
 
 
 def add_search_flag(parser: argparse.ArgumentParser) -> None:
@@ -153,17 +166,18 @@ def add_search_flag(parser: argparse.ArgumentParser) -> None:
 def params_from_args(args: argparse.Namespace, base: TrackerParams | None = None
                      ) -> TrackerParams:
     """TrackerParams from the parameter flags; a bad value raises ParamError naming the flag."""
-    changes = {name: getattr(args, name) for name in PARAM_FLAGS
+    changes = {name: getattr(args, name) for name in (*PARAM_FLAGS, "levels", "subpixel",
+                                                        "search")
                if getattr(args, name, None) is not None}
-    if getattr(args, "subpixel", False):
-        changes["subpixel"] = True
-    if getattr(args, "search", None) is not None:
-        changes["search"] = args.search
+    if base is None:
+        base = TrackerParams.paper() if getattr(args, "paper", False) else TrackerParams()
     try:
-        return (base or TrackerParams()).replace(**changes)
+        return base.replace(**changes)
     except ParamError as e:
         text = str(e)
-        for name, (flag, _, _) in PARAM_FLAGS.items():
+        flags = {**{name: flag for name, (flag, _, _) in PARAM_FLAGS.items()},
+                 "levels": "--levels"}
+        for name, flag in flags.items():
             if text.startswith(name + "="):
                 text = flag + " " + text[len(name) + 1:]
         raise ParamError(text) from None

@@ -156,8 +156,11 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                 node.status.extra.get("candidates_here", 0) + 1
         demand.after(tracker, est.npi, tracker.redetections > redetections, msg.stamp_ns)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
-        node.status.extra.update(npi=est.npi, lost=tracker.lost_total,
-                                 redetections=tracker.redetections)
+        lost_by = tracker.lost_by
+        node.status.extra.update(
+            npi=est.npi, valid=est.valid, lost=tracker.lost_total,
+            rejected=tracker.rejected_total, redetections=tracker.redetections,
+            rejected_by={k: v for k, v in lost_by.items() if k not in ("left", "cut")})
 
     def recover() -> None:
         # a frame that failed may have left the track half-updated: start a new one

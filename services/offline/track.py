@@ -53,7 +53,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         print(f"# {source.description}; max_features={params.max_features} "
               f"thres_percent={params.thres_percent:g} search_size={params.search_size} "
               f"corr_size={params.corr_size} ungroup_size={params.ungroup_size} "
-              f"subpixel={params.subpixel} search={params.search}", file=out)
+              f"subpixel={params.subpixel} search={params.search} levels={params.levels}",
+              file=out)
         print("#   seq  NPI       xc       yc        xe        ye       dx       dy   scale"
               "     t_ms valid", file=out)
     elif args.format == "csv":
@@ -75,7 +76,10 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         t1, tf = timing(estimates)
         tf_text = f"{tf:.3f} ms" if len(estimates) > 1 else "- (one frame)"
         print(f"# frames={len(estimates)} t1={t1:.3f} ms tf={tf_text} "
-              f"lost={tracker.lost_total} redetections={tracker.redetections}", file=out)
+              f"lost={tracker.lost_total} (rejected {tracker.rejected_total}: "
+              + ", ".join(f"{k} {v}" for k, v in tracker.lost_by.items()
+                          if v and k not in ("left", "cut"))
+              + f") redetections={tracker.redetections}", file=out)
     return 0
 
 

@@ -46,7 +46,7 @@ from ..auto_tuner.sensitivity import (
     new_seed,
     tune,
 )
-from ..usage import add_number, add_search_flag, params_from_args
+from ..usage import add_number, add_search_flag, add_tracker_flags, params_from_args
 from .track import offline_main
 
 UNITS = {"t1": "ms", "tf": "ms", "ex": "px", "ey": "px"}
@@ -90,6 +90,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                help=f"sweep grid step, %(allowed)s (default {DEFAULT_STEP}: every distinct "
                     "window)")
     add_search_flag(parser)
+    add_tracker_flags(parser)
     parser.add_argument("--method", choices=METHODS, default=None,
                         help="significance test of the unreplicated design: Lenth's PSE, or "
                              "ANOVA with the inactive effects pooled (default lenth)")

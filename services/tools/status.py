@@ -65,6 +65,8 @@ def table_row(state: ServiceState) -> list[object]:
 
 
 def _num(value: Any, digits: int = 2) -> Any:
+    if isinstance(value, dict):  # counts by kind, e.g. rejected_by: the non-zero ones
+        return ",".join(f"{k}:{_num(v, digits)}" for k, v in value.items() if v) or "0"
     return f"{value:.{digits}f}" if isinstance(value, float) else value
 
 

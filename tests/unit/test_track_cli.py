@@ -81,6 +81,26 @@ def test_search_flag_changes_the_cost_not_the_estimates(rubberwhale):
     assert "search=exhaustive" in header.splitlines()[0]
 
 
+def test_levels_paper_and_subpixel_flags(rubberwhale):
+    """--levels, --paper (the paper's tracker) and --no-subpixel reach the tracker: jsonl
+    equal to the library with those parameters."""
+    files = [str(rubberwhale / f"frame{i:02d}.png") for i in (10, 11, 12)]
+    frames = [to_gray(cv2.imread(f)) for f in files]
+    for flags, params in ((["--levels", "1"], TrackerParams(levels=1)),
+                          (["--paper"], TrackerParams.paper()),
+                          (["--paper", "--subpixel", "--levels", "2"],
+                           TrackerParams.paper(subpixel=True, levels=2)),
+                          (["--no-subpixel"], TrackerParams(subpixel=False))):
+        out = vistrack("track", *files, "--format", "jsonl", *flags, check=True).stdout
+        rows = [json.loads(line) for line in out.splitlines()]
+        tracker = Tracker(params)
+        for row, frame in zip(rows, frames, strict=True):
+            e = tracker.process(frame).as_dict()
+            assert row["features"] == e["features"], flags
+    table = vistrack("track", *files, "--paper", check=True).stdout
+    assert "levels=1" in table and "subpixel=False" in table
+
+
 def test_video_file_and_builtin(tmp_path):
     from vistrack.common import synthetic
 
@@ -108,6 +128,8 @@ def test_video_file_and_builtin(tmp_path):
     (["--max-features", "many"], "--max-features 'many' is not an integer: allowed 1..2000"),
     (["--max-features", "1e9"], "--max-features '1e9' is not an integer: allowed 1..2000"),
     (["--search", "full"], "invalid choice"),
+    (["--levels", "0"], "--levels 0 is out of range: allowed 1..6"),
+    (["--levels", "2.5"], "--levels '2.5' is not an integer: allowed 1..6"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, needle):
     r = vistrack("track", *args)

@@ -2,7 +2,8 @@
 
 One module a benchmark, each also run under pytest by ``tests/bench`` (``-m bench``):
 
-* :mod:`.tracker`: the SSD tracker against ``cv2.matchTemplate`` and pyramidal LK;
+* :mod:`.tracker`: the SSD tracker against ``cv2.matchTemplate`` and pyramidal LK (speed);
+* :mod:`.accuracy`: the tracker against pyramidal LK on the scoreboard sequences (accuracy);
 * :mod:`.pipeline`: the five-process pipeline against its stages in one process and a raw
   Zenoh skeleton of the same processes;
 * :mod:`.net`: latency and throughput over loopback, TCP, mutual TLS and the multi-host chain;
@@ -32,6 +33,12 @@ def _tracker(out=sys.stdout) -> dict[str, float]:
     from .tracker import bench_tracker
 
     return bench_tracker(out)
+
+
+def _accuracy(out=sys.stdout) -> dict[str, float]:
+    from .accuracy import bench_accuracy
+
+    return bench_accuracy(out)
 
 
 def _pipeline(out=sys.stdout) -> dict[str, float]:
@@ -98,6 +105,7 @@ def _ros2(out=sys.stdout) -> dict[str, float]:
 
 
 BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": _tracker,
+                                                       "accuracy": _accuracy,
                                                        "net": _net,
                                                        "pipeline": _pipeline,
                                                        "tuner": _tuner,

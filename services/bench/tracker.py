@@ -1,11 +1,15 @@
 """``vistrack bench tracker``: the tracker against OpenCV, in the same process and moment.
 
 ``vistrack bench tracker`` times, on the same 256x256 real frames and the same 100 features:
-our SSD tracker at (15, 9); a per-feature ``cv2.matchTemplate`` loop doing the same search;
-``cv2.calcOpticalFlowPyrLK`` (winSize 9, maxLevel 0 and 2); our tracker at the reference windows
-(50, 30); the paper's exhaustive search at (15, 9) and (50, 30); and our whole frame
-(pre-processing + tracking + estimate). It prints time per frame, the ratios, and the median
-end-point error of ours and of LK against the Middlebury ground truth.
+our single-level SSD search at (15, 9), the paper's; a per-feature ``cv2.matchTemplate`` loop
+doing the same search; ``cv2.calcOpticalFlowPyrLK`` (winSize 9, maxLevel 0 and 2, and its
+defaults: winSize 21, maxLevel 3); our search at the reference windows (50, 30); the paper's
+exhaustive search at (15, 9) and (50, 30); the default tracker's SSD tracking (the
+coarse-to-fine search with its checks and sub-pixel refinement, given both frames' pyramids),
+the pyramid it builds once a frame, and the same search without its checks; and our whole
+frame (pre-processing + tracking + estimate). It prints time per frame, the ratios, and the
+median end-point error of ours (default parameters) and of LK against the Middlebury ground
+truth.
 Everything runs on one core (OpenCV's threads set to 1; numba kernels are single-threaded).
 """
 
@@ -21,6 +25,7 @@ import numpy as np
 from ...common import groundtruth, synthetic
 from ...common.params import TrackerParams
 from ...common.vision import Tracker, preprocess, to_gray, track_ssd, warm_up, window_weights
+from ...common.vision.pyramid import build_pyramid, track_pyramid
 
 
 def _best_of(fn: Callable[[], object], *, repeats: int = 7, min_time: float = 0.05) -> float:
@@ -79,7 +84,7 @@ def _accuracy() -> list[tuple[str, float, float, float, int]]:
         a = to_gray(cv2.imread(str(folder / "frame10.png")))
         b = to_gray(cv2.imread(str(folder / "frame11.png")))
         flow = groundtruth.read_flo(folder / "flow10.flo")
-        tracker = Tracker(TrackerParams(subpixel=True))
+        tracker = Tracker(TrackerParams())
         e0 = tracker.process(a)
         e1 = tracker.process(b)
         start = dict(zip(e0.ids.tolist(), e0.points, strict=True))
@@ -107,12 +112,14 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
     # one real run fixes, for every frame pair, the 100 features (anchors in frame t) and
     # their predicted positions in frame t+1: every method below gets exactly these inputs
     tracker = Tracker(params)
-    anchors, centers = [], []
+    anchors, centers, points, preds = [], [], [], []
     est = tracker.update(pre[0])
     vel = np.zeros_like(est.points)
     for p in pre[1:]:
         anchors.append(np.rint(est.points).astype(np.int64))
         centers.append(np.rint(est.points + vel).astype(np.int64))
+        points.append(est.points.copy())
+        preds.append(est.points + vel)
         prev_pts = dict(zip(est.ids.tolist(), est.points, strict=True))
         est = tracker.update(p)
         vel = np.array([pt - prev_pts.get(i, pt)
@@ -131,17 +138,44 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
                           search_half=search // 2, weights=wts, subpixel=subpixel, search=kind)
         return run
 
+    pyrs = [build_pyramid(p.filtered, params.levels) for p in pre]
+    pjobs = list(zip(pyrs[:-1], pyrs[1:], points, preds, strict=True))
+    allowance = 2.0 * params.noise_sigma ** 2 * float(window_weights(params.weights,
+                                                                     params.corr_half).sum())
+
+    def default_tracker(checks: bool = True) -> Callable[[], None]:
+        """The default tracker's SSD tracking (:meth:`Tracker._track`), pyramids given."""
+        p = params if checks else params.replace(uniqueness=0.0, max_fb_error=0.0,
+                                                 consensus=0.0, reject_border=False,
+                                                 guided_retry=False, subpixel=False,
+                                                 refine_size=0)
+        wts = window_weights(p.weights, p.corr_half)
+
+        def run() -> None:
+            for a, b, pts, pr in pjobs:
+                track_pyramid(a, b, pts, pr, corr_half=p.corr_half, search_half=p.search_half,
+                              weights=wts, subpixel=p.subpixel, search=p.search,
+                              uniqueness=p.uniqueness, allowance=allowance,
+                              reject_border=p.reject_border, guided_retry=p.guided_retry,
+                              max_fb_error=p.max_fb_error, consensus=p.consensus,
+                              wide_half=p.refine_half)
+        return run
+
+    def pyramid() -> None:
+        for p in pre[1:]:
+            build_pyramid(p.filtered, params.levels)
+
     def mt() -> None:
         for a, b, anc, _ in jobs:
             _matchtemplate_loop(a.filtered, b.filtered, anc, 4, 7)
 
-    def lk(level: int) -> Callable[[], None]:
+    def lk(level: int, win: int = 9) -> Callable[[], None]:
         pts32 = [anc.astype(np.float32).reshape(-1, 1, 2) for _, _, anc in raw]
 
         def run() -> None:
             for (a, b, _), p0 in zip(raw, pts32, strict=True):
                 cv2.calcOpticalFlowPyrLK(a, b, p0, None,  # type: ignore[call-overload]
-                                         winSize=(9, 9), maxLevel=level)
+                                         winSize=(win, win), maxLevel=level)
         return run
 
     def whole() -> None:
@@ -156,6 +190,10 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
         "matchtemplate_15_9": _best_of(mt) / k * 1e6,
         "lk_level0": _best_of(lk(0)) / k * 1e6,
         "lk_level2": _best_of(lk(2)) / k * 1e6,
+        "lk_default": _best_of(lk(3, 21)) / k * 1e6,
+        "default_ssd": _best_of(default_tracker()) / k * 1e6,
+        "default_ssd_no_checks": _best_of(default_tracker(False)) / k * 1e6,
+        "pyramid_build": _best_of(pyramid) / k * 1e6,
         "ssd_50_30": _best_of(ssd_at(50, 30), repeats=3) / k * 1e6,
         "ssd_15_9_exhaustive": _best_of(ssd_at(15, 9, kind="exhaustive")) / k * 1e6,
         "ssd_50_30_exhaustive": _best_of(ssd_at(50, 30, kind="exhaustive"), repeats=3) / k * 1e6,
@@ -171,12 +209,21 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
               ("matchtemplate_15_9", "cv2.matchTemplate loop, same search"),
               ("lk_level0", "cv2.calcOpticalFlowPyrLK win 9 maxLevel 0"),
               ("lk_level2", "cv2.calcOpticalFlowPyrLK win 9 maxLevel 2"),
+              ("lk_default", "cv2.calcOpticalFlowPyrLK defaults (21, 3)"),
+              ("default_ssd", "ours default tracker: SSD tracking"),
+              ("default_ssd_no_checks", "  its search alone (no checks, integer)"),
+              ("pyramid_build", "  + its pyramid, built once a frame"),
               ("ssd_50_30", "ours SSD reference (50, 30)"),
               ("ssd_15_9_exhaustive", "ours SSD (15, 9), exhaustive search"),
               ("ssd_50_30_exhaustive", "ours SSD (50, 30), exhaustive search"),
               ("whole_frame", "ours whole frame: pre + track + estimate")]
     for key, label in labels:
         print(f"{label:44s} {fig[key]:10.1f} {fig[key] / base:14.2f}x", file=out)
+    print(f"default tracker (levels {params.levels}, checks, sub-pixel {params.subpixel}): "
+          f"{fig['default_ssd']:.1f} us a frame, {fig['default_ssd'] / base:.2f}x the "
+          f"single-level search, {fig['default_ssd'] / fig['lk_default']:.2f}x OpenCV's LK "
+          f"with its defaults; with its pyramid {fig['default_ssd'] + fig['pyramid_build']:.1f}"
+          " us", file=out)
     print(f"speed-up over the matchTemplate loop: {fig['matchtemplate_15_9'] / base:.1f}x; "
           f"tf ratio (50, 30) / (15, 9): {fig['ssd_50_30'] / base:.1f}x pruned, "
           f"{fig['ssd_50_30_exhaustive'] / fig['ssd_15_9_exhaustive']:.1f}x exhaustive (the "
@@ -185,7 +232,7 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
     if acc:
         print("\nmedian end-point error vs Middlebury ground truth (px), same features:",
               file=out)
-        print(f"{'sequence':12s} {'ours+subpx':>10s} {'LK lvl0':>8s} {'LK lvl2':>8s} "
+        print(f"{'sequence':12s} {'ours':>10s} {'LK lvl0':>8s} {'LK lvl2':>8s} "
               f"{'points':>6s}", file=out)
         for name, ours, lk0, lk2, npts in acc:
             print(f"{name:12s} {ours:10.3f} {lk0:8.3f} {lk2:8.3f} {npts:6d}", file=out)

@@ -1,0 +1,256 @@
+"""``vistrack bench accuracy``: the tracker's accuracy against OpenCV's pyramidal LK.
+
+For every sequence, our tracker (default parameters) runs over the frames, and
+``cv2.calcOpticalFlowPyrLK`` (default settings: 21x21 window, 3 pyramid levels) is started from
+the same points: at every step, the features our tracker holds in frame k. Scored against
+ground truth:
+
+* **pairs**: (feature, step) pairs tracked from frame k to k+1 (ours: not lost or rejected;
+  LK: status 1);
+* **median EPE**: median end-point error of those pairs, px;
+* **> 2 px**: the share of pairs whose error exceeds 2 px (gross errors reported as tracked);
+* **survival** (long sequences): the share of the first frame's features still tracked at the
+  last frame (LK: each point followed by LK alone from the first frame, lost at status 0 or
+  when it leaves the image), and the median **drift** of the survivors from their true
+  position there.
+
+Sequences: the Middlebury pairs of the shared data (ground truth: the ``.flo`` flow) and the
+long sequences of :mod:`vistrack.common.rendered` (real frames seen through smooth
+homographies, translation up to 12 px a frame; exact ground truth).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ...common import groundtruth, rendered
+from ...common.params import TrackerParams
+from ...common.vision import Tracker, to_gray, warm_up
+
+#: The Middlebury pairs of the shared data.
+PAIRS = ("Dimetrodon", "RubberWhale", "Venus", "Grove2", "Urban2")
+GROSS_PX = 2.0
+
+#: ``truth(points, k)``: the true positions in frame k + 1 of points (N, 2) of frame k.
+Truth = Callable[[np.ndarray, int], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Score:
+    """One tracker's score on one sequence (see the module notes)."""
+
+    pairs: int
+    median_epe: float
+    gross: float  # share of pairs off by more than GROSS_PX
+    survival: float | None = None
+    drift: float | None = None
+
+
+@dataclass(frozen=True)
+class Row:
+    sequence: str
+    frames: int
+    ours: Score
+    lk: Score
+    rejected: int  # features our tracker rejected as untrustworthy (counted as lost)
+
+
+def lk_track(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.calcOpticalFlowPyrLK`` with its default settings: (positions (N, 2), ok (N,))."""
+    if len(points) == 0:
+        return np.empty((0, 2)), np.empty(0, bool)
+    p0 = np.ascontiguousarray(points, np.float32).reshape(-1, 1, 2)
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(a, b, p0, None)  # type: ignore[call-overload]
+    p1 = p1.reshape(-1, 2).astype(np.float64)
+    h, w = a.shape
+    inside = (p1[:, 0] >= 0) & (p1[:, 1] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] <= h - 1)
+    return p1, (st.reshape(-1) == 1) & inside & np.isfinite(p1).all(axis=1)
+
+
+def _score(errors: np.ndarray, survival: float | None = None,
+           drift: float | None = None) -> Score:
+    e = np.asarray(errors, np.float64)
+    return Score(pairs=len(e), median_epe=float(np.median(e)) if len(e) else float("nan"),
+                 gross=float(np.mean(e > GROSS_PX)) if len(e) else float("nan"),
+                 survival=survival, drift=drift)
+
+
+def run_sequence(frames: Sequence[np.ndarray], step_truth: Truth, params: TrackerParams, *,
+                 end_truth: Callable[[np.ndarray], np.ndarray] | None = None
+                 ) -> tuple[Score, Score, int]:
+    """Ours and LK over ``frames``.
+
+    ``step_truth(points, k)`` gives the true positions in frame k + 1 of points (N, 2) of frame
+    k (NaN where unknown); ``end_truth(points)``, for long sequences, those in the last frame
+    of points of the first, for the survival and drift. Returns (ours, LK, features ours
+    rejected).
+    """
+    tracker = Tracker(params)
+    est = tracker.process(frames[0])
+    first = dict(zip(est.ids.tolist(), est.points, strict=True))
+    ours_err: list[np.ndarray] = []
+    lk_err: list[np.ndarray] = []
+    lk_pts, lk_alive = est.points.copy(), np.ones(est.npi, bool)
+
+    def errors(found: np.ndarray, true: np.ndarray) -> np.ndarray:
+        e = np.hypot(*(found - true).reshape(-1, 2).T)
+        return e[np.isfinite(e)]
+
+    for k in range(1, len(frames)):
+        starts = est.points
+        before = dict(zip(est.ids.tolist(), starts, strict=True))
+        # LK from the same points as ours, this step
+        p1, ok = lk_track(frames[k - 1], frames[k], starts)
+        lk_err.append(errors(p1[ok], step_truth(starts[ok], k - 1)))
+        # LK alone from the first frame's features, for its survival
+        if end_truth is not None and lk_alive.any():
+            q, ok = lk_track(frames[k - 1], frames[k], lk_pts)
+            lk_alive &= ok
+            lk_pts = np.where(ok[:, None], q, lk_pts)
+        est = tracker.process(frames[k])
+        kept = [j for j, i in enumerate(est.ids.tolist()) if i in before]
+        if kept:
+            a = np.array([before[i] for i in est.ids[kept].tolist()])
+            ours_err.append(errors(est.points[kept], step_truth(a, k - 1)))
+    ours = _score(np.concatenate(ours_err) if ours_err else np.empty(0))
+    lk = _score(np.concatenate(lk_err) if lk_err else np.empty(0))
+    if end_truth is not None and first:
+        start = np.array(list(first.values()))
+        where = {i: j for j, i in enumerate(est.ids.tolist())}
+        alive = np.array([i in where for i in first])
+        ours = _with_survival(ours, alive, est.points[[where[i] for i in first if i in where]],
+                              end_truth(start[alive]) if alive.any() else None)
+        lk = _with_survival(lk, lk_alive, lk_pts[lk_alive],
+                            end_truth(start[lk_alive]) if lk_alive.any() else None)
+    return ours, lk, getattr(tracker, "rejected_total", 0)
+
+
+def _with_survival(score: Score, alive: np.ndarray, end: np.ndarray,
+                   true_end: np.ndarray | None) -> Score:
+    drift = None
+    if true_end is not None and len(end):
+        drift = float(np.median(np.hypot(*(end - true_end).T)))
+    return dataclasses.replace(score, survival=float(alive.mean()), drift=drift)
+
+
+def _gray(path) -> np.ndarray:
+    image = cv2.imread(str(path))
+    if image is None:
+        raise ValueError(f"{path}: cannot read the image")
+    return to_gray(image)
+
+
+def scoreboard(params: TrackerParams | None = None, *, n_frames: int = 60,
+               progress: Callable[[str], None] | None = None) -> list[Row]:
+    """Every sequence found: the Middlebury pairs, then the long rendered sequences."""
+    params = params if params is not None else TrackerParams()
+    rows = []
+    for name in PAIRS:
+        folder = groundtruth.middlebury(name)
+        if folder is None:
+            continue
+        frames = [_gray(folder / "frame10.png"), _gray(folder / "frame11.png")]
+        flow = groundtruth.read_flo(folder / "flow10.flo")
+
+        def step(points: np.ndarray, k: int, flow: np.ndarray = flow) -> np.ndarray:
+            h, w = flow.shape[:2]
+            ix = np.clip(np.rint(points[:, 0]).astype(int), 0, w - 1)
+            iy = np.clip(np.rint(points[:, 1]).astype(int), 0, h - 1)
+            return points + flow[iy, ix]
+
+        ours, lk, rej = run_sequence(frames, step, params)
+        rows.append(Row(f"{name} (pair)", 2, ours, lk, rej))
+        if progress:
+            progress(name)
+    for seq in rendered.middlebury_sequences(n_frames):
+        ours, lk, rej = run_sequence(seq.frames, _step_of(seq), params, end_truth=_end_of(seq))
+        rows.append(Row(seq.name, len(seq), ours, lk, rej))
+        if progress:
+            progress(seq.name)
+    return rows
+
+
+def _step_of(seq: rendered.RenderedSequence) -> Truth:
+    def step(points: np.ndarray, k: int) -> np.ndarray:
+        return seq.map(points, k, k + 1)
+    return step
+
+
+def _end_of(seq: rendered.RenderedSequence) -> Callable[[np.ndarray], np.ndarray]:
+    def end(points: np.ndarray) -> np.ndarray:
+        return seq.map(points, 0, len(seq) - 1)
+    return end
+
+
+def _fmt(v: float | None, spec: str) -> str:
+    width = int(spec.split(".")[0])
+    return f"{'-':>{width}s}" if v is None or not np.isfinite(v) else format(v, spec)
+
+
+def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[str, float]:
+    """Run the scoreboard, print its table, return the figures by ``<sequence>_<what>``."""
+    cv2.setNumThreads(1)
+    warm_up()
+    params = params if params is not None else TrackerParams()
+    t0 = time.perf_counter()
+    rows = scoreboard(params)
+    print(f"# vistrack bench accuracy: ours ({_describe(params)}) against "
+          "cv2.calcOpticalFlowPyrLK (defaults: 21x21, maxLevel 3) from the same features",
+          file=out)
+    if not rows:
+        print("(no Middlebury data found: set VISTRACK_DATA or put the shared data at "
+              "../shared/data)", file=out)
+        return {}
+    print(f"{'sequence':22s} {'frames':>6s} | {'pairs':>6s} {'median':>7s} {'>2px':>6s} "
+          f"{'surv':>5s} {'drift':>6s} {'rej':>5s} | {'pairs':>6s} {'median':>7s} "
+          f"{'>2px':>6s} {'surv':>5s} {'drift':>6s} | {'EPE ok':>6s}", file=out)
+    print(f"{'':22s} {'':6s} | {'ours':^42s} | {'LK':^35s} |", file=out)
+    fig: dict[str, float] = {}
+    for r in rows:
+        o, lk = r.ours, r.lk
+        ok = o.median_epe <= lk.median_epe
+        print(f"{r.sequence:22s} {r.frames:6d} | {o.pairs:6d} {o.median_epe:7.3f} "
+              f"{100 * o.gross:5.2f}% {_fmt(o.survival, '5.2f')} {_fmt(o.drift, '6.2f')} "
+              f"{r.rejected:5d} | {lk.pairs:6d} {lk.median_epe:7.3f} {100 * lk.gross:5.2f}% "
+              f"{_fmt(lk.survival, '5.2f')} {_fmt(lk.drift, '6.2f')} | {'yes' if ok else 'NO':>6s}",
+              file=out)
+        key = r.sequence.split(" ")[0] + ("_pair" if r.frames == 2 else "_long")
+        fig.update({f"{key}_median": o.median_epe, f"{key}_lk_median": lk.median_epe,
+                    f"{key}_gross": o.gross, f"{key}_lk_gross": lk.gross,
+                    f"{key}_pairs": float(o.pairs), f"{key}_lk_pairs": float(lk.pairs)})
+        if o.survival is not None and lk.survival is not None:
+            fig[f"{key}_survival"] = o.survival
+            fig[f"{key}_lk_survival"] = lk.survival
+    longs = [r for r in rows if r.ours.survival is not None]
+    pairs = sum(r.ours.pairs for r in rows)
+    gross = sum(r.ours.gross * r.ours.pairs for r in rows) / max(pairs, 1)
+    lk_pairs = sum(r.lk.pairs for r in rows)
+    lk_gross = sum(r.lk.gross * r.lk.pairs for r in rows) / max(lk_pairs, 1)
+    fig["all_gross"] = gross
+    fig["all_lk_gross"] = lk_gross
+    print(f"all sequences: {pairs} pairs, {100 * gross:.2f} % off by > {GROSS_PX:g} px "
+          f"(LK: {lk_pairs}, {100 * lk_gross:.2f} %); rendered ones alone: "
+          + ", ".join(f"{100 * r.ours.gross:.2f} %" for r in longs), file=out)
+    print(f"targets: median <= LK's on every sequence: "
+          f"{'met' if all(r.ours.median_epe <= r.lk.median_epe for r in rows) else 'NOT met'}; "
+          f"pairs off by > {GROSS_PX:g} px <= 2 % on every sequence: "
+          f"{'met' if all(r.ours.gross <= 0.02 for r in rows) else 'NOT met'} (worst "
+          f"{100 * max(r.ours.gross for r in rows):.2f} %), over all: "
+          f"{'met' if gross <= 0.02 else 'NOT met'}; survival >= half LK's: "
+          + ("met" if all((r.ours.survival or 0) >= 0.5 * (r.lk.survival or 0) for r in longs)
+             else "NOT met")
+          + f"; {time.perf_counter() - t0:.1f} s", file=out)
+    return fig
+
+
+def _describe(params: TrackerParams) -> str:
+    default = TrackerParams()
+    changed = [f"{k}={v}" for k, v in params.as_dict().items() if getattr(default, k) != v]
+    return "default parameters" + (f" but {', '.join(changed)}" if changed else "")

@@ -156,10 +156,12 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                 node.status.extra.get("candidates_here", 0) + 1
         demand.after(tracker, est.npi, tracker.redetections > redetections, msg.stamp_ns)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
+        # features lost since the start, and those of them whose match was rejected, by
+        # reason (not ``rejected``: that is the status's count of bad messages)
         lost_by = tracker.lost_by
         node.status.extra.update(
             npi=est.npi, valid=est.valid, lost=tracker.lost_total,
-            rejected=tracker.rejected_total, redetections=tracker.redetections,
+            rejected_features=tracker.rejected_total, redetections=tracker.redetections,
             rejected_by={k: v for k, v in lost_by.items() if k not in ("left", "cut")})
 
     def recover() -> None:

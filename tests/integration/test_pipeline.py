@@ -117,9 +117,6 @@ def test_two_in_flight_loses_nothing_uncounted(rubberwhale, free_port):
     assert len(seqs) >= 4
 
 
-@pytest.mark.xfail(strict=True, reason="needs issue 12's texture floor: a black frame still "
-                   "gives 51 features (the top THRES_PERCENT of a zero strength, and features "
-                   "tracked into it), so valid estimates")
 def test_black_frames_give_invalid_estimates_no_motion_and_tracking_resumes(tmp_path,
                                                                             free_port):
     """Featureless frames end to end (issue 13): ten textured frames, ten black ones, ten

@@ -84,6 +84,27 @@ def test_motion_estimation_marks_an_estimate_without_features_invalid():
                    for k in ("xc", "yc", "xe", "ye", "dx", "dy", "scale", "t_ms"))
 
 
+def test_motion_estimation_status_counts_rejected_features_by_reason():
+    """A frame of another scene: the features find no trustworthy match there and are
+    rejected, not reported; the status says how many and why, beside the features lost."""
+    from vistrack.services.motion_estimation.service import loop
+
+    frames = [*synthetic.sequence(2, size=(128, 128)),
+              synthetic.sequence(1, size=(128, 128), seed=7)[0]]
+    with Running("motion_estimation", loop, parse("motion-estimation")) as node:
+        for seq, image in enumerate(frames):
+            payload = pre_frame(image, seq)
+            wait_for(lambda payload=payload: node.feed(node.keys.pre_frame, payload),
+                     what="a subscription")
+            wait_for(lambda seq=seq: len(node.published_on(node.keys.estimate)) > seq,
+                     what=f"estimate {seq}")
+        extra = dict(node.status.extra)
+    by = extra["rejected_by"]
+    assert set(by) == {"border", "ambiguous", "runaway", "fb", "disagrees", "residual"}
+    assert extra["rejected_features"] == sum(by.values()) > 10, extra
+    assert extra["lost"] >= extra["rejected_features"] and "rejected" not in extra
+
+
 def test_the_controller_does_not_move_the_robot_on_an_invalid_estimate():
     """An invalid first estimate neither moves the robot nor sets the set point; an invalid
     one later stops it; valid ones move it again."""

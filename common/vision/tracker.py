@@ -36,7 +36,7 @@ from .features import select_features
 from .motion import _incremental_motion, centroid_scatter
 from .preprocess import Preprocessed, preprocess
 from .pyramid import Pyramid, build_pyramid, track_pyramid
-from .ssd import BORDER, OK, RESIDUAL, STATUS_NAMES, window_weights
+from .ssd import BORDER, LEFT, OK, RESIDUAL, STATUS_NAMES, track_ssd, window_weights
 
 
 @dataclass(frozen=True)
@@ -171,11 +171,12 @@ class Tracker:
         if not first and self._prev is not None and self._prev.shape != frame.shape:
             raise ValueError(f"frame size {frame.shape[::-1]} differs from the previous "
                              f"{self._prev.shape[::-1]} (width, height)")
-        pyr = build_pyramid(frame, p.levels)
+        # the paper's tracker needs no pyramid (see _track)
+        pyr = None if _single_level(p) else build_pyramid(frame, p.levels)
         if first:
             self._add_features(pre, frame.shape)
         else:
-            self._track(pyr)
+            self._track(frame, pyr)
             if len(self._pos) < p.redetect_fraction * p.max_features:
                 self._add_features(pre, frame.shape)
         self._prev = frame
@@ -195,23 +196,35 @@ class Tracker:
         self._frame += 1
         return est
 
-    def _track(self, pyr: Pyramid) -> None:
+    def _track(self, frame: np.ndarray, pyr: Pyramid | None) -> None:
         p = self._params
         assert self._prev is not None
         if len(self._pos) == 0:
             self._motion = (0.0, 0.0)
             return
-        prev = self._prev_pyr
-        if prev is None or prev.levels != pyr.levels:  # the levels changed with the params
-            prev = build_pyramid(self._prev, p.levels)
-        # what noise alone adds to S at a perfect match: both frames' noise, over the window
-        allowance = 2.0 * p.noise_sigma ** 2 * self._wsum
-        found, ssd, status = track_pyramid(
-            prev, pyr, self._pos, self._pos + self._vel, corr_half=p.corr_half,
-            search_half=p.search_half, weights=self._weights, subpixel=p.subpixel,
-            search=p.search, uniqueness=p.uniqueness, allowance=allowance,
-            reject_border=p.reject_border, guided_retry=p.guided_retry,
-            max_fb_error=p.max_fb_error, consensus=p.consensus, wide_half=p.refine_half)
+        if pyr is None:
+            # the paper's tracker: its single-level search straight from track_ssd, no pyramid
+            # (the same matches as track_pyramid at one level, tested; but not its per-frame
+            # overhead, which the paper's factorial design would time)
+            anchors, centers = _predict(self._pos, self._vel)
+            match, ssd, ok = track_ssd(self._prev, frame, anchors, centers,
+                                       corr_half=p.corr_half, search_half=p.search_half,
+                                       weights=self._weights, search=p.search)
+            found = self._pos + (match - anchors)
+            status = np.where(ok, OK, LEFT).astype(np.int8)
+        else:
+            prev = self._prev_pyr
+            if prev is None or prev.levels != pyr.levels:  # the levels changed with the params
+                prev = build_pyramid(self._prev, p.levels)
+            # what noise alone adds to S at a perfect match: both frames' noise, over the
+            # window
+            allowance = 2.0 * p.noise_sigma ** 2 * self._wsum
+            found, ssd, status = track_pyramid(
+                prev, pyr, self._pos, self._pos + self._vel, corr_half=p.corr_half,
+                search_half=p.search_half, weights=self._weights, subpixel=p.subpixel,
+                search=p.search, uniqueness=p.uniqueness, allowance=allowance,
+                reject_border=p.reject_border, guided_retry=p.guided_retry,
+                max_fb_error=p.max_fb_error, consensus=p.consensus, wide_half=p.refine_half)
         pos, vel, ids, lost, moved, dx, dy, scale = _advance(
             self._pos, found, ssd, status, self._ids, self._wsum, float(p.max_residual))
         if moved:
@@ -241,6 +254,26 @@ class Tracker:
         self._next_id += len(new)
         if self._frame > 0:
             self.redetections += 1
+
+
+def _single_level(p: TrackerParams) -> bool:
+    """Whether ``p`` is the paper's tracker (:meth:`TrackerParams.paper`): one level, integer
+    positions, no test of a match."""
+    return (p.levels == 1 and not p.subpixel and not p.reject_border and not p.guided_retry
+            and p.uniqueness == 0.0 and p.max_fb_error == 0.0 and p.consensus == 0.0)
+
+
+@nb.njit(cache=True, nogil=True)
+def _predict(pos, vel):  # pragma: no cover - numba
+    """Template centres (the rounded positions) and search centres (constant velocity)."""
+    n = pos.shape[0]
+    anchors = np.empty((n, 2), np.int64)
+    centers = np.empty((n, 2), np.int64)
+    for i in range(n):
+        for c in range(2):
+            anchors[i, c] = int(np.rint(pos[i, c]))
+            centers[i, c] = int(np.rint(pos[i, c] + vel[i, c]))
+    return anchors, centers
 
 
 @nb.njit(cache=True, nogil=True)

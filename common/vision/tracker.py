@@ -7,7 +7,8 @@ Per frame t -> t+1:
 
 1. prediction (Section 4): constant velocity from finite differences,
    ``x_pred = x_t + (x_t - x_{t-1})``; a feature's first step is predicted by the image motion
-   of the frame before (zero on a track's second frame);
+   of the frame before (zero on a track's second frame, and always with the paper's tracker,
+   :meth:`TrackerParams.paper`);
 2. coarse-to-fine SSD search of Eq. (1) around the prediction, refined to sub-pixel
    (:mod:`.pyramid`, :mod:`.ssd`);
 3. a feature is lost when its window leaves the image, and rejected (lost too) when its match
@@ -247,8 +248,10 @@ class Tracker:
             return
         new = pre.candidates[chosen].astype(np.float64)
         self._pos = np.concatenate([self._pos, new])
-        # a new feature's first step is predicted by the image motion of the frame before
-        self._vel = np.concatenate([self._vel, np.tile(np.array(self._motion), (len(new), 1))])
+        # a new feature's first step is predicted by the image motion of the frame before;
+        # the paper's tracker has no finite difference for it yet, so zero velocity
+        motion = (0.0, 0.0) if _single_level(p) else self._motion
+        self._vel = np.concatenate([self._vel, np.tile(np.array(motion), (len(new), 1))])
         self._ids = np.concatenate([self._ids, np.arange(self._next_id,
                                                          self._next_id + len(new))])
         self._next_id += len(new)

@@ -59,6 +59,8 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from vistrack.common.params import ParamError
 
 if TYPE_CHECKING:  # skfuzzy is imported lazily: a cache hit must not pay for its import
@@ -240,6 +242,123 @@ def _membership(universe: Any, points: tuple[float, ...], scale: float) -> Any:
     raise ValueError(f"membership {points!r}: give 3 (triangle) or 4 (trapezoid) breakpoints")
 
 
+def _triangle(universe: np.ndarray, points: tuple[float, ...], scale: float) -> np.ndarray:
+    """A triangle (a, b, c) sampled on ``universe``, with scikit-fuzzy's ``trimf`` arithmetic."""
+    a, b, c = (p * scale for p in points)
+    y = np.zeros(len(universe))
+    if a != b:
+        rising = (a < universe) & (universe < b)
+        y[rising] = (universe[rising] - a) / float(b - a)
+    if b != c:
+        falling = (b < universe) & (universe < c)
+        y[falling] = (c - universe[falling]) / float(c - b)
+    y[universe == b] = 1
+    return y
+
+
+def _crossings(universe: np.ndarray, mf: np.ndarray, cut: np.ndarray) -> np.ndarray | None:
+    """Where ``mf`` crosses each level of ``cut``: scikit-fuzzy's ``_interp_universe_fast``
+    for a whole array of levels.
+
+    Returns
+    -------
+    (len(cut), 2) the first and last crossing of each level (a universe sample where there is
+    none: it is in the upsampled universe anyway), or None if ``mf`` crosses some level more
+    than twice (not a convex shape: then this shortcut does not apply).
+    """
+    above = np.where(cut[:, None] == 0.0, mf[None, :] > 0.0, mf[None, :] >= cut[:, None])
+    change = above[:, 1:] != above[:, :-1]  # (G, N - 1): segment i crosses the level
+    if change.size and int(change.sum(axis=1).max()) > 2:
+        return None
+    n = len(universe) - 1
+    first = np.argmax(change, axis=1)
+    last = n - 1 - np.argmax(change[:, ::-1], axis=1)
+    out = np.empty((len(cut), 2))
+    for col, idx in enumerate((first, last)):
+        dmf = mf[idx + 1] - mf[idx]
+        crossing = change[np.arange(len(cut)), idx]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = universe[idx] + (cut - mf[idx]) * (universe[idx + 1] - universe[idx]) / dmf
+        out[:, col] = np.where(crossing, x, universe[idx])
+    return out
+
+
+def mamdani_surface(output: str, errors: Any, rates: Any,
+                    limits: FuzzyLimits | None = None) -> np.ndarray | None:
+    """``output`` of the rule base at every (error, rate) pair, as scikit-fuzzy computes it.
+
+    The arithmetic of ``ControlSystemSimulation(build_control_system(limits),
+    clip_to_bounds=True).compute()`` step by step (memberships interpolated on the
+    ``UNIVERSE_POINTS`` universes, AND = min, aggregation = max, each output term cut at its
+    firing, the output universe upsampled where the terms cross their cuts, the clipped terms'
+    max, the piecewise-linear centroid), in numpy over the whole array at once: the 161 x 81
+    control surface in well under a second instead of scikit-fuzzy's ~9 s (its loop over the
+    points in Python), and without importing scikit-fuzzy (2 to 6 s by itself).
+
+    Parameters
+    ----------
+    output : an output of ``AXES`` (``"vx"``, ``"vy"``).
+    errors, rates : arrays of one shape: the error and rate inputs (clipped to the limits).
+    limits : variable ranges; defaults to :class:`FuzzyLimits()`.
+
+    Returns
+    -------
+    The output, in its unit, in the inputs' shape; None when a membership function is not a
+    triangle (the shortcut covers the shapes of this module; use scikit-fuzzy for others).
+    """
+    limits = limits if limits is not None else FuzzyLimits()
+    err, rate = AXES[output]
+    errors, rates = np.asarray(errors, dtype=np.float64), np.asarray(rates, dtype=np.float64)
+    shape = np.broadcast_shapes(errors.shape, rates.shape)
+    inputs = {}
+    for name, values in ((err, errors), (rate, rates)):
+        m = limits.limit(name)
+        inputs[name] = np.clip(np.broadcast_to(values, shape).ravel(), -m, m)
+    if any(len(p) != 3 for name in (err, rate, output)
+           for p in TERM_SETS[VARIABLES[name][0]].values()):
+        return None
+
+    def terms(name: str) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        m = limits.limit(name)
+        universe = np.linspace(-m, m, UNIVERSE_POINTS)
+        return universe, {t: _triangle(universe, p, m)
+                          for t, p in TERM_SETS[VARIABLES[name][0]].items()}
+
+    memberships = {}
+    for name in (err, rate):
+        universe, mfs = terms(name)
+        memberships[name] = {t: np.interp(inputs[name], universe, mf) for t, mf in mfs.items()}
+    cuts: dict[str, np.ndarray] = {}  # output term -> its firing (max over its rules)
+    for e_term, outs in RULE_TABLE.items():
+        for r_term, o_term in zip(RATE_TERMS, outs, strict=True):
+            firing = np.fmin(memberships[err][e_term], memberships[rate][r_term])
+            cuts[o_term] = firing if o_term not in cuts else np.fmax(firing, cuts[o_term])
+    universe, mfs = terms(output)
+    points = [np.broadcast_to(universe, (len(inputs[err]), len(universe)))]
+    for o_term, cut in cuts.items():
+        crossing = _crossings(universe, mfs[o_term], cut)
+        if crossing is None:
+            return None
+        points.append(crossing)
+    # duplicates are left in: a segment of zero width adds nothing to the centroid
+    x = np.sort(np.concatenate(points, axis=1), axis=1)
+    y = np.zeros_like(x)
+    for o_term, cut in cuts.items():
+        clipped = np.minimum(cut[:, None], np.interp(x, universe, mfs[o_term]))
+        np.maximum(y, clipped, out=y)
+    return _centroid(x, y).reshape(shape)
+
+
+def _centroid(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The centroid of each row of the piecewise-linear ``(x, y)``, as scikit-fuzzy's
+    ``centroid`` integrates it (segment by segment, exactly), to rounding."""
+    dx = x[:, 1:] - x[:, :-1]
+    y1, y2 = y[:, :-1], y[:, 1:]
+    area = 0.5 * dx * (y1 + y2)  # a segment's trapezoid, and its first moment about 0
+    moment = dx * (dx * (y1 + 2.0 * y2) / 6.0 + x[:, :-1] * (y1 + y2) / 2.0)
+    return moment.sum(axis=1) / np.fmax(area.sum(axis=1), np.finfo(float).eps)
+
+
 def build_control_system(limits: FuzzyLimits | None = None) -> ControlSystem:
     """Build the scikit-fuzzy Mamdani system from the data above.
 
@@ -256,7 +375,6 @@ def build_control_system(limits: FuzzyLimits | None = None) -> ControlSystem:
         ``ControlSystemSimulation(system, clip_to_bounds=True)`` so that out-of-range inputs
         are clipped as in ``control.FuzzySurface``.
     """
-    import numpy as np
     from skfuzzy import control as ctrl
 
     limits = limits if limits is not None else FuzzyLimits()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -98,6 +100,70 @@ def test_grid_nodes_equal_skfuzzy(surface):
     for i, j in [(0, 0), (17, 63), (80, 40), (121, 5), (160, 80)]:
         _, vy_ref = _skfuzzy(sim, errors[i], rates[j], 0.0, 0.0)
         assert table[i, j] == pytest.approx(vy_ref, abs=1e-9)
+
+
+def _skfuzzy_arrays(limits: FuzzyLimits, output: str, errors: np.ndarray,
+                    rates: np.ndarray) -> np.ndarray:
+    """scikit-fuzzy's own compute() of one output, with array inputs."""
+    sim = _reference(limits)
+    for err, rate in AXES.values():
+        sim.input[err] = errors
+        sim.input[rate] = rates
+    sim.compute()
+    return np.asarray(sim.output[output], dtype=np.float64)
+
+
+@pytest.mark.parametrize("limits", [FuzzyLimits(), FuzzyLimits(
+    ex_max=0.6, dex_max=2.0, ez_max=0.3, dez_max=0.2, vy_max=0.8, vx_max=0.25)])
+@pytest.mark.parametrize("output", list(AXES))
+def test_vectorised_inference_is_skfuzzys(limits, output):
+    # the surface is compiled without scikit-fuzzy: the same numbers as its compute(), at
+    # random points (some outside the limits, so clipped), on the breakpoints and at the
+    # corners, where the cuts are 0 or 1 and the crossings fall on universe samples
+    err, rate = AXES[output]
+    e_max, r_max = limits.limit(err), limits.limit(rate)
+    rng = np.random.default_rng(7)
+    e = np.concatenate([rng.uniform(-1.2, 1.2, 150), np.repeat([-1, -0.5, 0, 0.5, 1], 3)])
+    r = np.concatenate([rng.uniform(-1.2, 1.2, 150), np.tile([-1, 0, 1], 5)])
+    errors, rates = e * e_max, r * r_max
+    expected = _skfuzzy_arrays(limits, output, errors, rates)
+    got = rules.mamdani_surface(output, errors, rates, limits)
+    assert got is not None and got.shape == errors.shape
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
+
+
+def test_compiled_tables_equal_skfuzzy_on_the_grid(tmp_path):
+    # a small grid, compiled for real into an empty cache, against compute() at every node
+    config = SurfaceConfig(grid_error=21, grid_rate=11, cache_dir=str(tmp_path))
+    compiled = FuzzySurface.compile(UNIT := control.UNIT_LIMITS, config)
+    assert not compiled.from_cache
+    for out in AXES:
+        errors, rates, table = compiled.grid(out)
+        grid_e, grid_r = np.meshgrid(errors, rates, indexing="ij")
+        np.testing.assert_allclose(table, _skfuzzy_arrays(UNIT, out, grid_e, grid_r),
+                                   rtol=0, atol=1e-9)
+
+
+def test_crossings_refuse_a_shape_that_is_not_convex():
+    # the shortcut assumes each term crosses a level at most twice; a shape that does not is
+    # left to scikit-fuzzy (mamdani_surface returns None) rather than computed wrongly
+    universe = np.linspace(-1.0, 1.0, 5)
+    two_humps = np.array([0.0, 1.0, 0.0, 1.0, 0.0])
+    assert rules._crossings(universe, two_humps, np.array([0.5])) is None
+    triangle = np.array([0.0, 0.5, 1.0, 0.5, 0.0])
+    np.testing.assert_allclose(rules._crossings(universe, triangle, np.array([0.5])),
+                               [[-0.5, 0.5]])
+
+
+def test_compiling_does_not_import_skfuzzy(tmp_path):
+    # importing scikit-fuzzy alone took 2 to 6 s of the fuzzy-controller's start
+    code = ("import sys; from vistrack.services.fuzzy_controller.control import FuzzySurface, "
+            "SurfaceConfig; s = FuzzySurface.compile(config=SurfaceConfig(cache_dir="
+            f"{str(tmp_path)!r})); assert not s.from_cache; "
+            "print(sorted(m for m in sys.modules if 'skfuzzy' in m))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.strip() == "[]"
 
 
 # -- signs and shape -----------------------------------------------------------------------------

@@ -5,8 +5,8 @@ from .features import select_features
 from .motion import centroid_scatter, incremental_motion
 from .preprocess import Preprocessed, preprocess, to_gray
 from .ssd import track_ssd, window_weights
-from .tracker import Estimate, Tracker, timing, track_frames, warm_up
+from .tracker import Estimate, Tracker, kernel_cache_dir, timing, track_frames, warm_up
 
 __all__ = ["Estimate", "Preprocessed", "Tracker", "centroid_scatter", "incremental_motion",
-           "preprocess", "select_features", "timing", "to_gray", "track_frames", "track_ssd",
-           "warm_up", "window_weights"]
+           "kernel_cache_dir", "preprocess", "select_features", "timing", "to_gray",
+           "track_frames", "track_ssd", "warm_up", "window_weights"]

@@ -26,11 +26,12 @@ Per frame t -> t+1:
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numba as nb
 import numpy as np
+from numba.core import event as numba_event
 
 from ..params import MIN_VALID_NPI, TrackerParams
 from .features import select_features
@@ -338,12 +339,50 @@ def timing(estimates: list[Estimate]) -> tuple[float, float]:
     return t1, float(np.mean(rest)) if rest else float("nan")
 
 
-def warm_up() -> None:
+def warm_up(on_compile: Callable[[], None] | None = None) -> bool:
     """Compile (or load from numba's cache) every kernel the tracker uses, so that the first
-    real frame, the paper's t1, measures the tracker and not the JIT."""
+    real frame, the paper's t1, measures the tracker and not the JIT.
+
+    Parameters
+    ----------
+    on_compile : called once, as soon as a kernel is found missing from numba's on-disk cache
+        and starts compiling (a first run, or edited kernels): the moment to say that the
+        next half minute goes to the compiler. Not called when everything is cached.
+
+    Returns
+    -------
+    Whether anything was compiled (False: every kernel came from the cache).
+    """
     from ..synthetic import sequence
 
-    frames = sequence(3, size=(64, 64), seed=1)
-    for p in (TrackerParams(), TrackerParams(weights="gaussian", subpixel=False),
-              TrackerParams(search="exhaustive")):
-        track_frames(frames, p.replace(max_features=20, search_size=5, corr_size=5))
+    listener = _CompileListener(on_compile)
+    with numba_event.install_listener("numba:compile", listener):
+        frames = sequence(3, size=(64, 64), seed=1)
+        for p in (TrackerParams(), TrackerParams(weights="gaussian", subpixel=False),
+                  TrackerParams(search="exhaustive")):
+            track_frames(frames, p.replace(max_features=20, search_size=5, corr_size=5))
+    return listener.compiled
+
+
+def kernel_cache_dir() -> str:
+    """Where numba keeps the compiled kernels (``NUMBA_CACHE_DIR``, else beside the code)."""
+    cache = getattr(_advance, "_cache", None)  # the dispatcher's cache locator knows best
+    return str(getattr(cache, "_cache_path", "") or getattr(nb.config, "CACHE_DIR", "")
+               or "numba's cache")
+
+
+class _CompileListener(numba_event.Listener):
+    """Notes numba's compile events: a dispatcher fires one only on a cache miss."""
+
+    def __init__(self, on_compile: Callable[[], None] | None) -> None:
+        self.compiled = False
+        self._on_compile = on_compile
+
+    def on_start(self, event: numba_event.Event) -> None:
+        if not self.compiled:
+            self.compiled = True
+            if self._on_compile is not None:
+                self._on_compile()
+
+    def on_end(self, event: numba_event.Event) -> None:
+        pass

@@ -60,10 +60,11 @@ def _work(conn: Any, parent_pid: int) -> None:
     import cv2
 
     cv2.setNumThreads(1)  # "bounded CPU": one core at most, and only when it is idle
-    from ...common.vision import warm_up
+    from ..kernels import say_on_stderr, warm_up_kernels
     from .sensitivity import tune
 
-    warm_up()  # numba's compile or cache load, before the first job rather than inside it
+    # numba's compile (said on stderr) or cache load, before the first job rather than in it
+    warm_up_kernels(say_on_stderr("auto-tuner worker"))
     try:
         conn.send(("ready", priority))
         while True:

@@ -639,23 +639,20 @@ class Launcher:
                 child.reader.join(max(0.0, deadline - time.monotonic()))
 
 
-def compile_kernels(out: IO[str] = sys.stderr) -> None:
-    """Compile the tracker's numba kernels into numba's on-disk cache, once, here.
+def compile_kernels(command: str = "up") -> None:
+    """Compile the tracker's numba kernels into numba's on-disk cache, once, here, saying so
+    on stderr (``vistrack COMMAND: compiling ...``) when it happens (a first run).
 
     On a fresh install the services would otherwise each compile them at start-up, three at
     a time on a small machine (~25 s each alone), and miss the ready timeout; with the cache
     filled they load in under a second.
     """
-    from ...common.vision import warm_up
+    from ..kernels import say_on_stderr, warm_up_kernels
 
-    t0 = time.monotonic()
-    warm_up()
+    warm_up_kernels(say_on_stderr(command))
     # What the compiler leaves behind lives as long as this process (the launcher, the demo's
     # recorder): freeze it out of the garbage collector, whose full collections over it paused
     # the demo's recorder for 100 ms and more (p99 capture-to-command 208 ms on a first run,
     # 9 ms once the kernels came from the cache).
     gc.collect()
     gc.freeze()
-    if time.monotonic() - t0 > 3.0:
-        print(f"vistrack: compiled the tracker's kernels in {time.monotonic() - t0:.0f} s "
-              "(first run only; cached from now on)", file=out)

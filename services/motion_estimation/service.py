@@ -30,8 +30,9 @@ import numpy as np
 from ...common.bus import Node
 from ...common.messages import Demand, Estimate, PreFrame, encode_estimate
 from ...common.params import TrackerParams
-from ...common.vision import Preprocessed, Tracker, warm_up
+from ...common.vision import Preprocessed, Tracker
 from ...common.vision.preprocess import DeferredPreprocessed
+from ..kernels import warm_up_kernels
 from ..runtime import (
     ParamsInForce,
     add_service_args,
@@ -112,7 +113,7 @@ class DemandSignal:
 def loop(node: Node, args: argparse.Namespace) -> None:
     state = ParamsInForce.from_args(args)
     state.publish_status(node)
-    warm_up()
+    warm_up_kernels(log.info)  # a first run's compile is logged, a cache load is not
     tracker = Tracker(state.params)
     node.subscribe(node.keys.params, latest=False)
     node.subscribe(node.keys.pre_frame, latest=True)

@@ -16,7 +16,8 @@ from typing import TextIO
 
 from ...common.params import ParamError
 from ...common.sources import SourceError, open_files, parse_size
-from ...common.vision import Estimate, Tracker, timing, warm_up
+from ...common.vision import Estimate, Tracker, timing
+from ..kernels import say_on_stderr, warm_up_kernels
 from ..usage import add_param_flags, params_from_args, print_error
 
 CSV_FIELDS = ["seq", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale", "t_ms", "valid"]
@@ -45,7 +46,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     params = params_from_args(args)
     size = parse_size(args.resize, "--resize") if args.resize else None
     source = open_files(args.frames, size)
-    warm_up()  # numba compile/cache load, so t1 measures the tracker and not the JIT
+    # numba compile (said on stderr) or cache load, so t1 measures the tracker, not the JIT
+    warm_up_kernels(say_on_stderr("track"))
     tracker = Tracker(params)
     estimates: list[Estimate] = []
     writer = None

@@ -46,6 +46,7 @@ from ..auto_tuner.sensitivity import (
     new_seed,
     tune,
 )
+from ..kernels import say_on_stderr, warm_up_kernels
 from ..usage import add_number, add_search_flag, add_tracker_flags, params_from_args
 from .track import offline_main
 
@@ -260,6 +261,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
     base = params_from_args(args)  # the search every timed run uses
     frames, what = read_buffer(args)
     seed = new_seed() if args.seed is None else args.seed
+    warm_up_kernels(say_on_stderr("tune", err))  # a first run compiles: said, not silent
     show = err.isatty() if args.progress is None else args.progress
     progress = ProgressLine(err) if show else None
     start = time.perf_counter()

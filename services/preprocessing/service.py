@@ -37,8 +37,9 @@ from ...common import rmw_zenoh as rmw
 from ...common import ros2types as r2
 from ...common.bus import Node
 from ...common.messages import Demand, Frame, PreFrame
-from ...common.vision import preprocess, warm_up
+from ...common.vision import preprocess
 from ..camera import ros2cam
+from ..kernels import warm_up_kernels
 from ..runtime import (
     ParamsInForce,
     add_service_args,
@@ -90,7 +91,7 @@ def check_args(args: argparse.Namespace) -> None:
 def loop(node: Node, args: argparse.Namespace) -> None:
     state = ParamsInForce.from_args(args)
     state.publish_status(node)
-    warm_up()
+    warm_up_kernels(log.info)  # a first run's compile is logged, a cache load is not
     always = getattr(args, "candidates", "always") == "always"
     wanted = True  # until motion-estimation says otherwise
     node.subscribe(node.keys.params, latest=False)

@@ -173,11 +173,43 @@ def loopback_config(endpoint: str, *, router: bool = False) -> zenoh.Config:
 
 
 def open_session(conf: zenoh.Config) -> zenoh.Session:
-    """``zenoh.open`` with errors (e.g. a listen port in use) raised as :class:`BusError`."""
+    """``zenoh.open`` with errors (e.g. a listen port in use, no router where it should
+    connect) raised as :class:`BusError`."""
     try:
         return zenoh.open(conf)
     except zenoh.ZError as err:
+        if "Unable to connect" in str(err):  # client mode, or exit_on_failure
+            raise BusError(f"cannot connect to {_endpoints(conf)}: nothing answers there (is "
+                           "vistrack up or vistrack router running, on that port?)") from None
         raise BusError(f"cannot open zenoh session: {err}") from None
+
+
+def _endpoints(conf: zenoh.Config) -> str:
+    try:
+        endpoints = json.loads(conf.get_json("connect/endpoints"))
+    except (zenoh.ZError, ValueError):
+        endpoints = None
+    if isinstance(endpoints, dict):  # per-mode endpoints
+        endpoints = [e for v in endpoints.values() for e in (v or [])]
+    return ", ".join(map(str, endpoints)) if endpoints else "the configured endpoints"
+
+
+def check_connected(session: zenoh.Session, conf: zenoh.Config, timeout_s: float = 2.0) -> None:
+    """Wait up to ``timeout_s`` for the session to reach a router or peer at one of its
+    connect endpoints. In peer mode Zenoh opens a session whatever it could reach and goes on
+    retrying in silence: a tool pointed at an absent router would wait forever.
+
+    Raises
+    ------
+    BusError
+        Naming the endpoints, when nothing answered.
+    """
+    deadline = time.monotonic() + timeout_s
+    while not (list(session.info.routers_zid()) or list(session.info.peers_zid())):
+        if time.monotonic() >= deadline:
+            raise BusError(f"cannot connect to {_endpoints(conf)}: nothing answers there (is "
+                           "vistrack up or vistrack router running, on that port?)")
+        time.sleep(0.02)
 
 
 # -- status ------------------------------------------------------------------------------
@@ -194,7 +226,7 @@ class Status:
     received : payloads that arrived on subscribed keys.
     published : payloads published.
     dropped : payloads lost: latest-only payloads overwritten before being consumed, plus
-        gaps in the publishers' ``seq``.
+        gaps in each publisher's ``seq`` (see :class:`SeqGaps`).
     rejected : bad inputs (counted by the service through :meth:`reject`).
     failed : inputs whose handling raised (a fault of ours, counted through :meth:`fail`):
         the input was skipped and the service went on.
@@ -303,12 +335,20 @@ class _Timer:
         self._status.observe_ms((time.perf_counter() - self._t0) * 1e3)
 
 
-class SeqGap:
-    """Counts messages missing from one key's ``seq`` sequence.
+#: A forward jump of ``seq`` larger than this starts a new sequence instead of counting
+#: losses: no link loses a million messages, but a publisher whose ``seq`` is a clock (a
+#: ``vistrack params set``) would otherwise read as 10^15 of them.
+MAX_SEQ_GAP = 1_000_000
+#: Publishers remembered per key (the oldest forgotten beyond): every ``params set`` is one.
+MAX_PUBLISHERS = 64
 
-    Assumes one publisher per key; a ``seq`` that does not increase (publisher restarted, or
-    a second publisher) restarts the count without counting anything. Payloads without a
-    readable ``seq`` are skipped.
+
+class SeqGap:
+    """Counts messages missing from one publisher's ``seq`` sequence.
+
+    A ``seq`` that does not increase (the publisher restarted) or jumps by more than
+    :data:`MAX_SEQ_GAP` restarts the count without counting anything. Payloads without a
+    readable ``seq`` are skipped. :class:`SeqGaps` keeps one per publisher.
     """
 
     def __init__(self) -> None:
@@ -319,7 +359,7 @@ class SeqGap:
         """Record ``seq``; return how many sequence numbers were skipped before it."""
         with self._lock:
             last, self._last = self._last, seq
-        if last is None or seq <= last:
+        if last is None or seq <= last or seq - last > MAX_SEQ_GAP:
             return 0
         return seq - last - 1
 
@@ -327,6 +367,60 @@ class SeqGap:
         """:meth:`observe` the payload's ``seq`` (peeked, not fully decoded); 0 if none."""
         seq = peek_seq(payload)
         return 0 if seq is None else self.observe(seq)
+
+
+class SeqGaps:
+    """:class:`SeqGap` per publisher of each key, so that two publishers on one key (a
+    replayed recording beside a camera, a user's ``params set`` beside the tuner) are never
+    counted as losses.
+
+    A publisher is told apart by its Zenoh source id (``source``: what ZenohNode and the
+    tools attach to every sample they put, see :func:`source_of`); samples without one (an
+    outside publisher) share one sequence per key, as before.
+    """
+
+    def __init__(self) -> None:
+        self._gaps: dict[tuple[str, str | None], SeqGap] = {}
+        self._per_key: collections.Counter[str] = collections.Counter()
+        self._lock = threading.Lock()
+
+    def update(self, key: str, payload: bytes, source: str | None = None) -> int:
+        """:meth:`SeqGap.update` for the publisher ``source`` of ``key``."""
+        with self._lock:
+            gap = self._gaps.get((key, source))
+            if gap is None:
+                if self._per_key[key] >= MAX_PUBLISHERS:  # forget the oldest of this key
+                    oldest = next(k for k in self._gaps if k[0] == key)
+                    del self._gaps[oldest]
+                    self._per_key[key] -= 1
+                gap = self._gaps[(key, source)] = SeqGap()
+                self._per_key[key] += 1
+        return gap.update(payload)
+
+
+def source_of(sample: zenoh.Sample) -> str | None:
+    """The id of the publisher of ``sample`` (its Zenoh source info), None if it has none."""
+    info = sample.source_info
+    return None if info is None else str(info.source_id)
+
+
+class SourcedPublisher:
+    """A ``zenoh.Publisher`` whose puts carry Zenoh source info (its entity id and a sample
+    number), so that receivers count ``seq`` gaps per publisher (:class:`SeqGaps`)."""
+
+    __slots__ = ("publisher", "_id", "_sn")
+
+    def __init__(self, publisher: zenoh.Publisher) -> None:
+        self.publisher = publisher
+        self._id = publisher.id
+        self._sn = 0
+
+    def put(self, payload: bytes) -> None:
+        self._sn = (self._sn + 1) & 0xFFFFFFFF  # Zenoh's source sample number is 32-bit
+        self.publisher.put(payload, source_info=zenoh.SourceInfo(self._id, self._sn))
+
+    def undeclare(self) -> None:
+        self.publisher.undeclare()
 
 
 # -- the inbox: the delivery semantics both nodes share ------------------------------------
@@ -447,6 +541,7 @@ class Node(abc.ABC):
         # when the loop last came back from waiting (recv, sleep); None while it waits and
         # before it first does: see busy_s
         self._busy_since: float | None = None
+        self.alive = False  # the liveliness token is declared (declare_alive)
 
     # -- the service-facing API ---------------------------------------------------------------
     def subscribe(self, key: str, *, latest: bool) -> None:
@@ -465,6 +560,16 @@ class Node(abc.ABC):
             return
         self._declare(key, latest, self._arrival(latest))
         self._subscriptions[key] = latest
+
+    def declare_alive(self) -> None:
+        """Declare the liveliness token ``vistrack/<robot>/alive/<service>`` (if not yet):
+        the service is ready, warmed up and subscribed to its inputs. Launchers wait for it
+        before they start the services upstream; idempotent."""
+        if self._closed:
+            raise BusError(f"node {self.service!r} is closed")
+        if not self.alive:
+            self._declare_token()
+            self.alive = True
 
     def recv(self, timeout: float) -> tuple[str, bytes] | None:
         """The next ``(key, payload)`` from any subscribed key, or None after ``timeout`` s
@@ -550,8 +655,10 @@ class Node(abc.ABC):
 
     # -- the transport seam -------------------------------------------------------------------
     @abc.abstractmethod
-    def _declare(self, key: str, latest: bool, deliver: Callable[[str, bytes], None]) -> None:
-        """Start delivering payloads of ``key`` to ``deliver(actual_key, payload)``."""
+    def _declare(self, key: str, latest: bool,
+                 deliver: Callable[[str, bytes, str | None], None]) -> None:
+        """Start delivering payloads of ``key`` to ``deliver(actual_key, payload, source)``
+        (``source``: the publisher's id, None if unknown)."""
 
     @abc.abstractmethod
     def _send(self, key: str, payload: bytes, reliable: bool) -> None:
@@ -571,17 +678,21 @@ class Node(abc.ABC):
         links to stop changing."""
 
     @abc.abstractmethod
+    def _declare_token(self) -> None:
+        """Declare the liveliness token."""
+
+    @abc.abstractmethod
     def _release(self) -> None:
         """Release transport resources (called once, by :meth:`close`)."""
 
     # -- arrival path shared by both transports -------------------------------------------
-    def _arrival(self, latest: bool) -> Callable[[str, bytes], None]:
-        gaps: dict[str, SeqGap] = collections.defaultdict(SeqGap)
+    def _arrival(self, latest: bool) -> Callable[[str, bytes, str | None], None]:
+        gaps = SeqGaps()
         block = self._BLOCK_WHEN_FULL
 
-        def deliver(key: str, payload: bytes) -> None:
+        def deliver(key: str, payload: bytes, source: str | None = None) -> None:
             self.status.count_received()
-            missing = gaps[key].update(payload)
+            missing = gaps.update(key, payload, source)
             if missing:
                 self.status.count_dropped(missing)
             if self._inbox.put(key, payload, latest=latest, block=block):
@@ -600,9 +711,10 @@ class Published(NamedTuple):
 class MemoryNode(Node):
     """:class:`Node` in memory, for testing a service loop in-process.
 
-    ``feed(key, payload)`` plays a payload arriving from the network: it is delivered to every
-    matching subscription with exactly :class:`ZenohNode`'s semantics (counters, latest-only
-    overwrite, seq gaps). Published payloads are appended to ``published``.
+    ``feed(key, payload, source=None)`` plays a payload arriving from the network (from the
+    publisher ``source``): it is delivered to every matching subscription with exactly
+    :class:`ZenohNode`'s semantics (counters, latest-only overwrite, seq gaps per publisher).
+    Published payloads are appended to ``published``.
     """
 
     _BLOCK_WHEN_FULL: ClassVar[bool] = False
@@ -612,11 +724,13 @@ class MemoryNode(Node):
         super().__init__(service, robot, capacity=capacity)
         self._waiting_after = 0  # inbox.taken when the loop last began to wait (wait_idle)
         self.published: list[Published] = []
-        self._deliver: dict[str, tuple[zenoh.KeyExpr, Callable[[str, bytes], None]]] = {}
+        self._deliver: dict[str, tuple[zenoh.KeyExpr,
+                                       Callable[[str, bytes, str | None], None]]] = {}
         self._published_lock = threading.Lock()
 
-    def feed(self, key: str, payload: bytes) -> bool:
-        """Deliver ``payload`` as if published on ``key``; False if no subscription matches.
+    def feed(self, key: str, payload: bytes, source: str | None = None) -> bool:
+        """Deliver ``payload`` as if published on ``key`` by the publisher ``source`` (None:
+        one without a source id); False if no subscription matches.
 
         Raises
         ------
@@ -626,7 +740,7 @@ class MemoryNode(Node):
         matched = False
         for expr, deliver in list(self._deliver.values()):
             if expr.intersects(key):
-                deliver(key, bytes(payload))
+                deliver(key, bytes(payload), source)
                 matched = True
         return matched
 
@@ -655,11 +769,15 @@ class MemoryNode(Node):
             time.sleep(0.0005)
         return True
 
-    def _declare(self, key: str, latest: bool, deliver: Callable[[str, bytes], None]) -> None:
+    def _declare(self, key: str, latest: bool,
+                 deliver: Callable[[str, bytes, str | None], None]) -> None:
         self._deliver[key] = (zenoh.KeyExpr(key), deliver)
 
     def _advertise(self, key: str, reliable: bool) -> None:
         pass  # in memory there is nothing to declare
+
+    def _declare_token(self) -> None:
+        pass  # nor a token: ``alive`` tells a test the service said it was ready
 
     def _has_subscribers(self, key: str, reliable: bool) -> bool:
         return True
@@ -678,10 +796,12 @@ class MemoryNode(Node):
 class ZenohNode(Node):
     """:class:`Node` over a Zenoh session.
 
-    Opening declares the liveliness token ``vistrack/<robot>/alive/<service>`` and a
-    queryable on ``vistrack/<robot>/<service>/status`` that replies a msgpack map ``{v: 1,
-    service, robot, pid, uptime_s, busy_s, **status.as_dict()}``. Always use it as a context manager
-    (or call :meth:`close`): a session with callback subscribers left open hangs the
+    Opening declares a queryable on ``vistrack/<robot>/<service>/status`` that replies a
+    msgpack map ``{v: 1, service, robot, pid, uptime_s, busy_s, **status.as_dict()}``, and
+    the liveliness token ``vistrack/<robot>/alive/<service>``; with ``alive_at_open=False``
+    the token waits for :meth:`declare_alive` (a service declares it once it is ready, so
+    that "alive" means "takes input", which launchers wait for). Always use it as a context
+    manager (or call :meth:`close`): a session with callback subscribers left open hangs the
     interpreter at exit.
 
     Subscriptions use Zenoh callbacks that only store the payload in the node's inbox (see
@@ -699,19 +819,24 @@ class ZenohNode(Node):
     """
 
     def __init__(self, service: str, conf: zenoh.Config, robot: str = "robot", *,
-                 capacity: int = DEFAULT_CAPACITY) -> None:
+                 capacity: int = DEFAULT_CAPACITY, alive_at_open: bool = True) -> None:
         super().__init__(service, robot, capacity=capacity)
-        self._publishers: dict[tuple[str, bool], zenoh.Publisher] = {}
+        self._publishers: dict[tuple[str, bool], SourcedPublisher] = {}
         self._publishers_lock = threading.Lock()
         self._subscribers: list[zenoh.Subscriber] = []
+        self._token: zenoh.LivelinessToken | None = None
         self.session = open_session(conf)
         try:
-            self._token = self.session.liveliness().declare_token(self.keys.alive(service))
             self._queryable = self.session.declare_queryable(self.keys.status(service),
                                                              self._on_status_query)
+            if alive_at_open:
+                self.declare_alive()
         except BaseException:
             self.session.close()
             raise
+
+    def _declare_token(self) -> None:
+        self._token = self.session.liveliness().declare_token(self.keys.alive(self.service))
 
     def status_reply(self) -> dict[str, Any]:
         """The map the status queryable replies."""
@@ -736,7 +861,7 @@ class ZenohNode(Node):
 
     def _has_subscribers(self, key: str, reliable: bool) -> bool:
         # the 1.x stub says bool, but the binding returns an (always truthy) MatchingStatus
-        status = self._publisher(key, reliable).matching_status
+        status = self._publisher(key, reliable).publisher.matching_status
         return bool(getattr(status, "matching", status))
 
     def _on_status_query(self, query: zenoh.Query) -> None:
@@ -745,19 +870,21 @@ class ZenohNode(Node):
         except zenoh.ZError as err:  # the session is closing or the querier went away
             log.debug("status reply failed: %s", err)
 
-    def _declare(self, key: str, latest: bool, deliver: Callable[[str, bytes], None]) -> None:
+    def _declare(self, key: str, latest: bool,
+                 deliver: Callable[[str, bytes, str | None], None]) -> None:
         def on_sample(sample: zenoh.Sample) -> None:
             if sample.kind == zenoh.SampleKind.PUT:
-                deliver(str(sample.key_expr), sample.payload.to_bytes())
+                deliver(str(sample.key_expr), sample.payload.to_bytes(), source_of(sample))
         self._subscribers.append(self.session.declare_subscriber(key, on_sample))
 
-    def _publisher(self, key: str, reliable: bool) -> zenoh.Publisher:
+    def _publisher(self, key: str, reliable: bool) -> SourcedPublisher:
         with self._publishers_lock:
             pub = self._publishers.get((key, reliable))
             if pub is None:
                 congestion = (zenoh.CongestionControl.BLOCK if reliable
                               else zenoh.CongestionControl.DROP)
-                pub = self.session.declare_publisher(key, congestion_control=congestion)
+                pub = SourcedPublisher(self.session.declare_publisher(
+                    key, congestion_control=congestion))
                 self._publishers[(key, reliable)] = pub
             return pub
 
@@ -770,7 +897,8 @@ class ZenohNode(Node):
     def _release(self) -> None:
         # Undeclare in reverse order of use, then close: subscribers first so no callback
         # runs against a closing session; every step is attempted even if one fails.
-        entities: list[Any] = [*self._subscribers, self._queryable, self._token,
+        entities: list[Any] = [*self._subscribers, self._queryable,
+                               *([self._token] if self._token is not None else []),
                                *self._publishers.values()]
         for entity in entities:
             try:

@@ -30,6 +30,7 @@ from ..common.bus import (
     Node,
     ZenohNode,
     add_zenoh_args,
+    check_connected,
     config_from_args,
     install_signal_handlers,
 )
@@ -99,10 +100,19 @@ def serve(service: str, args: argparse.Namespace,
         print_error(command, e)
         end_process(2)
     try:
-        node = ZenohNode(service, conf, args.robot)
+        # the liveliness token once ready (see ready()): a launcher that waits for it then
+        # knows the service takes input, however long its warm-up took
+        node = ZenohNode(service, conf, args.robot, alive_at_open=False)
     except BusError as e:  # the session did not open: a port in use, an absent interface
         print_error(command, e)
         end_process(1)
+    if args.connect:
+        try:  # nothing at -e ENDPOINT: say so and exit, as the tools do, not wait in silence
+            check_connected(node.session, conf)
+        except BusError as e:
+            close_within(node, CLOSE_S, logger)
+            print_error(command, e)
+            end_process(1)
     restore = install_signal_handlers(node.stop)
     returned = threading.Event()
     _watch_stop_requests(node, returned, logger)
@@ -284,8 +294,9 @@ def decode_or_reject(cls: type[M], payload: bytes, node: Node, logger: logging.L
 
 
 def ready(node: Node) -> None:
-    """Log the line launchers and tests wait for: call it once the loop has warmed up and
-    subscribed to its inputs, so nothing published after the line is missed.
+    """Declare the service's liveliness token and log the line launchers and tests wait for:
+    call it once the loop has warmed up and subscribed to its inputs, so nothing published
+    after the token or the line is missed.
 
     Everything allocated so far (numba's and llvmlite's compiler objects among it: hundreds of
     thousands) is frozen out of the garbage collector: a full collection walked all of it,
@@ -298,6 +309,7 @@ def ready(node: Node) -> None:
     # every library the warm-up loaded (numba loads scipy's BLAS) is known by now
     logger.info("numeric thread pools: %s; opencv %d", threads.describe(threads.limit_loaded()),
                 cv2.getNumThreads())
+    node.declare_alive()
     logger.info("ready (robot %s, liveliness token %s)", node.robot,
                 node.keys.alive(node.service))
 

@@ -228,6 +228,11 @@ _SCHEMA = re.compile(r'JSON error: Message \{ msg: "(.*)", location: (?:Some\(Lo
                      r'line: (\d+), column: (\d+) \}\)|None) \}')
 
 
+def plural(n: int, noun: str) -> str:
+    """``n`` and the noun, singular for one: ``plural(1, "key")`` is "1 key"."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 def one_line(message: object) -> str:
     """``message`` on one line: a parser's multi-line report becomes ``line L, column C:
     problem``; other line breaks and runs of spaces become one space; Rust source locations

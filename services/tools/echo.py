@@ -20,10 +20,11 @@ import zenoh
 
 from ...common.keys import Keys
 from ...common.messages import MESSAGE_TYPES, MessageError, decode_any, to_jsonable, unpack
-from ..usage import add_number
+from ..usage import add_number, plural
 from .shared import (
     Inbox,
     ToolError,
+    WaitingNotice,
     add_tool_args,
     print_json,
     resolve_key,
@@ -44,7 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                help="exit after N samples, %(allowed)s")
     add_number(parser, "--timeout", lo=0, hi=1e6, lo_open=True, unit="s", default=None,
                metavar="S", help="exit after S seconds, %(allowed)s; with --count, exit 1 if "
-                                 "fewer arrived")
+                                 "fewer arrived. With -e, also how long to wait for the "
+                                 "router (default 5 s)")
     parser.add_argument("--raw", action="store_true",
                         help="print the msgpack map as received, without validation")
     add_tool_args(parser)
@@ -75,7 +77,8 @@ def _suffix_type(key: str) -> bool:
 
 
 def main(args: argparse.Namespace) -> int:
-    return run("echo", args, lambda session, keys: echo(session, keys, args))
+    return run("echo", args, lambda session, keys: echo(session, keys, args),
+               connect_timeout=args.timeout)
 
 
 def echo(session: zenoh.Session, keys: Keys, args: argparse.Namespace) -> int:
@@ -83,6 +86,7 @@ def echo(session: zenoh.Session, keys: Keys, args: argparse.Namespace) -> int:
     inbox = Inbox()
     deadline = None if args.timeout is None else time.monotonic() + args.timeout
     printed = 0
+    notice = WaitingNotice("echo", key, args)
     with stop_on_signals() as stop:
         sub = session.declare_subscriber(key, inbox)
         try:
@@ -90,13 +94,16 @@ def echo(session: zenoh.Session, keys: Keys, args: argparse.Namespace) -> int:
                 if deadline is not None and time.monotonic() >= deadline:
                     break
                 item = inbox.get(timeout=0.1)
-                if item is not None:
-                    print_json(describe(item.key, item.payload, raw=args.raw))
-                    printed += 1
+                if item is None:
+                    notice.check()
+                    continue
+                notice.received()
+                print_json(describe(item.key, item.payload, raw=args.raw))
+                printed += 1
         finally:
             sub.undeclare()
     if inbox.overflow:
-        print(f"vistrack echo: {inbox.overflow} samples dropped (output too slow)",
+        print(f"vistrack echo: {plural(inbox.overflow, 'sample')} dropped (output too slow)",
               file=sys.stderr)
     if args.count is not None and printed < args.count and not stop.is_set():
         raise ToolError(f"only {printed} of {args.count} samples on {key} within "

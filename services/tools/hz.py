@@ -2,8 +2,9 @@
 
 For every key matching KEY that received samples in the last second, prints the rate (Hz) and
 the mean, min, max and standard deviation of the inter-arrival period over the last
-``--window`` samples, the number of samples received, and the gaps: messages missing from the
-publisher's ``seq`` sequence (lost in transit or dropped by a latest-only publisher). Arrival
+``--window`` samples, the number of samples received, and the gaps: messages missing from each
+publisher's ``seq`` sequence (lost in transit or dropped by a latest-only publisher; two
+publishers on one key, told apart by their Zenoh source id, are not gaps). Arrival
 times are this process's, so the jitter includes the network's.
 """
 
@@ -17,10 +18,18 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from ...common.bus import SeqGap
+from ...common.bus import SeqGaps
 from ...common.keys import Keys
 from ..usage import add_number
-from .shared import Inbox, add_tool_args, print_json, resolve_key, run, stop_on_signals
+from .shared import (
+    Inbox,
+    WaitingNotice,
+    add_tool_args,
+    print_json,
+    resolve_key,
+    run,
+    stop_on_signals,
+)
 
 REPORT_S = 1.0
 
@@ -49,15 +58,16 @@ class Rate:
 
     def __init__(self, window: int) -> None:
         self._arrivals: collections.deque[int] = collections.deque(maxlen=window)
-        self._seq = SeqGap()
+        self._seq = SeqGaps()  # per publisher: two on one key are not gaps
         self.samples = 0
         self.gaps = 0
         self.fresh = 0  # samples since the last report
 
-    def add(self, mono_ns: int, payload: bytes) -> None:
-        """Record one arrival (monotonic ns) and its payload's ``seq``."""
+    def add(self, mono_ns: int, payload: bytes, source: str | None = None) -> None:
+        """Record one arrival (monotonic ns) and its payload's ``seq`` (from the publisher
+        ``source``)."""
         self._arrivals.append(mono_ns)
-        self.gaps += self._seq.update(payload)
+        self.gaps += self._seq.update("", payload, source)
         self.samples += 1
         self.fresh += 1
 
@@ -97,6 +107,7 @@ def hz(session: zenoh.Session, keys: Keys, args: argparse.Namespace) -> int:
     rates: dict[str, Rate] = {}
     start = time.monotonic()
     next_report = start + REPORT_S
+    notice = WaitingNotice("hz", key, args)
     with stop_on_signals() as stop:
         sub = session.declare_subscriber(key, inbox)
         try:
@@ -109,8 +120,12 @@ def hz(session: zenoh.Session, keys: Keys, args: argparse.Namespace) -> int:
                     next_report += REPORT_S
                     continue
                 item = inbox.get(timeout=min(0.1, next_report - now))
-                if item is not None:
-                    rates.setdefault(item.key, Rate(args.window)).add(item.mono_ns, item.payload)
+                if item is None:
+                    notice.check()
+                else:
+                    notice.received()
+                    rates.setdefault(item.key, Rate(args.window)).add(item.mono_ns, item.payload,
+                                                                     item.source)
         finally:
             sub.undeclare()
     return 0

@@ -25,6 +25,7 @@ from typing import Any
 
 import zenoh
 
+from ...common.bus import SourcedPublisher
 from ...common.keys import Keys
 from ...common.messages import MessageError, Params, next_params_id, unpack
 from ...common.params import BOUNDS, FACTORS, ParamError, TrackerParams
@@ -165,11 +166,13 @@ def set_params(session: zenoh.Session, keys: Keys, changes: dict[str, Any],
         new = base.replace(**changes)
     except ParamError as e:
         raise ToolError(str(e), code=2) from None
-    publisher = session.declare_publisher(keys.params,
-                                          congestion_control=zenoh.CongestionControl.BLOCK,
-                                          reliability=zenoh.Reliability.RELIABLE)
+    # source info on every put: the services count seq gaps per publisher, so this one's
+    # seq is never compared with the tuner's
+    publisher = SourcedPublisher(session.declare_publisher(
+        keys.params, congestion_control=zenoh.CongestionControl.BLOCK,
+        reliability=zenoh.Reliability.RELIABLE))
     try:
-        _wait_for_subscriber(publisher, keys.params, deadline)
+        _wait_for_subscriber(publisher.publisher, keys.params, deadline)
         confirmed = _publish_until_confirmed(session, keys, publisher, new, params_id, deadline)
     finally:
         publisher.undeclare()
@@ -190,14 +193,14 @@ def _wait_for_subscriber(publisher: zenoh.Publisher, key: str, deadline: float) 
         time.sleep(0.02)
 
 
-def _publish_until_confirmed(session: zenoh.Session, keys: Keys, publisher: zenoh.Publisher,
+def _publish_until_confirmed(session: zenoh.Session, keys: Keys, publisher: SourcedPublisher,
                              new: TrackerParams, params_id: int, deadline: float
                              ) -> dict[str, Any]:
     """Publish the set (again every REPEAT_S) until CONFIRMING_SERVICE runs with
     ``params_id`` and the values set; return its params status map."""
-    # seq: wall-clock microseconds, so it keeps increasing across invocations and stays above
-    # the tuner's small seq on the same key (a jump down is a publisher restart for the
-    # receivers' gap counters, a jump up would count phantom drops)
+    # seq: wall-clock microseconds, so it keeps increasing across invocations (a publisher
+    # each). Receivers count gaps per publisher (the source info of its puts); one that
+    # cannot tell publishers apart takes a jump this large for a new sequence, not for losses
     seq = time.time_ns() // 1000
     next_put = 0.0
     seen: dict[str, Any] = {}

@@ -34,7 +34,7 @@ import msgpack
 import zenoh
 
 from ...common.keys import Keys, key_suffix
-from ..usage import add_number
+from ..usage import add_number, plural
 from .mcapio import McapRecording, McapWriter, is_mcap
 from .shared import (
     Inbox,
@@ -345,10 +345,11 @@ def record(session: zenoh.Session, writer: Writer, exprs: list[str],
             write(inbox.take(most=inbox.capacity))  # what had arrived is written too
             writer.flush()
     if inbox.overflow:
-        print(f"vistrack record: warning: {inbox.overflow} samples lost (disk too slow)",
-              file=sys.stderr)
+        print(f"vistrack record: warning: {plural(inbox.overflow, 'sample')} lost (disk too "
+              "slow)", file=sys.stderr)
     for line in not_written(writer):
         warn("record", line)
-    print(f"vistrack record: {writer.count} samples of {len(writer.keys_seen)} keys in "
-          f"{time.monotonic() - start:.2f} s written to {writer.path}", file=sys.stderr)
+    print(f"vistrack record: {plural(writer.count, 'sample')} of "
+          f"{plural(len(writer.keys_seen), 'key')} in {time.monotonic() - start:.2f} s written "
+          f"to {writer.path}", file=sys.stderr)
     return 0

@@ -13,7 +13,8 @@ the services publish them, latest-only (congestion control DROP: a slow consumer
 newest); parameters, reports and commands reliably (BLOCK). So a recorded ``camera/frame``
 stream drives the pipeline as a camera would. Before the first sample the replay waits up to
 ``--wait`` s for a subscriber of its key, since what is published before the subscription is
-known is lost.
+known is lost, and for the robot's services that are still starting (see ``vistrack status``)
+to be ready, as ``vistrack up`` starts its camera only once the other services are.
 
 ``--in-flight N`` also holds each ``camera/frame`` until motion-estimation has published the
 estimate of the frame N before it (or ``--ack-timeout`` s have passed), as the camera does with
@@ -40,15 +41,17 @@ from collections.abc import Iterable
 import msgpack
 import zenoh
 
+from ...common.bus import SourcedPublisher
 from ...common.keys import PREFIX, Keys, key_suffix, validate_robot_id
 from ...common.messages import peek_int
-from ..usage import add_number
+from ..usage import add_number, plural
 from .mcapio import McapRecording, key_of
 from .record import Record, RecordError, Recording, open_recording
 from .shared import (
     ToolError,
     add_tool_args,
     error,
+    gather,
     has_subscriber,
     resolve_key,
     run,
@@ -84,8 +87,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--restamp", action="store_true",
                         help="set each message's stamp_ns to its publication time")
     add_number(parser, "--wait", lo=0, hi=3600, unit="s", default=5.0, metavar="S",
-               help="longest wait for a subscriber before the first sample, %(allowed)s; 0: "
-                    "do not wait (default 5 s)")
+               help="longest wait for a subscriber before the first sample (with -e, for "
+                    "the router too), %(allowed)s; 0: do not wait (default 5 s)")
     add_number(parser, "--in-flight", lo=1, hi=16, integer=True, default=None, metavar="N",
                help="hold frame n until motion-estimation has published frame n-N, "
                     "%(allowed)s (default: do not wait for the pipeline)")
@@ -128,7 +131,8 @@ def main(args: argparse.Namespace) -> int:
         error("replay", e)
         return e.code
     return run("replay", args,
-               lambda session, keys: replay(session, keys, recording, selected, args))
+               lambda session, keys: replay(session, keys, recording, selected, args),
+               connect_timeout=args.wait)
 
 
 def _key_filter(keys: Keys, key: str) -> zenoh.KeyExpr:
@@ -219,30 +223,48 @@ class _Player:
         self.selected = selected
         self.published = 0
         self.acks = _Acks(session) if args.in_flight else None
-        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._publishers: dict[str, SourcedPublisher] = {}
 
-    def publisher(self, key: str) -> zenoh.Publisher:
+    def publisher(self, key: str) -> SourcedPublisher:
+        """The publisher of ``key``: its puts carry source info, so receivers count this
+        replay's ``seq`` apart from any live publisher's."""
         pub = self._publishers.get(key)
         if pub is None:
             latest = key_suffix(key) in LATEST_ONLY
             try:
-                pub = self.session.declare_publisher(
+                pub = SourcedPublisher(self.session.declare_publisher(
                     key, congestion_control=(zenoh.CongestionControl.DROP if latest
-                                             else zenoh.CongestionControl.BLOCK))
+                                             else zenoh.CongestionControl.BLOCK)))
             except zenoh.ZError as e:
                 raise ToolError(f"cannot publish on {key!r}: {e}") from None
             self._publishers[key] = pub
         return pub
 
     def wait_for_subscriber(self, key: str) -> None:
+        """Wait (up to ``--wait`` s) for a subscriber of ``key``, then for the services of
+        its robot that are still starting (answering their status, no liveliness token yet:
+        loading their kernels) to be ready, as ``vistrack up`` holds its camera back until
+        then: frames sent to a pipeline half started are lost."""
         pub = self.publisher(key)
         deadline = time.monotonic() + self.args.wait
-        while not has_subscriber(pub):
+        while not has_subscriber(pub.publisher):
             if time.monotonic() >= deadline:
                 warn("replay", f"no subscriber of {key} after {self.args.wait:g} s; "
                                "replaying anyway")
                 return
             if self.stop.wait(0.02):
+                return
+        parts = key.split("/", 2)
+        if len(parts) < 3 or parts[0] != PREFIX:
+            return  # not a vistrack key: no services to wait for
+        keys = Keys(parts[1])
+        while starting := [s.service for s in gather(self.session, keys, timeout=0.5)
+                           if s.state == "starting"]:
+            if time.monotonic() >= deadline:
+                warn("replay", f"{', '.join(starting)} still starting after "
+                               f"{self.args.wait:g} s; replaying anyway")
+                return
+            if self.stop.wait(0.1):
                 return
 
     def play(self, records: Iterable[Record]) -> bool:
@@ -330,7 +352,7 @@ def replay(session: zenoh.Session, keys: Keys, recording: Recording | McapRecord
     acks = player.acks
     waited = f" ({acks.timeouts} estimates not seen within --ack-timeout)" \
         if acks is not None and acks.timeouts else ""
-    print(f"vistrack replay: {player.published} samples from {recording.path} in "
+    print(f"vistrack replay: {plural(player.published, 'sample')} from {recording.path} in "
           f"{time.monotonic() - start:.2f} s{waited}", file=sys.stderr)
     if player.published == 0 and selected:
         raise ToolError(f"{recording.path}: no recorded sample matches "

@@ -29,13 +29,20 @@ from ...common.bus import (
     BusError,
     add_zenoh_args,
     alive_services,
+    check_connected,
     config_from_args,
     install_signal_handlers,
     open_session,
     query_status,
+    source_of,
 )
 from ...common.keys import Keys
 from ..usage import print_error
+
+#: How long a tool given ``-e ENDPOINT`` tries to connect before it says nothing is there.
+CONNECT_TIMEOUT_S = 5.0
+#: How long ``echo`` and ``hz`` wait for a first sample before saying what they wait for.
+WAITING_NOTICE_S = 2.0
 
 
 class ToolError(Exception):
@@ -77,11 +84,15 @@ def resolve_key(keys: Keys, key: str) -> str:
 
 
 def run(tool: str, args: argparse.Namespace,
-        body: Callable[[zenoh.Session, Keys], int]) -> int:
+        body: Callable[[zenoh.Session, Keys], int], *,
+        connect_timeout: float | None = None) -> int:
     """Open the Zenoh session of ``args``, run ``body(session, keys)``, close the session.
 
     Every expected failure becomes one line on stderr and an exit code (2 for bad flags, 1 for
-    a session that does not open, as the services do); a closed stdout
+    a session that does not open or, given ``-e``, reaches nothing there within
+    ``connect_timeout`` s, default ``CONNECT_TIMEOUT_S``: a tool whose own flag says how long
+    it may wait, such as ``echo --timeout``, waits that long for the router too, so a script
+    can start it beside a ``vistrack up &`` that is still starting); a closed stdout
     (``vistrack echo ... | head``) ends the tool quietly with 0.
     """
     try:
@@ -92,6 +103,8 @@ def run(tool: str, args: argparse.Namespace,
         return 2
     try:
         with open_session(conf) as session:
+            if args.connect:  # an absent router: an error after a while, not silence
+                check_connected(session, conf, max(CONNECT_TIMEOUT_S, connect_timeout or 0.0))
             return int(body(session, keys) or 0)
     except ToolError as e:
         error(tool, e)
@@ -174,6 +187,7 @@ class Received(NamedTuple):
     payload: bytes
     t_ns: int  # arrival, wall clock, ns since the Unix epoch
     mono_ns: int  # arrival, monotonic clock, ns (for rates and replay timing)
+    source: str | None = None  # the publisher's Zenoh source id, if it sent one
 
 
 class Inbox:
@@ -196,7 +210,7 @@ class Inbox:
         if sample.kind != zenoh.SampleKind.PUT:
             return  # the project never deletes; a DELETE carries no message
         item = Received(str(sample.key_expr), sample.payload.to_bytes(), time.time_ns(),
-                        time.monotonic_ns())
+                        time.monotonic_ns(), source_of(sample))
         try:
             self._queue.put_nowait(item)
         except queue.Full:
@@ -221,6 +235,39 @@ class Inbox:
         return items
 
 
+def where(args: argparse.Namespace) -> str:
+    """Where a tool looks for publishers, for its messages: the ``-e`` endpoints, the
+    config file, or the local network."""
+    if args.connect:
+        return ", ".join(args.connect)
+    if args.config:
+        return f"the endpoints of {args.config}"
+    if args.listen:
+        return f"{', '.join(args.listen)} (listening)"
+    return "the local network (multicast scouting; give -e ENDPOINT for a router)"
+
+
+class WaitingNotice:
+    """Says once on stderr, ``WAITING_NOTICE_S`` after the start with nothing received, what
+    a streaming tool is waiting for: a tool that only waits looks hung otherwise.
+
+    Call :meth:`check` in the receive loop, :meth:`received` on a sample.
+    """
+
+    def __init__(self, tool: str, key: str, args: argparse.Namespace) -> None:
+        self._text = (f"vistrack {tool}: waiting for a publisher on {key} at {where(args)} "
+                      f"(nothing received in {WAITING_NOTICE_S:g} s)")
+        self._due: float | None = time.monotonic() + WAITING_NOTICE_S
+
+    def received(self) -> None:
+        self._due = None
+
+    def check(self) -> None:
+        if self._due is not None and time.monotonic() >= self._due:
+            self._due = None
+            print(self._text, file=sys.stderr, flush=True)
+
+
 # -- services and their status ----------------------------------------------------------------
 
 @dataclass
@@ -240,10 +287,11 @@ class ServiceState:
 
     @property
     def state(self) -> str:
-        """``ok``, ``no reply`` (alive, not answering: busy or stuck) or ``no token``."""
+        """``ok``, ``no reply`` (alive, not answering: busy or stuck) or ``starting``
+        (answering, no token yet: services declare it once they are ready)."""
         if self.status is None:
             return "no reply"
-        return "ok" if self.alive else "no token"
+        return "ok" if self.alive else "starting"
 
 
 def gather(session: zenoh.Session, keys: Keys, timeout: float = 1.0) -> list[ServiceState]:

@@ -1,18 +1,21 @@
 """``vistrack status``: every live service of the robot and its counters.
 
 Lists the services whose liveliness token is present or that answer their status queryable
-(``vistrack/<robot>/<service>/status``), with: state (``ok``; ``no reply`` when the service is
-alive but does not answer, e.g. stuck in a long computation), pid, uptime, received,
-published, dropped, rejected (bad inputs), failed (inputs whose handling failed: skipped),
-busy (s the loop has been working on its current input), p50/p99 processing time, the
-params_id in force, service-specific extras, and the last error. ``--json`` prints one JSON
-object per service: ``{"service", "state", "alive", "answered", **status reply}``.
+(``vistrack/<robot>/<service>/status``), with: state (``ok``; ``starting`` when the service
+answers but has not declared its token yet, i.e. is still warming up; ``no reply`` when the
+service is alive but does not answer, e.g. stuck in a long computation), pid, uptime,
+received, published, dropped, rejected (bad inputs), failed (inputs whose handling failed:
+skipped), busy (s the loop has been working on its current input), p50/p99 processing time,
+the params_id in force, service-specific extras, and the last error. ``--json`` prints one
+JSON document, a list with one object per service: ``[{"service", "state", "alive",
+"answered", **status reply}, ...]``. Exit code 1 when no service answered (``[]`` with
+``--json``).
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
+import json
 from typing import Any
 
 import zenoh
@@ -20,7 +23,7 @@ import zenoh
 from ...common.keys import Keys
 from ...common.messages import to_jsonable
 from ..usage import add_number
-from .shared import ServiceState, add_tool_args, format_table, gather, print_json, run
+from .shared import ServiceState, ToolError, add_tool_args, format_table, gather, run, where
 
 HEADERS = ("SERVICE", "STATE", "PID", "UP_S", "RECEIVED", "PUBLISHED", "DROPPED", "REJECTED",
            "FAILED", "BUSY_S", "P50_MS", "P99_MS", "PARAMS", "EXTRA", "LAST_ERROR")
@@ -28,7 +31,8 @@ _MAX_ERROR = 80  # characters of last_error in the table (--json has it all)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", action="store_true", help="one JSON object per service")
+    parser.add_argument("--json", action="store_true",
+                        help="one JSON document: a list of one object per service")
     add_number(parser, "--timeout", lo=0, hi=3600, lo_open=True, unit="s", default=1.0,
                metavar="S", help="how long to wait for the services' answers, %(allowed)s "
                                  "(default 1 s)")
@@ -76,12 +80,11 @@ def main(args: argparse.Namespace) -> int:
 
 def status(session: zenoh.Session, keys: Keys, args: argparse.Namespace) -> int:
     states = gather(session, keys, timeout=args.timeout)
+    if args.json:  # one document, so that json.load() of the output works
+        print(json.dumps([as_json(state) for state in states], indent=2, allow_nan=False),
+              flush=True)
     if not states:
-        print(f"vistrack status: no live service for robot {keys.robot!r}", file=sys.stderr)
-        return 0
-    if args.json:
-        for state in states:
-            print_json(as_json(state))
-    else:
+        raise ToolError(f"no live service for robot {keys.robot!r} at {where(args)}")
+    if not args.json:
         print(format_table(HEADERS, [table_row(s) for s in states]), flush=True)
     return 0

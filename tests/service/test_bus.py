@@ -23,10 +23,13 @@ import pytest
 import zenoh
 
 from vistrack.common.bus import (
+    MAX_PUBLISHERS,
+    MAX_SEQ_GAP,
     BusError,
     MemoryNode,
     Node,
     SeqGap,
+    SeqGaps,
     Status,
     ZenohNode,
     add_zenoh_args,
@@ -309,6 +312,64 @@ def test_robots_do_not_see_each_other(free_port):
         assert alive_services(r1.session, r1.keys) == ["camera"]
 
 
+def test_token_only_once_declared_alive(free_port):
+    # a service declares its token when it is ready, not when its session opens: a launcher
+    # that waits for the token then knows the service takes input
+    endpoint = f"tcp/127.0.0.1:{free_port}"
+    listen = config_from_args(parse(["-l", endpoint, "--no-multicast-scouting"]))
+    connect = config_from_args(parse(["-e", endpoint, "--no-multicast-scouting"]))
+    with ZenohNode("auto_tuner", listen) as watcher, \
+            ZenohNode("camera", connect, alive_at_open=False) as camera:
+        wait_for(lambda: [s["service"] for s in query_status(watcher.session, watcher.keys)]
+                 == ["auto_tuner", "camera"], what="the camera's status queryable")
+        assert alive_services(watcher.session, watcher.keys) == ["auto_tuner"]
+        assert not camera.alive
+        camera.declare_alive()
+        camera.declare_alive()  # idempotent
+        wait_for(lambda: alive_services(watcher.session, watcher.keys)
+                 == ["auto_tuner", "camera"], what="the camera's token")
+        assert camera.alive
+
+
+def test_two_publishers_on_one_key_are_not_drops(free_port):
+    # a replay beside a live camera, a user's params set beside the tuner: each publisher has
+    # its own seq, told apart by the Zenoh source info of its puts
+    endpoint = f"tcp/127.0.0.1:{free_port}"
+    listen = config_from_args(parse(["-l", endpoint, "--no-multicast-scouting"]))
+    connect = config_from_args(parse(["-e", endpoint, "--no-multicast-scouting"]))
+    with ZenohNode("preprocessing", listen) as sub, ZenohNode("camera", connect) as cam, \
+            ZenohNode("auto_tuner", connect) as tuner:
+        sub.subscribe(sub.keys.params, latest=False)
+        for pub in (cam, tuner):
+            wait_for(lambda pub=pub: pub.has_subscribers(pub.keys.params), what="matching")
+        clock = time.time_ns() // 1000  # a seq that is a clock, as params set's
+        for seq in range(5):
+            tuner.publish(tuner.keys.params, msg(seq), reliable=True)
+            cam.publish(cam.keys.params, msg(clock + seq), reliable=True)
+        tuner.publish(tuner.keys.params, msg(7), reliable=True)  # 5 and 6 lost: counted
+        wait_for(lambda: sub.status.received == 11, what="every message")
+        assert sub.status.dropped == 2
+
+
+def test_memory_node_counts_gaps_per_publisher():
+    with MemoryNode("preprocessing") as node:
+        node.subscribe(node.keys.frame, latest=False)
+        for seq in range(3):  # interleaved, as two cameras on one key
+            node.feed(node.keys.frame, msg(seq), source="camera")
+            node.feed(node.keys.frame, msg(1000 + seq), source="replay")
+        assert node.status.dropped == 0
+        node.feed(node.keys.frame, msg(5), source="camera")  # 3 and 4 missing
+        assert node.status.dropped == 2
+        # without source ids they share one sequence: a jump of a clock is a new sequence,
+        # never 10^15 losses
+        node.feed(node.keys.params, msg(0))
+        node.subscribe(node.keys.params, latest=False)
+        for seq in (3, time.time_ns() // 1000, 4, 6):
+            node.feed(node.keys.params, msg(seq))
+        assert node.status.dropped == 2 + 1  # only 5, between 4 and 6
+        assert node.status.received == 6 + 1 + 4
+
+
 # -- MemoryNode: the same semantics ------------------------------------------------------
 
 # (key attribute, payload, reliable subscription?) in arrival order
@@ -431,6 +492,17 @@ def test_seq_gap_helper():
     gap = SeqGap()
     assert [gap.observe(s) for s in (3, 4, 7, 7, 2, 3)] == [0, 0, 2, 0, 0, 0]
     assert gap.update(b"garbage") == 0 and gap.update(msg(6)) == 2
+    assert gap.observe(6 + MAX_SEQ_GAP + 1) == 0  # a new sequence, not a million losses
+    assert gap.observe(7 + MAX_SEQ_GAP + 1) == 0 and gap.observe(11 + MAX_SEQ_GAP) == 2
+
+
+def test_seq_gaps_forget_the_oldest_publisher_of_a_key():
+    gaps = SeqGaps()
+    assert gaps.update("k", msg(0), "first") == 0
+    for i in range(MAX_PUBLISHERS):  # every params set is a new publisher
+        assert gaps.update("k", msg(0), f"p{i}") == 0
+    assert gaps.update("k", msg(5), "p0") == 4  # still remembered
+    assert gaps.update("k", msg(5), "first") == 0  # forgotten: a new sequence
 
 
 def test_signal_handlers_set_stop():

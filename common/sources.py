@@ -12,7 +12,7 @@ import math
 import os
 import sys
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Generator, Iterator, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -234,7 +234,24 @@ def device_index(spec: str) -> int:
     return index
 
 
-def open_device(index: int, size: tuple[int, int] | None = None) -> Iterator[np.ndarray]:
+def probe_device(spec: str) -> None:
+    """Open the ``device:N`` source, read one frame and let the device go: a camera that is
+    missing, busy or mute is found before anything that needs it starts.
+
+    Raises
+    ------
+    SourceError
+        Naming the device and what failed.
+    """
+    frames = open_device(device_index(spec))
+    try:
+        next(frames)
+    finally:
+        frames.close()
+
+
+def open_device(index: int, size: tuple[int, int] | None = None
+                ) -> Generator[np.ndarray, None, None]:
     """Frames from a camera device through cv2.VideoCapture, grey, optionally resized."""
     lo, hi = DEVICE_RANGE
     if not lo <= index <= hi:  # a negative index crashes OpenCV (segmentation fault)

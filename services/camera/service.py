@@ -279,5 +279,6 @@ def main(args: argparse.Namespace) -> int:
         frames = _first_frame_read(open_source(args.source, _size(args), args.loop))
     except SourceError as e:
         print_error("camera", e)
-        return 2
+        # no such camera is a start-up failure (1); a file that cannot be read, bad input (2)
+        return 1 if args.source.startswith("device:") else 2
     return serve("camera", args, lambda node, a: loop(node, a, frames))

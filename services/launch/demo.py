@@ -304,14 +304,32 @@ def main(args: argparse.Namespace) -> int:
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        return _run(args, launch, scenario, duration, out)
+    except (BusError, LaunchError) as e:  # a port in use, no router at -e, a service down
+        print_error("demo", e)
+        return 1
+
+
+def _run(args: argparse.Namespace, launch: LaunchSpec, scenario: Any, duration: float,
+         out: Path) -> int:
     tty = sys.stderr.isatty()
-    print("vistrack demo: loading the tracker's kernels (the first run compiles them, "
-          "~30 s)...", file=sys.stderr, flush=True)
-    compile_kernels()
-    with open(out / "services.log", "w") as log, \
-            Launcher(launch, connect=args.connect, router_config=args.config,
-                     multicast_scouting=not args.no_multicast_scouting, mode=args.mode,
-                     out=log) as launcher:
+    with open(out / "services.log", "w") as log:
+        launcher = Launcher(launch, connect=args.connect, router_config=args.config,
+                            multicast_scouting=not args.no_multicast_scouting, mode=args.mode,
+                            out=log)
+        try:
+            launcher.open()  # the router first: a taken port is said before any compiling
+            compile_kernels("demo")  # says so on stderr when it compiles (a first run)
+        except BaseException:
+            launcher.stop()
+            raise
+        return _closed_loop(args, launcher, scenario, duration, out, tty)
+
+
+def _closed_loop(args: argparse.Namespace, launcher: Launcher, scenario: Any,
+                 duration: float, out: Path, tty: bool) -> int:
+    with launcher:
         print(f"vistrack demo: starting the five services (scenario {scenario.name}, "
               f"{'robot still' if args.no_control else 'closed loop'}); logs in "
               f"{out / 'services.log'}", file=sys.stderr)

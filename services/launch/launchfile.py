@@ -27,6 +27,8 @@ from .router import (
     DEFAULT_LISTEN,
 )
 
+#: ``vistrack up --camera none``: the launch without its camera.
+NO_CAMERA = "none"
 #: Restart policies of a service.
 POLICIES = ("never", "on-failure", "always")
 #: Flags the launcher passes to every service itself; a launch file may not set them.
@@ -48,8 +50,9 @@ robot: robot
 router:
   listen: [tcp/127.0.0.1:7447]
 
-# longest wait, in seconds, for every service's liveliness token at start-up
-ready_timeout: 30
+# longest wait, in seconds, for every service to be ready at start-up (its liveliness token:
+# kernels loaded, control surface built, inputs subscribed)
+ready_timeout: 60
 
 # one entry per service (camera, preprocessing, motion-estimation, auto-tuner,
 # fuzzy-controller), started downstream first and the camera last. Each has:
@@ -166,7 +169,7 @@ class LaunchSpec:
     services: tuple[ServiceSpec, ...]
     robot: str = "robot"
     listen: tuple[str, ...] = DEFAULT_LISTEN
-    ready_timeout: float = 30.0
+    ready_timeout: float = 60.0
     source: str = "<launch>"
 
     def __post_init__(self) -> None:
@@ -190,7 +193,9 @@ class LaunchSpec:
         """A copy whose camera flags are overridden (``vistrack up --camera/--fps/--size``).
 
         A new ``source`` drops the launch file's ``--loop`` unless ``loop`` is true. Later
-        flags win in argparse, so overrides are appended.
+        flags win in argparse, so overrides are appended. ``source="none"`` leaves the camera
+        out: the pipeline waits for frames from elsewhere (``vistrack replay``, a camera of
+        your own publishing ``camera/frame``).
 
         Raises
         ------
@@ -198,6 +203,14 @@ class LaunchSpec:
             If there is something to override but the launch starts no camera.
         """
         camera = self.service("camera")
+        if source == NO_CAMERA:
+            if fps is not None or size is not None or loop:
+                raise LaunchError("--camera none starts no camera: --fps, --size and --loop "
+                                  "have nothing to apply to")
+            services = tuple(s for s in self.services if s.name != "camera")
+            if not services:
+                raise LaunchError(f"{self.source}: --camera none leaves no service to start")
+            return dataclasses.replace(self, services=services)
         extra: list[str] = []
         for flag, value in (("--source", source), ("--fps", fps), ("--size", size)):
             if value is not None:
@@ -491,6 +504,20 @@ def check_service_flags(service: str, argv: list[str]) -> str | None:
     except (_FlagsError, ValueError) as e:
         return one_line(e)
     return None
+
+
+def camera_source(launch: LaunchSpec) -> str | None:
+    """The camera's ``--source`` as the camera service will read its flags (None: the launch
+    starts no camera). Call it on a launch whose flags have been checked."""
+    camera = launch.service("camera")
+    if camera is None:
+        return None
+    from ..camera.service import add_arguments  # here: the camera imports OpenCV
+
+    parser = _CheckingParser(prog="vistrack camera", add_help=False)
+    add_arguments(parser)
+    args = parser.parse_args([*camera.flags, "-e", DEFAULT_LISTEN[0], "--no-multicast-scouting"])
+    return str(args.source)
 
 
 def load_launch(path_or_text: str | Path) -> LaunchSpec:

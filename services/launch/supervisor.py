@@ -239,7 +239,8 @@ class Launcher:
         if self._started:
             return
         self._started = True
-        self._session = self._open_session()
+        self.open()
+        assert self._session is not None
         self._token_sub = self._session.liveliness().declare_subscriber(
             self.keys.alive_any(), self._on_token, history=True)
         for key in {getattr(self.keys, CONSUMES[c.spec.name]) for c in self._children
@@ -251,6 +252,19 @@ class Launcher:
                 child.held = True  # started by _release_held once its consumers are up
             else:
                 self._spawn(child)
+
+    def open(self) -> None:
+        """Open the router (or connect to the existing one) without starting any service;
+        :meth:`start` does it if it has not been done. Call it first to hold the port (or
+        learn it is taken) before long work such as a first run's compile. Idempotent.
+
+        Raises
+        ------
+        BusError
+            As :meth:`start`.
+        """
+        if self._session is None:
+            self._session = self._open_session()
 
     def wait_ready(self, timeout: float | None = None) -> bool:
         """Block until every service's liveliness token is up; False if ``stop_event`` was set.

@@ -11,9 +11,12 @@ strictly and every error names the file, the line, the key and what is allowed.
   ``-c`` configures the embedded router (with ``-e``: the launcher's own session);
   ``-m`` sets the services' session mode.
 * Start-up is downstream first (fuzzy-controller, motion-estimation, preprocessing,
-  auto-tuner); the camera starts once their liveliness tokens are up and their inputs have
-  subscribers, so no frame is sent before its consumers exist. ``vistrack up: ready (N
-  services)`` is printed when every token ``vistrack/<robot>/alive/<service>`` is up.
+  auto-tuner); a service declares its liveliness token ``vistrack/<robot>/alive/<service>``
+  once it is ready (kernels and control surface loaded or compiled, inputs subscribed), and
+  the camera starts once every other token is up and their inputs have subscribers, so no
+  frame is sent before its consumers can take it. ``vistrack up: ready (N services)`` is
+  printed when all N tokens are up. On a first run the tracker's kernels are compiled here
+  first (said on stderr; about 30 s), so the services load them from the cache.
 * Each child's stdout and stderr are printed line by line, prefixed ``[service-name]``.
 * A child that exits is restarted by its policy (``never``, ``on-failure``, ``always``) with
   exponential back-off, reset once it has run ``reset_after`` seconds. A service that hangs
@@ -23,8 +26,11 @@ strictly and every error names the file, the line, the key and what is allowed.
   second rather than the ~2.5 s of a new interpreter's imports and numba's first load.
 * ``--camera SOURCE`` replaces the camera's ``--source`` and drops the launch file's
   ``--loop`` (give ``--loop`` to keep replaying); ``--fps`` and ``--size`` replace the
-  camera's. A camera that exits 0 under ``never`` or ``on-failure`` (a file source without
-  ``--loop`` has been processed) ends the run, as do ``--duration``, Ctrl-C and SIGTERM.
+  camera's. ``--camera none`` starts the other services without the camera, for frames
+  from elsewhere (``vistrack replay`` of a recorded ``camera/frame`` stream). A ``device:N``
+  camera is opened once before anything starts: a missing one is an error (exit 1). A
+  camera that exits 0 under ``never`` or ``on-failure`` (a file source without ``--loop``
+  has been processed) ends the run, as do ``--duration``, Ctrl-C and SIGTERM.
 * Stopping sends SIGTERM to every child's process group, SIGKILL to what is left after
   3 s, and closes the router. Children also get SIGTERM if the launcher dies (Linux
   ``PR_SET_PDEATHSIG``).
@@ -47,8 +53,16 @@ from ...common.bus import (
     add_zenoh_args,
     install_signal_handlers,
 )
-from ..usage import add_number, print_error
-from .launchfile import LaunchError, LaunchSpec, check_service_flags, default_launch, load_launch
+from ...common.sources import SourceError, probe_device
+from ..usage import add_number, plural, print_error
+from .launchfile import (
+    LaunchError,
+    LaunchSpec,
+    camera_source,
+    check_service_flags,
+    default_launch,
+    load_launch,
+)
 from .router import (
     listen_endpoints,
     router_config,
@@ -62,7 +76,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="launch file (default: deploy/local.yaml)")
     parser.add_argument("--camera", metavar="SOURCE",
                         help="the camera's source: file:PATH, device:N, builtin or "
-                             "sim[:SCENARIO]; drops the launch file's --loop")
+                             "sim[:SCENARIO]; drops the launch file's --loop. 'none': no "
+                             "camera (frames come from elsewhere, e.g. vistrack replay)")
     parser.add_argument("--fps", type=float, metavar="F",
                         help="the camera's frames per second (its --fps)")
     parser.add_argument("--size", metavar="WxH", help="the camera's frame size (its --size)")
@@ -89,7 +104,8 @@ def launch_from_args(args: argparse.Namespace) -> LaunchSpec:
     launch = load_launch(args.launch) if args.launch else default_launch()
     overridden = launch.with_camera(source=args.camera, fps=args.fps, size=args.size,
                                     loop=args.loop)
-    if overridden is not launch:  # the camera's flags with --camera/--fps/--size applied
+    if overridden is not launch and overridden.service("camera") is not None:
+        # the camera's flags with --camera/--fps/--size applied
         camera = overridden.service("camera")
         assert camera is not None
         problem = check_service_flags("camera", list(camera.flags))
@@ -115,12 +131,31 @@ def launch_from_args(args: argparse.Namespace) -> LaunchSpec:
     return dataclasses.replace(launch, **changes)
 
 
+def check_camera(launch: LaunchSpec) -> None:
+    """A ``device:N`` camera is opened (and let go) before any service starts: a missing
+    camera is one line and exit 1 now, not a crash loop once everything else runs.
+
+    Raises
+    ------
+    SourceError
+        Naming the device.
+    """
+    source = camera_source(launch)
+    if source is not None and source.startswith("device:"):
+        probe_device(source)
+
+
 def main(args: argparse.Namespace) -> int:
     try:
         launch = launch_from_args(args)
     except (LaunchError, BusError) as e:
         print_error("up", e)
         return 2
+    try:
+        check_camera(launch)
+    except SourceError as e:  # no such camera: a start-up failure, not a bad command line
+        print_error("up", e)
+        return 1
     stop = threading.Event()
     restore = install_signal_handlers(stop)
     try:
@@ -133,13 +168,21 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _run(launch: LaunchSpec, args: argparse.Namespace, stop: threading.Event) -> int:
-    compile_kernels()
-    with Launcher(launch, connect=args.connect, router_config=args.config,
-                  multicast_scouting=not args.no_multicast_scouting, mode=args.mode,
-                  stop_event=stop, spare=True) as launcher:
+    launcher = Launcher(launch, connect=args.connect, router_config=args.config,
+                        multicast_scouting=not args.no_multicast_scouting, mode=args.mode,
+                        stop_event=stop, spare=True)
+    try:
+        # the router first: tools can connect (and a taken port is said) at once, not after
+        # a first run's half minute of compiling
+        launcher.open()
+        compile_kernels()
+    except BaseException:
+        launcher.stop()
+        raise
+    with launcher:
         if not launcher.wait_ready():
             return 0  # Ctrl-C during start-up
-        launcher.emit(f"vistrack up: ready ({len(launch.services)} services)")
+        launcher.emit(f"vistrack up: ready ({plural(len(launch.services), 'service')})")
         deadline = time.monotonic() + args.duration if args.duration else None
         code = launcher.run_until(deadline=deadline)
     try:

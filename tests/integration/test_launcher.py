@@ -33,6 +33,7 @@ from vistrack.services.launch.launchfile import (
     DEFAULT_LAUNCH_PATH,
     Backoff,
     LaunchError,
+    camera_source,
     default_launch,
     load_launch,
 )
@@ -514,6 +515,26 @@ def test_flag_list_and_mapping_forms_and_camera_overrides():
     assert spec.with_camera() is spec
     with pytest.raises(LaunchError, match="starts no camera"):
         load_launch("services: {preprocessing: }\n").with_camera(source="builtin")
+
+
+def test_camera_none_leaves_the_camera_out():
+    spec = default_launch()
+    without = spec.with_camera(source="none")
+    assert [s.name for s in without.services] == [s.name for s in spec.services
+                                                  if s.name != "camera"]
+    assert without.service("camera") is None and camera_source(without) is None
+    assert camera_source(spec) == "builtin"
+    with pytest.raises(LaunchError, match="--camera none starts no camera"):
+        spec.with_camera(source="none", fps=10.0)
+    with pytest.raises(LaunchError, match="leaves no service"):
+        load_launch("services: {camera: }\n").with_camera(source="none")
+
+
+def test_camera_none_with_camera_flags_is_a_usage_error(capsys):
+    assert cli.main(["up", "--camera", "none", "--size", "64x64", "-l",
+                     "tcp/127.0.0.1:1"]) == 2
+    assert capsys.readouterr().err == ("vistrack up: error: --camera none starts no camera: "
+                                       "--fps, --size and --loop have nothing to apply to\n")
 
 
 def test_backoff_doubles_up_to_its_max():

@@ -1,41 +1,151 @@
-"""Compiling the tracker's numba kernels on a first run, and saying so.
+"""Compiling the tracker's numba kernels on a first run: on two cores, and saying so.
 
-On a new machine (or after the kernels' code changes) numba compiles them once, about half a
-minute on two cores, into its on-disk cache (:func:`~vistrack.common.vision.kernel_cache_dir`);
-every later start loads them in about a second. Every front door that warms them up (``track``,
-``tune``, ``demo``, ``up``, the services, the auto-tuner's worker) says on stderr when, and only
-when, that compile happens, so a first run is never half a minute of silence.
+On a new machine (or after the kernels' code changes) numba compiles them once into its on-disk
+cache (:func:`~vistrack.common.vision.kernel_cache_dir`); every later start loads them in
+about a second. Every front door that warms them up (``track``, ``tune``, ``demo``, ``up``, the
+services, the auto-tuner's worker) says on stderr when, and only when, that compile happens,
+so a first run is never half a minute of silence.
+
+Warm-ups take turns (a lock file beside numba's cache): processes that start at once, such as
+the services of a first ``vistrack up`` or ``vistrack demo``, compile the kernels once and load
+them, rather than each compiling them at the same time. The launcher takes its turn first and
+starts the services while it compiles, so their own start-up (imports, Zenoh, the fuzzy
+surface) overlaps the compile.
+
+numba compiles in one thread. When a warm-up finds the cache cold, a second process compiles
+the SSD search (``track_ssd``: 60 % of the work) while this one compiles the kernels of a
+first frame (pre-processing, feature selection, the estimate) and of the motion estimate;
+the final :func:`~vistrack.common.vision.warm_up` then compiles what is left and loads the
+rest from the cache. The split only uses the public functions and only changes how long the
+compile takes: whatever the second process did not compile, or compiled for other types, the
+final warm-up compiles here.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import os
+import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import TextIO
 
 #: About how long a cold compile takes on the reference machine (2 cores), s.
 COLD_COMPILE_S = 30
+#: The warm-up lock's file, in numba's cache folder.
+LOCK_NAME = "vistrack-warm-up.lock"
+#: Longest wait for the second process; beyond, this one compiles what is left itself.
+HELPER_TIMEOUT_S = 600.0
+_HELPER = "from vistrack.services.kernels import compile_search; compile_search()"
 
 
-def warm_up_kernels(say: Callable[[str], None]) -> bool:
+def warm_up_kernels(say: Callable[[str], None], *, helper: bool = True,
+                    on_turn: Callable[[], None] | None = None) -> bool:
     """:func:`~vistrack.common.vision.warm_up`, calling ``say`` with a line when the kernels
     start compiling and another when they are done; silent when they come from the cache.
+
+    Parameters
+    ----------
+    say : where the two lines go (a logger's ``info``, :func:`say_on_stderr`).
+    helper : compile the SSD search in a second process when the cache is cold.
+    on_turn : called once this process holds the warm-up turn, before it compiles or loads
+        anything: what it starts then (the services) waits for the kernels, not with them.
 
     Returns
     -------
     Whether the kernels were compiled.
     """
+    with _turn():
+        if on_turn is not None:
+            on_turn()
+        return _warm_up(say, helper)
+
+
+@contextlib.contextmanager
+def _turn() -> Iterator[None]:
+    """Hold the warm-up lock, a file beside numba's cache (waiting for another process's
+    compile to end); without a writable cache folder, go ahead unlocked."""
+    from ..common.vision import kernel_cache_dir
+
+    path = Path(kernel_cache_dir()) / LOCK_NAME
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError:
+        yield
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def _warm_up(say: Callable[[str], None], helper: bool) -> bool:
     from ..common.vision import kernel_cache_dir, warm_up
+    from ..common.vision.tracker import compile_watch
 
     t0 = time.monotonic()
-    compiled = warm_up(on_compile=lambda: say(
-        f"compiling the tracker's kernels (first run; about {COLD_COMPILE_S} s, cached in "
-        f"{kernel_cache_dir()})"))
-    if compiled:
+    helpers: list[subprocess.Popen[bytes]] = []
+
+    def on_compile() -> None:
+        say(f"compiling the tracker's kernels (first run; about {COLD_COMPILE_S} s, cached in "
+            f"{kernel_cache_dir()})")
+        if helper:
+            helpers.append(subprocess.Popen([sys.executable, "-c", _HELPER],
+                                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                            stderr=subprocess.DEVNULL))
+
+    try:
+        with compile_watch(on_compile) as watch:
+            if helper:
+                _compile_first_frame()  # a cold cache shows here, and starts the helper
+            for proc in helpers:
+                try:
+                    proc.wait(HELPER_TIMEOUT_S)
+                except subprocess.TimeoutExpired:
+                    pass  # warm_up compiles what it did not
+            warm_up()
+    finally:
+        for proc in helpers:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    if watch.compiled:
         say(f"compiled the tracker's kernels in {time.monotonic() - t0:.0f} s; later starts "
             "load them from the cache")
-    return compiled
+    return watch.compiled
+
+
+def _compile_first_frame() -> None:
+    """The kernels of a track's first frame (pre-processing, selection, centroid and scatter)
+    and of the motion estimate: no SSD search."""
+    import numpy as np
+
+    from ..common.params import TrackerParams
+    from ..common.synthetic import sequence
+    from ..common.vision import Tracker, incremental_motion
+
+    (frame,) = sequence(1, size=(64, 64), seed=1)
+    Tracker(TrackerParams(subpixel=True, max_features=20, search_size=5, corr_size=5)
+            ).process(frame)
+    incremental_motion(np.zeros((3, 2)), np.ones((3, 2)))
+
+
+def compile_search() -> None:
+    """Compile (or load) the SSD search's kernels: the second process of a cold warm-up."""
+    import numpy as np
+
+    from ..common.synthetic import sequence
+    from ..common.vision import track_ssd, window_weights
+
+    first, second = sequence(2, size=(64, 64), seed=1)
+    points = np.array([[32, 32], [24, 40]])
+    track_ssd(first, second, points, points, corr_half=2, search_half=2,
+              weights=window_weights("uniform", 2), subpixel=True)
 
 
 def say_on_stderr(command: str, stream: TextIO | None = None) -> Callable[[str], None]:

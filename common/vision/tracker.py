@@ -25,8 +25,9 @@ Per frame t -> t+1:
 
 from __future__ import annotations
 
+import contextlib
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
 import numba as nb
@@ -355,13 +356,22 @@ def warm_up(on_compile: Callable[[], None] | None = None) -> bool:
     """
     from ..synthetic import sequence
 
-    listener = _CompileListener(on_compile)
-    with numba_event.install_listener("numba:compile", listener):
+    with compile_watch(on_compile) as watch:
         frames = sequence(3, size=(64, 64), seed=1)
         for p in (TrackerParams(), TrackerParams(weights="gaussian", subpixel=False),
                   TrackerParams(search="exhaustive")):
             track_frames(frames, p.replace(max_features=20, search_size=5, corr_size=5))
-    return listener.compiled
+    return watch.compiled
+
+
+@contextlib.contextmanager
+def compile_watch(on_compile: Callable[[], None] | None = None) -> Iterator[_CompileListener]:
+    """Within the block, call ``on_compile`` once, when numba starts compiling a kernel (a
+    dispatcher compiles only on a cache miss); the yielded listener's ``compiled`` tells
+    afterwards whether anything was."""
+    listener = _CompileListener(on_compile)
+    with numba_event.install_listener("numba:compile", listener):
+        yield listener
 
 
 def kernel_cache_dir() -> str:

@@ -320,7 +320,8 @@ def _run(args: argparse.Namespace, launch: LaunchSpec, scenario: Any, duration: 
                             out=log)
         try:
             launcher.open()  # the router first: a taken port is said before any compiling
-            compile_kernels("demo")  # says so on stderr when it compiles (a first run)
+            # says so on stderr when it compiles (a first run); the services start meanwhile
+            compile_kernels("demo", start=launcher.start)
         except BaseException:
             launcher.stop()
             raise

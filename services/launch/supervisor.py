@@ -277,6 +277,8 @@ class Launcher:
         """
         limit = self.launch.ready_timeout if timeout is None else timeout
         deadline = time.monotonic() + limit
+        # the camera's gate counts from here too: a first run's compile may lie since start()
+        self._gate_deadline = max(self._gate_deadline, deadline)
         while not self.stop_event.is_set():
             self._step(startup=True)
             if self._end_code is not None or all(c.ready or c.finished for c in self._children):
@@ -653,17 +655,19 @@ class Launcher:
                 child.reader.join(max(0.0, deadline - time.monotonic()))
 
 
-def compile_kernels(command: str = "up") -> None:
+def compile_kernels(command: str = "up", start: Callable[[], None] | None = None) -> None:
     """Compile the tracker's numba kernels into numba's on-disk cache, once, here, saying so
     on stderr (``vistrack COMMAND: compiling ...``) when it happens (a first run).
 
     On a fresh install the services would otherwise each compile them at start-up, three at
     a time on a small machine (~25 s each alone), and miss the ready timeout; with the cache
-    filled they load in under a second.
+    filled they load in under a second. ``start`` (the launcher's) is called once this
+    process has the warm-up turn: the services then start while the kernels compile and wait
+    for them (services/kernels.py), so their own start-up overlaps the compile.
     """
     from ..kernels import say_on_stderr, warm_up_kernels
 
-    warm_up_kernels(say_on_stderr(command))
+    warm_up_kernels(say_on_stderr(command), on_turn=start)
     # What the compiler leaves behind lives as long as this process (the launcher, the demo's
     # recorder): freeze it out of the garbage collector, whose full collections over it paused
     # the demo's recorder for 100 ms and more (p99 capture-to-command 208 ms on a first run,

@@ -173,9 +173,9 @@ def _run(launch: LaunchSpec, args: argparse.Namespace, stop: threading.Event) ->
                         stop_event=stop, spare=True)
     try:
         # the router first: tools can connect (and a taken port is said) at once, not after
-        # a first run's half minute of compiling
+        # a first run's half minute of compiling; the services start during the compile
         launcher.open()
-        compile_kernels()
+        compile_kernels("up", start=launcher.start)
     except BaseException:
         launcher.stop()
         raise

@@ -7,14 +7,17 @@ functions of the test's own, and the cached case runs on the cache the session f
 
 from __future__ import annotations
 
+import fcntl
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numba as nb
 from numba.core import event as numba_event
 
-from vistrack.common.vision import tracker
-from vistrack.services.kernels import say_on_stderr, warm_up_kernels
+from vistrack.common.vision import kernel_cache_dir, tracker
+from vistrack.services.kernels import LOCK_NAME, say_on_stderr, warm_up_kernels
 
 
 def test_a_compile_is_said_once_when_it_starts():
@@ -43,3 +46,24 @@ def test_track_is_silent_on_stderr_when_the_kernels_are_cached():
                           "--format", "csv"], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0 and run.stderr == ""
     assert run.stdout.startswith("seq,npi,")
+
+
+def test_warm_ups_take_turns():
+    # the services of a first `vistrack up` start while the launcher compiles: each waits
+    # for the lock beside numba's cache, then loads, instead of compiling at the same time
+    fd = os.open(Path(kernel_cache_dir()) / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)  # another process's compile, here
+        waiting = subprocess.Popen(
+            [sys.executable, "-c", "from vistrack.services.kernels import warm_up_kernels; "
+             "print(warm_up_kernels(print, on_turn=lambda: print('turn')), flush=True)"],
+            stdout=subprocess.PIPE, text=True)
+        try:
+            waiting.wait(timeout=3.0)
+            raise AssertionError("warm_up_kernels did not wait for the lock")
+        except subprocess.TimeoutExpired:
+            pass
+    finally:
+        os.close(fd)  # the compile is done
+    out, _ = waiting.communicate(timeout=60)
+    assert out.splitlines() == ["turn", "False"]  # its turn, then everything from the cache

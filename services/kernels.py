@@ -33,8 +33,9 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TextIO
 
-#: About how long a cold compile takes on the reference machine (2 cores), s.
-COLD_COMPILE_S = 30
+#: How long a cold compile takes on the reference machine (2 cores, shared: 47 to 122 s
+#: measured, the second process included), for the line that announces it.
+COLD_COMPILE = "about a minute on two cores"
 #: The warm-up lock's file, in numba's cache folder.
 LOCK_NAME = "vistrack-warm-up.lock"
 #: Longest wait for the second process; beyond, this one compiles what is left itself.
@@ -92,7 +93,7 @@ def _warm_up(say: Callable[[str], None], helper: bool) -> bool:
     helpers: list[subprocess.Popen[bytes]] = []
 
     def on_compile() -> None:
-        say(f"compiling the tracker's kernels (first run; about {COLD_COMPILE_S} s, cached in "
+        say(f"compiling the tracker's kernels (first run; {COLD_COMPILE}, cached in "
             f"{kernel_cache_dir()})")
         if helper:
             helpers.append(subprocess.Popen([sys.executable, "-c", _HELPER],

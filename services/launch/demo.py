@@ -196,17 +196,18 @@ def summarise(rec: Recorder, scenario: Any, wall_s: float) -> dict[str, Any]:
                         if not c["stale"]]) if cmds else np.array([np.nan])
     return {
         "scenario": scenario.name, "frames": len(est), "wall_s": round(wall_s, 3),
-        "fps": len(est) / wall_s if wall_s > 0 else 0.0,
-        "latency_ms_p50": float(np.nanmedian(lat)), "latency_ms_p99": float(np.nanpercentile(
-            lat, 99)),
-        "cmd_latency_ms_p50": float(np.nanmedian(cmd_lat)),
-        "cmd_latency_ms_p99": float(np.nanpercentile(cmd_lat, 99)),
-        "rms_center_error_px": float(np.sqrt(np.nanmean((u - u[0]) ** 2))),
-        "rms_scale_error": float(np.sqrt(np.nanmean((scale / scale[0] - 1) ** 2))),
+        # rounded to what the measurement resolves (10 us, 1/1000 px): read by people
+        "fps": round(len(est) / wall_s, 2) if wall_s > 0 else 0.0,
+        "latency_ms_p50": round(float(np.nanmedian(lat)), 2),
+        "latency_ms_p99": round(float(np.nanpercentile(lat, 99)), 2),
+        "cmd_latency_ms_p50": round(float(np.nanmedian(cmd_lat)), 2),
+        "cmd_latency_ms_p99": round(float(np.nanpercentile(cmd_lat, 99)), 2),
+        "rms_center_error_px": round(float(np.sqrt(np.nanmean((u - u[0]) ** 2))), 3),
+        "rms_scale_error": round(float(np.sqrt(np.nanmean((scale / scale[0] - 1) ** 2))), 5),
         "retunes": max(0, len(rec.params_ids) - 1),
-        "npi_mean": float(np.mean([m["npi"] for _, m in est])) if est else 0.0,
+        "npi_mean": round(float(np.mean([m["npi"] for _, m in est])), 1) if est else 0.0,
         "commands": len(cmds), "stale_commands": sum(1 for c in cmds if c["stale"]),
-        "mean_speed_cmd_m_s": float(np.mean(effort)) if effort else 0.0,
+        "mean_speed_cmd_m_s": round(float(np.mean(effort)), 4) if effort else 0.0,
         "params": {k: rec.params.get(k) for k in ("max_features", "thres_percent",
                                                  "search_size", "corr_size", "ungroup_size",
                                                  "params_id", "source", "reason")},

@@ -51,14 +51,18 @@ def demo(out: Path, caches: Path) -> tuple[float, str, dict]:
     return wall, run.stderr, json.loads((out / "summary.json").read_text())
 
 
+def ready_at(log: str, service: str) -> float:
+    """The time of day (s) in the ready line of ``service`` in ``log``."""
+    m = re.search(rf"^\[{service}\] (\d\d):(\d\d):(\d\d\.\d+) .* ready \(robot", log,
+                  flags=re.M)
+    assert m, f"no ready line of {service}"
+    return int(m[1]) * 3600 + int(m[2]) * 60 + float(m[3])
+
+
 def started_after_ready(log: str) -> bool:
-    """Whether the camera started after every other service's ready line."""
-    lines = log.splitlines()
-    camera = next(i for i, line in enumerate(lines) if line.startswith("[launcher] started "
-                                                                       "camera"))
-    return all(any(re.match(rf"\[{s}\] .* ready \(robot", line) for line in lines[:camera])
-               for s in ("fuzzy-controller", "motion-estimation", "preprocessing",
-                         "auto-tuner"))
+    """Whether the camera was ready after every other service."""
+    return all(ready_at(log, s) < ready_at(log, "camera") for s in (
+        "fuzzy-controller", "motion-estimation", "preprocessing", "auto-tuner"))
 
 
 def test_bench_first_run(tmp_path, capsys):

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import pytest
@@ -49,6 +51,27 @@ def test_demo_runs_the_closed_loop_and_writes_its_summary_and_files(tmp_path, fr
     for service in ("camera", "preprocessing", "motion-estimation", "auto-tuner",
                     "fuzzy-controller"):
         assert f"[{service}]" in log, service
+    # what the README shows of a run is what it prints (numbers apart): the report had the
+    # README's one wrapped JSON object against the demo's indented one
+    printed = {shape(line.replace(str(out), "vistrack-demo").replace("sideways", "default"))
+               for line in (run.stdout + run.stderr).splitlines()}
+    for line in readme_transcript():
+        assert shape(line) in printed, line
+
+
+README = Path(__file__).resolve().parents[2] / "README.md"
+
+
+def readme_transcript() -> list[str]:
+    """The README's ``$ vistrack demo`` transcript, without the command."""
+    block = re.search(r"```\n\$ vistrack demo\n(.*?)```", README.read_text(), flags=re.S)
+    assert block, "no $ vistrack demo transcript in the README"
+    return block[1].splitlines()
+
+
+def shape(line: str) -> str:
+    """A line with its numbers and runs of blanks made alike."""
+    return " ".join(re.sub(r"-?\d+(\.\d+)?", "#", line).split())
 
 
 def test_demo_with_the_robot_still_does_not_follow_the_target(tmp_path, free_port):

@@ -43,8 +43,9 @@ from .router import (
 LAUNCH_ORDER = ("ros2", "fuzzy_controller", "motion_estimation", "preprocessing", "auto_tuner",
                 "camera")
 #: The input (a :class:`Keys` attribute) each consumer subscribes to once it can take data.
-#: Services declare their liveliness token before warming up and subscribing, so the camera
-#: waits for these subscriptions too (ARCHITECTURE.md's table of keys).
+#: Services declare their liveliness token once warmed up and subscribed (runtime.ready); the
+#: camera waits for these subscriptions too, for a service that declares its token at open
+#: (ARCHITECTURE.md's table of keys).
 CONSUMES = {"preprocessing": "frame", "motion_estimation": "pre_frame", "auto_tuner": "frame",
             "fuzzy_controller": "estimate"}
 

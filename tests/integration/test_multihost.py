@@ -142,11 +142,7 @@ def statuses(ns: str, endpoint: str) -> dict[str, dict[str, Any]]:
     proc = tool(ns, "status", "--json", "--timeout", "2", "-e", endpoint,
                 "--no-multicast-scouting")
     assert proc.returncode == 0, proc.stderr
-    out = {}
-    for line in proc.stdout.splitlines():
-        s = json.loads(line)
-        out[s["service"]] = s
-    return out
+    return {s["service"]: s for s in json.loads(proc.stdout)}  # one JSON document
 
 
 def pids(world: World) -> dict[str, int]:

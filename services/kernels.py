@@ -122,18 +122,26 @@ def _warm_up(say: Callable[[str], None], helper: bool) -> bool:
 
 
 def _compile_first_frame() -> None:
-    """The kernels of a track's first frame (pre-processing, selection, centroid and scatter)
-    and of the motion estimate: no SSD search."""
+    """The kernels of a track's first frame (pre-processing, selection, centroid and scatter),
+    of the motion estimate and of the tracker's per-frame bookkeeping around the SSD search
+    (prediction, losses): everything but the search itself."""
     import numpy as np
 
     from ..common.params import TrackerParams
     from ..common.synthetic import sequence
     from ..common.vision import Tracker, incremental_motion
+    from ..common.vision import tracker as tracker_kernels
 
     (frame,) = sequence(1, size=(64, 64), seed=1)
     Tracker(TrackerParams(subpixel=True, max_features=20, search_size=5, corr_size=5)
             ).process(frame)
     incremental_motion(np.zeros((3, 2)), np.ones((3, 2)))
+    # the bookkeeping's kernels with the types Tracker._track gives them; ~3 s of compile
+    # that the final warm-up would otherwise do after waiting for the second process
+    pos = np.zeros((3, 2))
+    anchors, _ = tracker_kernels._predict(pos, pos)
+    tracker_kernels._advance(pos, pos + 1.0, anchors, np.zeros(3), np.ones(3, np.bool_),
+                             np.arange(3, dtype=np.int64), 1.0, 5.0)
 
 
 def compile_search() -> None:

@@ -60,9 +60,28 @@ def warm_up_kernels(say: Callable[[str], None], *, helper: bool = True,
     Whether the kernels were compiled.
     """
     with _turn():
+        # a cold search (the longest compile) is known from numba's cache index: its process
+        # then starts first, ahead of the services' start-up, which competes for the cores
+        early = _start_helper() if helper and not _search_cached() else None
         if on_turn is not None:
             on_turn()
-        return _warm_up(say, helper)
+        return _warm_up(say, helper, early)
+
+
+def _search_cached() -> bool:
+    """Whether numba's cache holds a compiled SSD search (an index that lists it, written for
+    this source): True when that cannot be told, so that the first compile decides."""
+    from ..common.vision import ssd
+
+    try:
+        return bool(ssd._track._cache._cache_file._load_index())
+    except Exception:  # numba's internals differ: not worth failing a start for
+        return True
+
+
+def _start_helper() -> subprocess.Popen[bytes]:
+    return subprocess.Popen([sys.executable, "-c", _HELPER], stdin=subprocess.DEVNULL,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
 @contextlib.contextmanager
@@ -85,25 +104,24 @@ def _turn() -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
-def _warm_up(say: Callable[[str], None], helper: bool) -> bool:
+def _warm_up(say: Callable[[str], None], helper: bool,
+             early: subprocess.Popen[bytes] | None = None) -> bool:
     from ..common.vision import kernel_cache_dir, warm_up
     from ..common.vision.tracker import compile_watch
 
     t0 = time.monotonic()
-    helpers: list[subprocess.Popen[bytes]] = []
+    helpers = [early] if early is not None else []
 
     def on_compile() -> None:
         say(f"compiling the tracker's kernels (first run; {COLD_COMPILE}, cached in "
             f"{kernel_cache_dir()})")
-        if helper:
-            helpers.append(subprocess.Popen([sys.executable, "-c", _HELPER],
-                                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                            stderr=subprocess.DEVNULL))
+        if helper and not helpers:
+            helpers.append(_start_helper())
 
     try:
         with compile_watch(on_compile) as watch:
             if helper:
-                _compile_first_frame()  # a cold cache shows here, and starts the helper
+                _compile_first_frame()  # a cold cache shows here (the helper, if not yet)
             for proc in helpers:
                 try:
                     proc.wait(HELPER_TIMEOUT_S)

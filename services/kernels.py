@@ -33,9 +33,10 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TextIO
 
-#: How long a cold compile takes on the reference machine (2 cores, shared: 47 to 122 s
-#: measured, the second process included), for the line that announces it.
-COLD_COMPILE = "about a minute on two cores"
+#: How long a cold compile takes on the reference machine (2 cores: 34 to 40 s measured in a
+#: cold vistrack demo under the heavy lock, far longer with other work taking the cores), for
+#: the line that announces it.
+COLD_COMPILE = "about 40 s on two cores"
 #: The warm-up lock's file, in numba's cache folder.
 LOCK_NAME = "vistrack-warm-up.lock"
 #: Longest wait for the second process; beyond, this one compiles what is left itself.

@@ -323,7 +323,7 @@ def world(lan, tmp_path_factory):
         started.append(base)
         router.wait_line(r"vistrack router: ready", START_S)
         robot.wait_line(r"^vistrack up: ready \(4 services\)$", START_S)
-        base.wait_line(r"^vistrack up: ready \(1 services\)$", START_S)
+        base.wait_line(r"^vistrack up: ready \(1 service\)$", START_S)
         w = World(lan, tmp, certs, router, robot, base, confs["router"])
         yield w
         started.append(w.router)  # the one running now (restarted by a test)

@@ -179,7 +179,12 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
         return zenoh.open(conf)
     except zenoh.ZError as err:
         if "Unable to connect" in str(err):  # client mode, or exit_on_failure
-            raise BusError(f"cannot connect to {_endpoints(conf)}: nothing answers there (is "
+            where = _endpoints(conf)
+            if "tls/" in where or "quic/" in where:  # a router may be there and refuse us
+                raise BusError(f"cannot connect to {where}: nothing answers there, or it "
+                               "refused this host's TLS certificate (check -c CONFIG's "
+                               "certificates)") from None
+            raise BusError(f"cannot connect to {where}: nothing answers there (is "
                            "vistrack up or vistrack router running, on that port?)") from None
         raise BusError(f"cannot open zenoh session: {err}") from None
 

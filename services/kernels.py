@@ -158,8 +158,8 @@ def _compile_first_frame() -> None:
     # the bookkeeping's kernels with the types Tracker._track gives them; ~3 s of compile
     # that the final warm-up would otherwise do after waiting for the second process
     pos = np.zeros((3, 2))
-    anchors, _ = tracker_kernels._predict(pos, pos)
-    tracker_kernels._advance(pos, pos + 1.0, anchors, np.zeros(3), np.ones(3, np.bool_),
+    tracker_kernels._predict(pos, pos)
+    tracker_kernels._advance(pos, pos + 1.0, np.zeros(3), np.zeros(3, np.int8),
                              np.arange(3, dtype=np.int64), 1.0, 5.0)
 
 

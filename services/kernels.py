@@ -155,10 +155,9 @@ def _compile_first_frame() -> None:
     Tracker(TrackerParams(subpixel=True, max_features=20, search_size=5, corr_size=5)
             ).process(frame)
     incremental_motion(np.zeros((3, 2)), np.ones((3, 2)))
-    # the bookkeeping's kernels with the types Tracker._track gives them; ~3 s of compile
+    # the bookkeeping's kernel with the types Tracker._track gives it; ~3 s of compile
     # that the final warm-up would otherwise do after waiting for the second process
     pos = np.zeros((3, 2))
-    tracker_kernels._predict(pos, pos)
     tracker_kernels._advance(pos, pos + 1.0, np.zeros(3), np.zeros(3, np.int8),
                              np.arange(3, dtype=np.int64), 1.0, 5.0)
 

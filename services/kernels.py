@@ -13,12 +13,12 @@ starts the services while it compiles, so their own start-up (imports, Zenoh, th
 surface) overlaps the compile.
 
 numba compiles in one thread. When a warm-up finds the cache cold, a second process compiles
-the SSD search (``track_ssd``: 60 % of the work) while this one compiles the kernels of a
-first frame (pre-processing, feature selection, the estimate) and of the motion estimate;
-the final :func:`~vistrack.common.vision.warm_up` then compiles what is left and loads the
-rest from the cache. The split only uses the public functions and only changes how long the
-compile takes: whatever the second process did not compile, or compiled for other types, the
-final warm-up compiles here.
+the default tracker's SSD search (``track_pyramid`` and the kernels it calls: most of the
+work) while this one compiles the kernels of a first frame (pre-processing, feature selection,
+the estimate) and of the motion estimate; the final :func:`~vistrack.common.vision.warm_up`
+then compiles what is left and loads the rest from the cache. The split only uses the public
+functions and only changes how long the compile takes: whatever the second process did not
+compile, or compiled for other types, the final warm-up compiles here.
 """
 
 from __future__ import annotations
@@ -33,10 +33,10 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TextIO
 
-#: How long a cold compile takes on the reference machine (2 cores: 34 to 40 s measured in a
-#: cold vistrack demo under the heavy lock, far longer with other work taking the cores), for
-#: the line that announces it.
-COLD_COMPILE = "about 40 s on two cores"
+#: How long a cold compile takes on the reference machine (2 cores: 57 to 61 s measured for
+#: the default coarse-to-fine tracker on a quiet machine, far longer with other work taking
+#: the cores), for the line that announces it.
+COLD_COMPILE = "about a minute on two cores"
 #: The warm-up lock's file, in numba's cache folder.
 LOCK_NAME = "vistrack-warm-up.lock"
 #: Longest wait for the second process; beyond, this one compiles what is left itself.
@@ -72,10 +72,10 @@ def warm_up_kernels(say: Callable[[str], None], *, helper: bool = True,
 def _search_cached() -> bool:
     """Whether numba's cache holds a compiled SSD search (an index that lists it, written for
     this source): True when that cannot be told, so that the first compile decides."""
-    from ..common.vision import ssd
+    from ..common.vision import pyramid
 
     try:
-        return bool(ssd._track._cache._cache_file._load_index())
+        return bool(pyramid._track_frame._cache._cache_file._load_index())
     except Exception:  # numba's internals differ: not worth failing a start for
         return True
 
@@ -163,16 +163,25 @@ def _compile_first_frame() -> None:
 
 
 def compile_search() -> None:
-    """Compile (or load) the SSD search's kernels: the second process of a cold warm-up."""
+    """Compile (or load) the SSD search's kernels: the second process of a cold warm-up. The
+    default tracker's coarse-to-fine search (:func:`~vistrack.common.vision.pyramid.
+    track_pyramid`, with the single-level kernels it calls), with the types the tracker gives
+    it; the paper's ``track_ssd`` alone (``--paper``) compiles when first used."""
     import numpy as np
 
+    from ..common.params import TrackerParams
     from ..common.synthetic import sequence
-    from ..common.vision import track_ssd, window_weights
+    from ..common.vision import window_weights
+    from ..common.vision.pyramid import build_pyramid, track_pyramid
 
+    p = TrackerParams()
     first, second = sequence(2, size=(64, 64), seed=1)
-    points = np.array([[32, 32], [24, 40]])
-    track_ssd(first, second, points, points, corr_half=2, search_half=2,
-              weights=window_weights("uniform", 2), subpixel=True)
+    points = np.array([[32.0, 32.0], [24.0, 40.0]])
+    track_pyramid(build_pyramid(first, p.levels), build_pyramid(second, p.levels), points,
+                  points + 1.0, corr_half=2, search_half=2, weights=window_weights(p.weights, 2),
+                  subpixel=p.subpixel, search=p.search, uniqueness=p.uniqueness,
+                  allowance=1.0, reject_border=p.reject_border, guided_retry=p.guided_retry,
+                  max_fb_error=p.max_fb_error, consensus=p.consensus, wide_half=p.refine_half)
 
 
 def say_on_stderr(command: str, stream: TextIO | None = None) -> Callable[[str], None]:

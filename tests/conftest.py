@@ -43,3 +43,16 @@ def free_port_module() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def rubberwhale():
+    """The Middlebury RubberWhale folder of the shared data; the test skips, saying where the
+    data is looked for, when it is absent."""
+    from vistrack.common import groundtruth
+
+    folder = groundtruth.middlebury("RubberWhale")
+    if folder is None:
+        pytest.skip("Middlebury RubberWhale not found: set VISTRACK_DATA or put the shared "
+                    "data at ../shared/data")
+    return folder

@@ -13,20 +13,11 @@ import numpy as np
 import pytest
 import zenoh
 
-from vistrack.common import groundtruth, synthetic
+from vistrack.common import synthetic
 
 from procs import Collector, router, service, services, zenoh_config
 
 pytestmark = pytest.mark.integration
-
-
-@pytest.fixture(scope="module")
-def rubberwhale():
-    folder = groundtruth.middlebury("RubberWhale")
-    if folder is None:
-        pytest.skip("Middlebury RubberWhale not found: set VISTRACK_DATA or put the shared "
-                    "data at ../shared/data")
-    return folder
 
 
 def test_every_estimate_equals_vistrack_track(rubberwhale, free_port):

@@ -25,7 +25,6 @@ import pytest
 import zenoh
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from vistrack.common import groundtruth
 from vistrack.common import ros2types as r2
 from vistrack.common.bus import query_status
 from vistrack.common.keys import Keys
@@ -115,15 +114,6 @@ def wait_for(condition, timeout=30.0, what="condition"):
 
 def service_status(session: zenoh.Session, name: str) -> dict:
     return next((s for s in query_status(session, Keys()) if s["service"] == name), {})
-
-
-@pytest.fixture(scope="module")
-def rubberwhale():
-    folder = groundtruth.middlebury("RubberWhale")
-    if folder is None:
-        pytest.skip("Middlebury RubberWhale not found: set VISTRACK_DATA or put the shared "
-                    "data at ../shared/data")
-    return folder
 
 
 #: The two ways in of a ROS 2 camera: the camera service's ros2: source, or preprocessing's

@@ -13,7 +13,6 @@ import cv2
 import numpy as np
 import pytest
 
-from vistrack.common import groundtruth
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker, to_gray
 
@@ -21,15 +20,6 @@ from vistrack.common.vision import Tracker, to_gray
 def vistrack(*args, check=False):
     return subprocess.run([sys.executable, "-m", "vistrack.services.cli", *args],
                           capture_output=True, text=True, timeout=120, check=check)
-
-
-@pytest.fixture(scope="module")
-def rubberwhale():
-    folder = groundtruth.middlebury("RubberWhale")
-    if folder is None:
-        pytest.skip("Middlebury RubberWhale not found: set VISTRACK_DATA or put the shared "
-                    "data at ../shared/data")
-    return folder
 
 
 def test_jsonl_equals_the_library(rubberwhale):

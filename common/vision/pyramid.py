@@ -41,11 +41,9 @@ With one level, no test and no retry this is the paper's single-level search, ex
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numba as nb
 import numpy as np
-from numba.typed import List
 
 from ..params import SEARCH_KINDS
 from .ssd import (
@@ -81,18 +79,19 @@ NOISE_GAIN = (70.0 / 256.0) ** 2
 
 @dataclass(frozen=True, eq=False)
 class Pyramid:
-    """A frame and its reductions.
+    """A frame and its reductions, in one flat buffer.
 
     Attributes
     ----------
-    images : numba typed List of (h_k, w_k) uint8 C-contiguous arrays, level 0 (the frame)
-        first. The kernels take the list as it is: a level is then a contiguous array, which
-        they never copy (a view into one shared buffer would be, by its type, of unknown
-        layout, and copied wherever a kernel flattens it).
+    data : (sum of h_k w_k,) uint8, C-contiguous: level 0 (the frame) first, then each
+        reduction, row after row. One buffer rather than a list of arrays: a numba typed List
+        is slow to pass to a kernel and to build, and slow to compile.
+    geo : (levels, 3) int64: offset in ``data``, height and width of each level.
     shapes : (height, width) of each level.
     """
 
-    images: Any
+    data: np.ndarray
+    geo: np.ndarray
     shapes: tuple[tuple[int, int], ...]
 
     @property
@@ -100,8 +99,9 @@ class Pyramid:
         return len(self.shapes)
 
     def level(self, k: int) -> np.ndarray:
-        """Level k, (h, w) uint8."""
-        return self.images[k]
+        """Level k, (h, w) uint8 (a view into :attr:`data`)."""
+        o, h, w = (int(v) for v in self.geo[k])
+        return self.data[o:o + h * w].reshape(h, w)
 
 
 def build_pyramid(frame: np.ndarray, levels: int) -> Pyramid:
@@ -117,20 +117,31 @@ def build_pyramid(frame: np.ndarray, levels: int) -> Pyramid:
     while len(shapes) < levels and min(shapes[-1]) >= 8:
         h, w = shapes[-1]
         shapes.append(((h + 1) // 2, (w + 1) // 2))
-    return Pyramid(_build(frame, len(shapes)), tuple(shapes))
+    geo = np.empty((len(shapes), 3), np.int64)
+    offset = 0
+    for k, (h, w) in enumerate(shapes):
+        geo[k] = offset, h, w
+        offset += h * w
+    data = np.empty(offset, np.uint8)
+    _build(frame, data, geo)
+    return Pyramid(data, geo, tuple(shapes))
 
 
 @nb.njit(cache=True, nogil=True)
-def _build(frame, levels):  # pragma: no cover - numba
-    out = List()
-    out.append(frame)
-    for _ in range(1, levels):
-        src = out[-1]
-        h, w = src.shape
-        dst = np.empty(((h + 1) // 2, (w + 1) // 2), np.uint8)
-        _reduce(src, dst)
-        out.append(dst)
-    return out
+def _level(data, geo, k):  # pragma: no cover - numba
+    """Level k of a pyramid's flat buffer, (h, w) C-contiguous (a view, no copy)."""
+    o = geo[k, 0]
+    return data[o:o + geo[k, 1] * geo[k, 2]].reshape((geo[k, 1], geo[k, 2]))
+
+
+@nb.njit(cache=True, nogil=True)
+def _build(frame, data, geo):  # pragma: no cover - numba
+    h, w = frame.shape
+    flat = frame.ravel()
+    for q in range(h * w):
+        data[q] = flat[q]
+    for k in range(1, geo.shape[0]):
+        _reduce(_level(data, geo, k - 1), _level(data, geo, k))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -227,11 +238,13 @@ def _descend(prev, curr, ax, ay, cx, cy, n, wts, uniform, steps,
 
 
 @nb.njit(cache=True, nogil=True)
-def _match(plevels, clevels, pts, preds, active, n, s, wts, exhaustive, ratio, allowance,
-           reject_border, subpixel, out_pos, out_ssd, out_status):  # pragma: no cover - numba
+def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, allowance,
+           reject_border, subpixel, scratch, seen, out_pos, out_ssd,
+           out_status):  # pragma: no cover - numba
     """Steps 1 and 2 of the module notes for the ``active`` features at ``pts`` (float x, y)
     predicted at ``preds``: their position ``out_pos`` in frame t+1, S of Eq. (1) at its
-    nearest pixel ``out_ssd`` and ``out_status`` (OK, or why not found).
+    nearest pixel ``out_ssd`` and ``out_status`` (OK, or why not found). ``pdata``,
+    ``cdata``, ``geo``: the pyramids of frames t and t+1 (:class:`Pyramid`).
 
     A feature's match is carried as the displacement of its template: at its start level k
     the integer one of the search, d_k = q_k - round(p / 2^k). Refining at level j < k starts
@@ -239,10 +252,9 @@ def _match(plevels, clevels, pts, preds, active, n, s, wts, exhaustive, ratio, a
     p / 2^j), which gives sub-pixel displacements (Bouguet's scheme), falling back to the
     integer descent (:func:`_descend`) where it cannot run; without, by the descent.
     """
-    levels = len(plevels)
+    levels = geo.shape[0]
     n_feat = pts.shape[0]
     uniform, _, _ = _weights_info(wts)
-    scratch = _refine_scratch(wts)
     at = np.full(n_feat, -1, np.int64)  # the level of the feature's match; -1 none yet
     disp = np.zeros((n_feat, 2), np.float64)  # its displacement there
     pending = active.copy()
@@ -257,12 +269,13 @@ def _match(plevels, clevels, pts, preds, active, n, s, wts, exhaustive, ratio, a
     lq = np.zeros((n_feat, 2), np.int64)
     lssd = np.empty(n_feat, np.float64)
     lstatus = np.empty(n_feat, np.int8)
-    seen = np.empty((2 * DESCENT_STEPS + 3, 2 * DESCENT_STEPS + 3), np.int64)
     for k in range(levels - 1, -1, -1):
-        prev = plevels[k]
-        curr = clevels[k]
+        prev = _level(pdata, geo, k)
+        curr = _level(cdata, geo, k)
         scale = 2.0 ** k
+        starting = 0
         for f in range(n_feat):
+            starting += pending[f]
             for c in range(2):
                 anchors[f, c] = int(np.rint(pts[f, c] / scale))
                 centers[f, c] = int(np.rint(preds[f, c] / scale))
@@ -297,6 +310,8 @@ def _match(plevels, clevels, pts, preds, active, n, s, wts, exhaustive, ratio, a
                 disp[f, 0] = x - ax
                 disp[f, 1] = y - ay
             at[f] = k
+        if starting == 0:
+            continue
         # start the features not matched yet; a failed start starts again a level finer.
         # Each reduction averages the noise: its variance shrinks by NOISE_GAIN a level
         _search_level(prev, curr, anchors, centers, pending, n, s, wts, exhaustive, ratio,
@@ -322,8 +337,8 @@ def _match(plevels, clevels, pts, preds, active, n, s, wts, exhaustive, ratio, a
             disp[f, 1] = y - anchors[f, 1]
             at[f] = k
     # positions, and S of Eq. (1) at the nearest pixel (the residual test)
-    prev = plevels[0]
-    curr = clevels[0]
+    prev = _level(pdata, geo, 0)
+    curr = _level(cdata, geo, 0)
     h, w = prev.shape
     pf = prev.ravel()
     cf = curr.ravel()
@@ -344,7 +359,7 @@ def _match(plevels, clevels, pts, preds, active, n, s, wts, exhaustive, ratio, a
 
 
 @nb.njit(cache=True, nogil=True)
-def _track_frame(plevels, clevels, pts, preds, n, s, wts, exhaustive, ratio, allowance,
+def _track_frame(pdata, cdata, geo, pts, preds, n, s, wts, exhaustive, ratio, allowance,
                  reject_border, guided_retry, fb_bound, consensus, subpixel, wide, out_pos,
                  out_ssd, out_status):  # pragma: no cover - numba
     """The whole of :func:`track_pyramid` (steps 1 to 6 of the module notes)."""
@@ -356,9 +371,12 @@ def _track_frame(plevels, clevels, pts, preds, n, s, wts, exhaustive, ratio, all
         out_status[f] = LEFT
     if n_feat == 0:
         return
+    uniform, _, _ = _weights_info(wts)
+    scratch = _refine_scratch(wts)
+    seen = np.empty((2 * DESCENT_STEPS + 3, 2 * DESCENT_STEPS + 3), np.int64)
     active = np.ones(n_feat, np.bool_)
-    _match(plevels, clevels, pts, preds, active, n, s, wts, exhaustive, ratio, allowance,
-           reject_border, subpixel, out_pos, out_ssd, out_status)
+    _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, allowance,
+           reject_border, subpixel, scratch, seen, out_pos, out_ssd, out_status)
     offset = preds - pts  # each feature's predicted displacement
     # 3. guided retry around the frame's dominant motion
     found = 0
@@ -385,8 +403,8 @@ def _track_frame(plevels, clevels, pts, preds, n, s, wts, exhaustive, ratio, all
         pos2 = np.empty((n_feat, 2), np.float64)
         ssd2 = np.empty(n_feat, np.float64)
         st2 = np.empty(n_feat, np.int8)
-        _match(plevels, clevels, pts, guided, retry, n, s, wts, exhaustive, ratio, allowance,
-               reject_border, subpixel, pos2, ssd2, st2)
+        _match(pdata, cdata, geo, pts, guided, retry, n, s, wts, exhaustive, ratio, allowance,
+               reject_border, subpixel, scratch, seen, pos2, ssd2, st2)
         for f in range(n_feat):
             if retry[f]:
                 out_status[f] = st2[f]
@@ -395,7 +413,12 @@ def _track_frame(plevels, clevels, pts, preds, n, s, wts, exhaustive, ratio, all
                 out_pos[f, 1] = pos2[f, 1]
                 offset[f, 0] = gx
                 offset[f, 1] = gy
-    # 4. forward-backward check: back from frame t+1 to frame t, the prediction mirrored
+    prev = _level(pdata, geo, 0)
+    curr = _level(cdata, geo, 0)
+    # 4. forward-backward check: back from frame t+1 to frame t, the prediction mirrored.
+    # The search back is held to the forward one's tests but uniqueness: the match's own
+    # patch was unique in frame t, and the test cost a third of the way back without
+    # changing the scoreboard (measured)
     if fb_bound > 0.0:
         check = np.empty(n_feat, np.bool_)
         back = np.zeros((n_feat, 2), np.float64)
@@ -408,9 +431,8 @@ def _track_frame(plevels, clevels, pts, preds, n, s, wts, exhaustive, ratio, all
             posb = np.empty((n_feat, 2), np.float64)
             ssdb = np.empty(n_feat, np.float64)
             stb = np.empty(n_feat, np.int8)
-            # the search back is held to the same tests as the forward one
-            _match(clevels, plevels, back, back - offset, check, n, s, wts, exhaustive, ratio,
-                   allowance, reject_border, subpixel, posb, ssdb, stb)
+            _match(cdata, pdata, geo, back, back - offset, check, n, s, wts, exhaustive, 0.0,
+                   allowance, reject_border, subpixel, scratch, seen, posb, ssdb, stb)
             for f in range(n_feat):
                 if not check[f]:
                     continue
@@ -430,7 +452,7 @@ def _track_frame(plevels, clevels, pts, preds, n, s, wts, exhaustive, ratio, all
             out_pos[f, 1] = np.nan
             out_ssd[f] = np.inf
     if subpixel and wide > n:
-        _widen(plevels[0], clevels[0], pts, wide, ok, out_pos)
+        _widen(prev, curr, pts, wide, ok, out_pos)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -479,29 +501,41 @@ def _consensus(pts, pos, status, bound):  # pragma: no cover - numba
     vx = np.empty(NEIGHBOURS, np.float64)
     vy = np.empty(NEIGHBOURS, np.float64)
     dev = np.empty(NEIGHBOURS, np.float64)
-    for a in range(c):
-        # the NEIGHBOURS nearest, kept sorted by insertion
+    # the NEIGHBOURS nearest of each, by (squared distance, index): scanned outwards in the
+    # order of x until x alone is farther than the farthest kept (c log c + c k, not c^2)
+    order = np.argsort(xs)
+    for i in range(c):
+        a = order[i]
         near_d[:] = np.inf
-        for b in range(c):
-            if b == a:
-                continue
-            d = (xs[b] - xs[a]) ** 2 + (ys[b] - ys[a]) ** 2
-            if d >= near_d[NEIGHBOURS - 1]:
-                continue
-            j = NEIGHBOURS - 1
-            while j > 0 and near_d[j - 1] > d:
-                near_d[j] = near_d[j - 1]
-                near_i[j] = near_i[j - 1]
-                j -= 1
-            near_d[j] = d
-            near_i[j] = b
-        for j in range(NEIGHBOURS):
-            vx[j] = dxs[near_i[j]]
-            vy[j] = dys[near_i[j]]
+        near_i[:] = c
+        for side in range(2):
+            step = 1 if side else -1
+            j = i + step
+            while 0 <= j < c:
+                b = order[j]
+                j += step
+                ex = xs[b] - xs[a]
+                if ex * ex > near_d[NEIGHBOURS - 1]:
+                    break
+                d = ex * ex + (ys[b] - ys[a]) ** 2
+                if d > near_d[NEIGHBOURS - 1] or (d == near_d[NEIGHBOURS - 1]
+                                                  and b > near_i[NEIGHBOURS - 1]):
+                    continue
+                t = NEIGHBOURS - 1
+                while t > 0 and (near_d[t - 1] > d or (near_d[t - 1] == d
+                                                       and near_i[t - 1] > b)):
+                    near_d[t] = near_d[t - 1]
+                    near_i[t] = near_i[t - 1]
+                    t -= 1
+                near_d[t] = d
+                near_i[t] = b
+        for t in range(NEIGHBOURS):
+            vx[t] = dxs[near_i[t]]
+            vy[t] = dys[near_i[t]]
         mx = _median_small(vx)
         my = _median_small(vy)
-        for j in range(NEIGHBOURS):
-            dev[j] = np.hypot(dxs[near_i[j]] - mx, dys[near_i[j]] - my)
+        for t in range(NEIGHBOURS):
+            dev[t] = np.hypot(dxs[near_i[t]] - mx, dys[near_i[t]] - my)
         spread = 1.4826 * _median_small(dev)
         reject[a] = np.hypot(dxs[a] - mx, dys[a] - my) > max(bound, 3.0 * spread)
     for a in range(c):
@@ -598,7 +632,7 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
     pos = np.empty((n_feat, 2), np.float64)
     ssd = np.empty(n_feat, np.float64)
     status = np.empty(n_feat, np.int8)
-    _track_frame(prev.images, curr.images, pts, preds, int(corr_half),
+    _track_frame(prev.data, curr.data, prev.geo, pts, preds, int(corr_half),
                  int(search_half), np.ascontiguousarray(weights, np.int32),
                  search == "exhaustive", float(uniqueness), float(allowance),
                  bool(reject_border), bool(guided_retry), float(max_fb_error),

@@ -255,10 +255,12 @@ def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, 
     levels = geo.shape[0]
     n_feat = pts.shape[0]
     uniform, _, _ = _weights_info(wts)
-    at = np.full(n_feat, -1, np.int64)  # the level of the feature's match; -1 none yet
+    at = np.empty(n_feat, np.int64)  # the level of the feature's match; -1 none yet
     disp = np.zeros((n_feat, 2), np.float64)  # its displacement there
-    pending = active.copy()
+    pending = np.empty(n_feat, np.bool_)
     for f in range(n_feat):
+        at[f] = -1
+        pending[f] = active[f]
         if active[f]:
             out_status[f] = LEFT
             out_ssd[f] = np.inf
@@ -377,15 +379,21 @@ def _track_frame(pdata, cdata, geo, pts, preds, n, s, wts, exhaustive, ratio, al
     active = np.ones(n_feat, np.bool_)
     _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, allowance,
            reject_border, subpixel, scratch, seen, out_pos, out_ssd, out_status)
-    offset = preds - pts  # each feature's predicted displacement
+    # each feature's predicted displacement (loops rather than array expressions here and
+    # below: each of those compiles into a kernel of its own)
+    offset = np.empty((n_feat, 2), np.float64)
     # 3. guided retry around the frame's dominant motion
     found = 0
+    retries = 0
     retry = np.zeros(n_feat, np.bool_)
     for f in range(n_feat):
+        offset[f, 0] = preds[f, 0] - pts[f, 0]
+        offset[f, 1] = preds[f, 1] - pts[f, 1]
         st = out_status[f]
         found += st == OK
         retry[f] = st == CUT or st == BORDER or st == AMBIGUOUS or st == RUNAWAY
-    if guided_retry and found >= MIN_GUIDES and retry.any():
+        retries += retry[f]
+    if guided_retry and found >= MIN_GUIDES and retries > 0:
         dx = np.empty(found, np.float64)
         dy = np.empty(found, np.float64)
         c = 0
@@ -394,12 +402,12 @@ def _track_frame(pdata, cdata, geo, pts, preds, n, s, wts, exhaustive, ratio, al
                 dx[c] = out_pos[f, 0] - pts[f, 0]
                 dy[c] = out_pos[f, 1] - pts[f, 1]
                 c += 1
-        gx = np.median(dx)
-        gy = np.median(dy)
-        guided = pts.copy()
+        gx = _median_small(dx)
+        gy = _median_small(dy)
+        guided = np.empty((n_feat, 2), np.float64)
         for f in range(n_feat):
-            guided[f, 0] += gx
-            guided[f, 1] += gy
+            guided[f, 0] = pts[f, 0] + gx
+            guided[f, 1] = pts[f, 1] + gy
         pos2 = np.empty((n_feat, 2), np.float64)
         ssd2 = np.empty(n_feat, np.float64)
         st2 = np.empty(n_feat, np.int8)
@@ -422,16 +430,20 @@ def _track_frame(pdata, cdata, geo, pts, preds, n, s, wts, exhaustive, ratio, al
     if fb_bound > 0.0:
         check = np.empty(n_feat, np.bool_)
         back = np.zeros((n_feat, 2), np.float64)
+        mirrored = np.zeros((n_feat, 2), np.float64)
+        checks = 0
         for f in range(n_feat):
             check[f] = out_status[f] == OK
             if check[f]:
-                back[f, 0] = out_pos[f, 0]
-                back[f, 1] = out_pos[f, 1]
-        if check.any():
+                checks += 1
+                for c in range(2):
+                    back[f, c] = out_pos[f, c]
+                    mirrored[f, c] = out_pos[f, c] - offset[f, c]
+        if checks > 0:
             posb = np.empty((n_feat, 2), np.float64)
             ssdb = np.empty(n_feat, np.float64)
             stb = np.empty(n_feat, np.int8)
-            _match(cdata, pdata, geo, back, back - offset, check, n, s, wts, exhaustive, 0.0,
+            _match(cdata, pdata, geo, back, mirrored, check, n, s, wts, exhaustive, 0.0,
                    allowance, reject_border, subpixel, scratch, seen, posb, ssdb, stb)
             for f in range(n_feat):
                 if not check[f]:
@@ -503,7 +515,7 @@ def _consensus(pts, pos, status, bound):  # pragma: no cover - numba
     dev = np.empty(NEIGHBOURS, np.float64)
     # the NEIGHBOURS nearest of each, by (squared distance, index): scanned outwards in the
     # order of x until x alone is farther than the farthest kept (c log c + c k, not c^2)
-    order = np.argsort(xs)
+    order = _order_by(xs)
     for i in range(c):
         a = order[i]
         near_d[:] = np.inf
@@ -545,18 +557,46 @@ def _consensus(pts, pos, status, bound):  # pragma: no cover - numba
 
 @nb.njit(cache=True, nogil=True)
 def _median_small(v):  # pragma: no cover - numba
-    """The median of a few values, sorting ``v`` in place (insertion sort: no allocation)."""
+    """The median of ``v``, sorting it in place (a Shell sort: no allocation, and for the
+    few values of a neighbourhood an insertion sort)."""
     n = v.shape[0]
-    for i in range(1, n):
-        x = v[i]
-        j = i
-        while j > 0 and v[j - 1] > x:
-            v[j] = v[j - 1]
-            j -= 1
-        v[j] = x
+    gap = 1
+    while gap < n // 3:
+        gap = 3 * gap + 1
+    while gap > 0:
+        for i in range(gap, n):
+            x = v[i]
+            j = i
+            while j >= gap and v[j - gap] > x:
+                v[j] = v[j - gap]
+                j -= gap
+            v[j] = x
+        gap //= 3
     if n % 2:
         return v[n // 2]
     return 0.5 * (v[n // 2 - 1] + v[n // 2])
+
+
+@nb.njit(cache=True, nogil=True)
+def _order_by(keys):  # pragma: no cover - numba
+    """The indices that sort ``keys`` (ties in any order): a Shell sort, a few lines that
+    compile in a fraction of the time of ``np.argsort``."""
+    n = keys.shape[0]
+    order = np.arange(n)
+    gap = 1
+    while gap < n // 3:
+        gap = 3 * gap + 1
+    while gap > 0:
+        for i in range(gap, n):
+            o = order[i]
+            k = keys[o]
+            j = i
+            while j >= gap and keys[order[j - gap]] > k:
+                order[j] = order[j - gap]
+                j -= gap
+            order[j] = o
+        gap //= 3
+    return order
 
 
 @nb.njit(cache=True, nogil=True)

@@ -546,10 +546,17 @@ def _consensus(pts, pos, status, bound):  # pragma: no cover - numba
             vy[t] = dys[near_i[t]]
         mx = _median_small(vx)
         my = _median_small(vy)
+        # the median of the deviations from their squares (a monotonic map: no square root
+        # but for the middle ones)
         for t in range(NEIGHBOURS):
-            dev[t] = np.hypot(dxs[near_i[t]] - mx, dys[near_i[t]] - my)
-        spread = 1.4826 * _median_small(dev)
-        reject[a] = np.hypot(dxs[a] - mx, dys[a] - my) > max(bound, 3.0 * spread)
+            dev[t] = (dxs[near_i[t]] - mx) ** 2 + (dys[near_i[t]] - my) ** 2
+        _median_small(dev)
+        if NEIGHBOURS % 2:
+            mid = np.sqrt(dev[NEIGHBOURS // 2])
+        else:
+            mid = 0.5 * (np.sqrt(dev[NEIGHBOURS // 2 - 1]) + np.sqrt(dev[NEIGHBOURS // 2]))
+        lim = max(bound, 3.0 * 1.4826 * mid)
+        reject[a] = (dxs[a] - mx) ** 2 + (dys[a] - my) ** 2 > lim * lim
     for a in range(c):
         if reject[a]:
             status[idx[a]] = DISAGREES

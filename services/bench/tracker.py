@@ -6,7 +6,8 @@ doing the same search; ``cv2.calcOpticalFlowPyrLK`` (winSize 9, maxLevel 0 and 2
 defaults: winSize 21, maxLevel 3); our search at the reference windows (50, 30); the paper's
 exhaustive search at (15, 9) and (50, 30); the default tracker's SSD tracking (the
 coarse-to-fine search with its checks and sub-pixel refinement, given both frames' pyramids),
-the pyramid it builds once a frame, and the same search without its checks; and our whole
+the pyramid it builds once a frame, the same search without its checks, and the tracker
+without each of its costliest steps in turn (what that step costs); and our whole
 frame (pre-processing + tracking + estimate). It prints time per frame, the ratios, and the
 median end-point error of ours (default parameters) and of LK against the Middlebury ground
 truth.
@@ -143,12 +144,14 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
     allowance = 2.0 * params.noise_sigma ** 2 * float(window_weights(params.weights,
                                                                      params.corr_half).sum())
 
-    def default_tracker(checks: bool = True) -> Callable[[], None]:
-        """The default tracker's SSD tracking (:meth:`Tracker._track`), pyramids given."""
+    def default_tracker(checks: bool = True, **without: object) -> Callable[[], None]:
+        """The default tracker's SSD tracking (:meth:`Tracker._track`), pyramids given;
+        ``without``: parameters that turn one of its steps off."""
         p = params if checks else params.replace(uniqueness=0.0, max_fb_error=0.0,
                                                  consensus=0.0, reject_border=False,
                                                  guided_retry=False, subpixel=False,
                                                  refine_size=0)
+        p = p.replace(**without)
         wts = window_weights(p.weights, p.corr_half)
 
         def run() -> None:
@@ -193,6 +196,11 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
         "lk_default": _best_of(lk(3, 21)) / k * 1e6,
         "default_ssd": _best_of(default_tracker()) / k * 1e6,
         "default_ssd_no_checks": _best_of(default_tracker(False)) / k * 1e6,
+        # what each step of the default tracker costs: the tracker without it
+        "default_ssd_no_fb": _best_of(default_tracker(max_fb_error=0.0)) / k * 1e6,
+        "default_ssd_no_wide": _best_of(default_tracker(refine_size=0)) / k * 1e6,
+        "default_ssd_no_consensus": _best_of(default_tracker(consensus=0.0)) / k * 1e6,
+        "default_ssd_no_uniqueness": _best_of(default_tracker(uniqueness=0.0)) / k * 1e6,
         "pyramid_build": _best_of(pyramid) / k * 1e6,
         "ssd_50_30": _best_of(ssd_at(50, 30), repeats=3) / k * 1e6,
         "ssd_15_9_exhaustive": _best_of(ssd_at(15, 9, kind="exhaustive")) / k * 1e6,
@@ -212,6 +220,10 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
               ("lk_default", "cv2.calcOpticalFlowPyrLK defaults (21, 3)"),
               ("default_ssd", "ours default tracker: SSD tracking"),
               ("default_ssd_no_checks", "  its search alone (no checks, integer)"),
+              ("default_ssd_no_fb", "  without the forward-backward check"),
+              ("default_ssd_no_wide", "  without the wide sub-pixel window"),
+              ("default_ssd_no_consensus", "  without the consensus"),
+              ("default_ssd_no_uniqueness", "  without the uniqueness test"),
               ("pyramid_build", "  + its pyramid, built once a frame"),
               ("ssd_50_30", "ours SSD reference (50, 30)"),
               ("ssd_15_9_exhaustive", "ours SSD (15, 9), exhaustive search"),

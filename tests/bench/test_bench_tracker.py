@@ -21,6 +21,8 @@ def test_bench_tracker(capsys):
     with capsys.disabled():
         print("\n" + buf.getvalue())
     for key in ("ssd_15_9", "matchtemplate_15_9", "lk_level0", "lk_level2", "lk_default",
-                "default_ssd", "default_ssd_no_checks", "pyramid_build", "ssd_50_30",
-                "ssd_15_9_exhaustive", "ssd_50_30_exhaustive", "whole_frame"):
+                "default_ssd", "default_ssd_no_checks", "default_ssd_no_fb",
+                "default_ssd_no_wide", "default_ssd_no_consensus", "default_ssd_no_uniqueness",
+                "pyramid_build", "ssd_50_30", "ssd_15_9_exhaustive", "ssd_50_30_exhaustive",
+                "whole_frame"):
         assert math.isfinite(fig[key]) and fig[key] > 0

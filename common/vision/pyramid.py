@@ -25,12 +25,13 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
    searched again around the frame's dominant motion (the median displacement of the features
    found), with the same tests;
 4. **forward-backward check** (Kalal, Mikolajczyk and Matas 2010): every match is tracked
-   back from frame t+1 to frame t the same way, its prediction mirrored, with the start's tests
-   but uniqueness (the forward search found the feature's patch unique; on the way back the
-   test cost a third of the check and changed nothing on the scoreboard); it is rejected when
-   it does not return to within ``max_fb_error`` px of where it started. The way back needs
-   its coarse search: a refinement from the start alone returns there even from a lookalike
-   23 px away (tried, and the occlusion tests failed);
+   back from frame t+1 to frame t the same way, its prediction mirrored, held to the same
+   tests; it is rejected when it does not return to within ``max_fb_error`` px of where it
+   started. The way back needs its coarse search and its tests: a refinement from the start
+   alone returns there even from a lookalike 23 px away (tried: the occlusion tests failed),
+   and without the uniqueness test a start on repetitive texture is taken at the coarse level
+   rather than searched again a level finer, which rejected up to 6 % more good matches
+   (tried: a known shift of a real image kept 79 of 100 features, against 84);
 5. **consensus**: a match whose displacement departs from the median of its nearest
    neighbours' by more than ``consensus`` px (and more than their own spread) is rejected: a
    lookalike taken for the feature, which the other tests miss when the two match each other
@@ -435,10 +436,8 @@ def _track_frame(pdata, cdata, geo, pts, preds, n, s, wts, exhaustive, ratio, al
                 offset[f, 1] = gy
     prev = _level(pdata, geo, 0)
     curr = _level(cdata, geo, 0)
-    # 4. forward-backward check: back from frame t+1 to frame t, the prediction mirrored.
-    # The search back is held to the forward one's tests but uniqueness: the match's own
-    # patch was unique in frame t, and the test cost a third of the way back without
-    # changing the scoreboard (measured)
+    # 4. forward-backward check: back from frame t+1 to frame t, the prediction mirrored,
+    # held to the same tests as the forward search
     if fb_bound > 0.0:
         check = np.empty(n_feat, np.bool_)
         back = np.zeros((n_feat, 2), np.float64)
@@ -455,7 +454,7 @@ def _track_frame(pdata, cdata, geo, pts, preds, n, s, wts, exhaustive, ratio, al
             posb = np.empty((n_feat, 2), np.float64)
             ssdb = np.empty(n_feat, np.float64)
             stb = np.empty(n_feat, np.int8)
-            _match(cdata, pdata, geo, back, mirrored, check, n, s, wts, exhaustive, 0.0,
+            _match(cdata, pdata, geo, back, mirrored, check, n, s, wts, exhaustive, ratio,
                    allowance, reject_border, subpixel, scratch, seen, posb, ssdb, stb)
             for f in range(n_feat):
                 if not check[f]:

@@ -76,6 +76,7 @@ from .ssd import (
     _search_level,
     _ssd_at,
     _weights_info,
+    refine_acc,
 )
 
 #: most moves of a refinement descent at one level (the doubled match of the level above is
@@ -375,9 +376,10 @@ def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, 
 
 @nb.njit(cache=True, nogil=True)
 def _track_frame(pdata, cdata, geo, pts, preds, n, s, wts, exhaustive, ratio, allowance,
-                 reject_border, guided_retry, fb_bound, consensus, subpixel, wide, out_pos,
-                 out_ssd, out_status):  # pragma: no cover - numba
-    """The whole of :func:`track_pyramid` (steps 1 to 6 of the module notes)."""
+                 reject_border, guided_retry, fb_bound, consensus, subpixel, wide, acc,
+                 out_pos, out_ssd, out_status):  # pragma: no cover - numba
+    """The whole of :func:`track_pyramid` (steps 1 to 6 of the module notes); ``acc``: the
+    integer type of the sub-pixel sums (:func:`.ssd.refine_acc`)."""
     n_feat = pts.shape[0]
     for f in range(n_feat):
         out_pos[f, 0] = np.nan
@@ -387,7 +389,7 @@ def _track_frame(pdata, cdata, geo, pts, preds, n, s, wts, exhaustive, ratio, al
     if n_feat == 0:
         return
     uniform, _, _ = _weights_info(wts)
-    scratch = _refine_scratch(wts)
+    scratch = _refine_scratch(wts, acc)
     seen = np.empty((2 * DESCENT_STEPS + 3, 2 * DESCENT_STEPS + 3), np.int64)
     active = np.ones(n_feat, np.bool_)
     _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, allowance,
@@ -475,7 +477,7 @@ def _track_frame(pdata, cdata, geo, pts, preds, n, s, wts, exhaustive, ratio, al
             out_pos[f, 1] = np.nan
             out_ssd[f] = np.inf
     if subpixel and wide > n:
-        _widen(prev, curr, pts, wide, ok, out_pos)
+        _widen(prev, curr, pts, wide, acc, ok, out_pos)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -618,12 +620,12 @@ def _order_by(keys):  # pragma: no cover - numba
 
 
 @nb.njit(cache=True, nogil=True)
-def _widen(prev, curr, pts, wide, ok, out_pos):  # pragma: no cover - numba
+def _widen(prev, curr, pts, wide, acc, ok, out_pos):  # pragma: no cover - numba
     """The wide window's estimate (:func:`.ssd._refine` over (2 wide + 1)^2, uniform weights)
     from the correlation window's, taken where the two agree to within AGREE_PX: there the
     neighbourhood moves as one and more pixels make it more precise; near a motion boundary
     the wide window straddles two motions and the correlation window's estimate is kept."""
-    scratch = _refine_scratch(np.ones((2 * wide + 1, 2 * wide + 1), np.int32))
+    scratch = _refine_scratch(np.ones((2 * wide + 1, 2 * wide + 1), np.int32), acc)
     for f in range(pts.shape[0]):
         if not ok[f]:
             continue
@@ -690,10 +692,12 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
     pos = np.empty((n_feat, 2), np.float64)
     ssd = np.empty(n_feat, np.float64)
     status = np.empty(n_feat, np.int8)
-    _track_frame(prev.data, curr.data, prev.geo, pts, preds, int(corr_half),
-                 int(search_half), np.ascontiguousarray(weights, np.int32),
-                 search == "exhaustive", float(uniqueness), float(allowance),
+    wts = np.ascontiguousarray(weights, np.int32)
+    # the sub-pixel sums' type, for the correlation window and the wide one
+    acc = refine_acc(wts, np.ones((2 * wide_half + 1,) * 2, np.int32) if subpixel
+                     and wide_half > corr_half else wts)
+    _track_frame(prev.data, curr.data, prev.geo, pts, preds, int(corr_half), int(search_half),
+                 wts, search == "exhaustive", float(uniqueness), float(allowance),
                  bool(reject_border), bool(guided_retry), float(max_fb_error),
-                 float(consensus), bool(subpixel), int(wide_half), pos,
-                 ssd, status)
+                 float(consensus), bool(subpixel), int(wide_half), acc, pos, ssd, status)
     return pos, ssd, status

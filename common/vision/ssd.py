@@ -639,7 +639,7 @@ def _search_level(prev, curr, anchors, centers, active, n, s, wts, exhaustive, r
 
 
 @nb.njit(cache=True, nogil=True)
-def _track(prev, curr, anchors, centers, n, s, wts, subpixel, exhaustive,
+def _track(prev, curr, anchors, centers, n, s, wts, subpixel, exhaustive, acc,
            out_pos, out_ssd, out_ok):  # pragma: no cover - numba
     """The searches of :func:`track_ssd` (:func:`_search_level` over every feature, no
     uniqueness test), results into ``out_pos``, ``out_ssd``, ``out_ok``."""
@@ -660,7 +660,7 @@ def _track(prev, curr, anchors, centers, n, s, wts, subpixel, exhaustive,
         # a pass of its own after all the searches: interleaved with them it ran ~1.5x slower
         # (caches and branch predictors shared with the search code)
         uniform, _, _ = _weights_info(wts)
-        _subpixel(prev, curr, anchors, n, wts, uniform, out_pos, out_ssd, out_ok)
+        _subpixel(prev, curr, anchors, n, wts, uniform, acc, out_pos, out_ssd, out_ok)
 
 
 #: the sub-pixel estimate of the wide window is taken where it agrees with the correlation
@@ -720,29 +720,37 @@ def _corners(gx, gy, cp, off, stride, acc):  # pragma: no cover - numba
 
 
 @nb.njit(cache=True, nogil=True)
-def _refine_scratch(wts):  # pragma: no cover - numba
+def _refine_scratch(wts, acc):  # pragma: no cover - numba
     """The weights of a (2h+1)^2 window in :func:`_refine`'s layout (rows R = m + 3 apart,
-    zero beyond the window, the length a multiple of VEC) and its scratch: (wpad, tp, cp, g32,
-    g64, narrow). ``narrow``: the sums fit int32 (twice the vector width) rather than int64."""
+    zero beyond the window, the length a multiple of VEC) and its scratch: (wpad, tp, cp, g),
+    ``g`` the two gradients in the integer type of ``acc`` (an empty array from
+    :func:`refine_acc`), in which :func:`_refine` sums."""
     m = wts.shape[0]
     stride = m + 3
     rsize = (m * stride + VEC - 1) // VEC * VEC
     wpad = np.zeros(rsize, np.int32)
-    wmax = 0
     for j in range(m):
         for i in range(m):
             wpad[j * stride + i] = wts[j, i]
-            wmax = max(wmax, abs(np.int64(wts[j, i])))
     tp = np.zeros(rsize + 3 * stride + 3, np.int32)
     cp = np.zeros(rsize + 3 * stride + 3, np.int32)
-    narrow = float(wmax) * _REFINE_TERM * m * m < 2.0**31
-    g32 = np.empty((2, rsize if narrow else 0), np.int32)
-    g64 = np.empty((2, 0 if narrow else rsize), np.int64)
-    return wpad, tp, cp, g32, g64, narrow
+    g = np.empty((2, rsize), acc.dtype)
+    return wpad, tp, cp, g
+
+
+def refine_acc(*windows: np.ndarray) -> np.ndarray:
+    """An empty array of the integer type in which :func:`_refine` sums over every one of the
+    weight ``windows``: int32 (twice the vector width) where no sum can overflow it, else
+    int64. Chosen here, before the kernels, so that they compile for that one type only."""
+    for wts in windows:
+        m = wts.shape[0]
+        if float(np.abs(wts).max(initial=0)) * _REFINE_TERM * m * m >= 2.0**31:
+            return np.empty(0, np.int64)
+    return np.empty(0, np.int32)
 
 
 @nb.njit(cache=True, nogil=True)
-def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, acc):  # pragma: no cover
+def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy):  # pragma: no cover
     """Minimise Eq. (1) over a continuous position of the window of the template centred at
     the pixel (ax, ay) of frame t, by Gauss-Newton from (x0, y0) in frame t+1.
 
@@ -767,9 +775,10 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, acc):  # pragma
     the tail carry zero weight), so that each sum is one long loop that LLVM vectorises.
     ``wpad``, ``tp``, ``cp``, ``gx``, ``gy``: from :func:`_refine_scratch` (``tp``: frame t
     around the window with a 1 px margin; ``cp``: frame t+1 around (x0, y0) with the margin the
-    estimate can use, within 1 px); ``acc``: the integer type of the sums, np.int32 where they
-    cannot overflow (twice the vector width) or np.int64.
+    estimate can use, within 1 px). The sums are in the integer type of ``gx``: int32 where they
+    cannot overflow (twice the vector width), else int64 (:func:`refine_acc`).
     """
+    acc = gx.dtype.type
     h, w = prev.shape
     m = 2 * n + 1
     stride = m + 3
@@ -859,11 +868,9 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, acc):  # pragma
 
 @nb.njit(cache=True, nogil=True)
 def _refine_with(prev, curr, ax, ay, x0, y0, n, scratch):  # pragma: no cover - numba
-    """:func:`_refine` with the scratch of :func:`_refine_scratch`, in int32 or int64."""
-    wpad, tp, cp, g32, g64, narrow = scratch
-    if narrow:
-        return _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g32[0], g32[1], np.int32)
-    return _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g64[0], g64[1], np.int64)
+    """:func:`_refine` with the scratch of :func:`_refine_scratch`."""
+    wpad, tp, cp, g = scratch
+    return _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g[0], g[1])
 
 
 @nb.njit(cache=True, nogil=True)
@@ -888,7 +895,7 @@ def _parabola(pf, cf, w, h, ax, ay, qx, qy, n, wts, uniform, best):  # pragma: n
 
 
 @nb.njit(cache=True, nogil=True)
-def _subpixel(prev, curr, anchors, n, wts, uniform, out_pos, out_ssd,
+def _subpixel(prev, curr, anchors, n, wts, uniform, acc, out_pos, out_ssd,
               out_ok):  # pragma: no cover - numba
     """Refine the integer minima in ``out_pos`` in place: Gauss-Newton (:func:`_refine`) from
     each, or a parabola per axis (:func:`_parabola`) where it cannot run (window at the
@@ -896,7 +903,7 @@ def _subpixel(prev, curr, anchors, n, wts, uniform, out_pos, out_ssd,
     h, w = prev.shape
     pf = prev.ravel()
     cf = curr.ravel()
-    scratch = _refine_scratch(wts)
+    scratch = _refine_scratch(wts, acc)
     for f in range(anchors.shape[0]):
         if not out_ok[f]:
             continue
@@ -961,7 +968,7 @@ def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: 
     ssd = np.empty(n_feat, np.float64)
     ok = np.empty(n_feat, np.bool_)
     _track(prev, curr, anchors, centers, int(corr_half), int(search_half), wts, bool(subpixel),
-           search == "exhaustive", pos, ssd, ok)
+           search == "exhaustive", refine_acc(wts), pos, ssd, ok)
     return pos, ssd, ok
 
 

@@ -542,7 +542,8 @@ def _consensus(pts, pos, status, bound):  # pragma: no cover - numba
                 ex = xs[b] - xs[a]
                 if ex * ex > near_d[NEIGHBOURS - 1]:
                     break
-                d = ex * ex + (ys[b] - ys[a]) ** 2
+                ey = ys[b] - ys[a]
+                d = ex * ex + ey * ey
                 if d > near_d[NEIGHBOURS - 1] or (d == near_d[NEIGHBOURS - 1]
                                                   and b > near_i[NEIGHBOURS - 1]):
                     continue
@@ -562,14 +563,18 @@ def _consensus(pts, pos, status, bound):  # pragma: no cover - numba
         # the median of the deviations from their squares (a monotonic map: no square root
         # but for the middle ones)
         for t in range(NEIGHBOURS):
-            dev[t] = (dxs[near_i[t]] - mx) ** 2 + (dys[near_i[t]] - my) ** 2
+            ex = dxs[near_i[t]] - mx
+            ey = dys[near_i[t]] - my
+            dev[t] = ex * ex + ey * ey
         _median_small(dev)
         if NEIGHBOURS % 2:
             mid = np.sqrt(dev[NEIGHBOURS // 2])
         else:
             mid = 0.5 * (np.sqrt(dev[NEIGHBOURS // 2 - 1]) + np.sqrt(dev[NEIGHBOURS // 2]))
         lim = max(bound, 3.0 * 1.4826 * mid)
-        reject[a] = (dxs[a] - mx) ** 2 + (dys[a] - my) ** 2 > lim * lim
+        ex = dxs[a] - mx
+        ey = dys[a] - my
+        reject[a] = ex * ex + ey * ey > lim * lim
     for a in range(c):
         if reject[a]:
             status[idx[a]] = DISAGREES

@@ -702,9 +702,14 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
     ssd = np.empty(n_feat, np.float64)
     status = np.empty(n_feat, np.int8)
     wts = np.ascontiguousarray(weights, np.int32)
-    # the sub-pixel sums' type, for the correlation window and the wide one
-    acc = refine_acc(wts, np.ones((2 * wide_half + 1,) * 2, np.int32) if subpixel
-                     and wide_half > corr_half else wts)
+    # the sub-pixel sums' type, for the correlation window and the wide one (without
+    # sub-pixel refinement none is summed: int32, the kernels' one specialisation)
+    if not subpixel:
+        acc = np.empty(0, np.int32)
+    elif wide_half > corr_half:
+        acc = refine_acc(wts, np.ones((2 * wide_half + 1,) * 2, np.int32))
+    else:
+        acc = refine_acc(wts)
     _track_frame(prev.data, curr.data, prev.geo, pts, preds, int(corr_half), int(search_half),
                  wts, search == "exhaustive", float(uniqueness), float(allowance),
                  bool(reject_border), bool(guided_retry), float(max_fb_error),

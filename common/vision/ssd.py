@@ -968,7 +968,8 @@ def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: 
     ssd = np.empty(n_feat, np.float64)
     ok = np.empty(n_feat, np.bool_)
     _track(prev, curr, anchors, centers, int(corr_half), int(search_half), wts, bool(subpixel),
-           search == "exhaustive", refine_acc(wts), pos, ssd, ok)
+           search == "exhaustive", refine_acc(wts) if subpixel else np.empty(0, np.int32), pos,
+           ssd, ok)
     return pos, ssd, ok
 
 

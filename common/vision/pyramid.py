@@ -47,12 +47,12 @@ A pyramid is one flat uint8 buffer with a table of its levels' offsets and shape
 of arrays was slow to pass to a kernel and slower to compile.
 
 Where the time goes (83 features a frame, 256x256, the steps added one by one, in units of the
-single-level (15, 9) search timed in the same rounds): the coarse-to-fine search alone 2.1, the
-uniqueness test +0.5, the guided retry +0.1, the forward-backward check +2.4 (a second
-coarse-to-fine search, with its tests), the consensus +0.3 and the wide window +0.7: 6.4 in all,
-against 7.0 before the changes that made these notes (same rounds, main's code). Five
-Gauss-Newton refinements a feature (two levels each way and the wide window), ~0.6 us each
-for the correlation window and ~1 us for the wide one, are about 40 % of the total.
+single-level (15, 9) search timed in the same rounds, under load): the coarse-to-fine search
+alone 2.2, sub-pixel refinement +0.1, the uniqueness test +0.5, the guided retry +0.2, the
+forward-backward check +2.6 (a second coarse-to-fine search, with its tests), the consensus +0.7
+and the wide window +0.9: 7.2 in all (main before the flat buffer: 7.25). Five Gauss-Newton
+refinements a feature (two levels each way and the wide window), ~0.6 us each for the
+correlation window and ~1 us for the wide one, are about 40 % of the total.
 """
 
 from __future__ import annotations

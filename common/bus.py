@@ -37,6 +37,7 @@ import collections
 import json
 import logging
 import os
+import queue
 import signal
 import threading
 import time
@@ -56,6 +57,7 @@ log = logging.getLogger(__name__)
 _N = TypeVar("_N", bound="Node")
 
 _monotonic = time.monotonic  # bound once: recv stamps every input with it
+_PUT = zenoh.SampleKind.PUT
 
 #: Reliable payloads a node queues before its Zenoh callback blocks (see ZenohNode).
 DEFAULT_CAPACITY = 1024
@@ -219,6 +221,10 @@ def check_connected(session: zenoh.Session, conf: zenoh.Config, timeout_s: float
 
 # -- status ------------------------------------------------------------------------------
 
+def _nothing() -> None:
+    return None
+
+
 class Status:
     """Thread-safe service counters, reported by the status queryable.
 
@@ -245,9 +251,9 @@ class Status:
     def __init__(self, window: int = 1000) -> None:
         self._lock = threading.Lock()
         self._times_ms: collections.deque[float] = collections.deque(maxlen=window)
-        self.received = 0
+        self._received = 0
         self.published = 0
-        self.dropped = 0
+        self._dropped = 0
         self.rejected = 0
         self.failed = 0
         self.last_error = ""
@@ -255,10 +261,29 @@ class Status:
         self.extra: dict[str, Any] = {}
         self.started = time.time()
         self._started_mono = time.monotonic()
+        # Takes in what has arrived but is not counted yet (set by the node: its arrivals
+        # are counted when the loop or a reader of these counters first looks at them).
+        self.absorb: Callable[[], object] = _nothing
+
+    @property
+    def received(self) -> int:
+        self.absorb()
+        return self._received
+
+    @property
+    def dropped(self) -> int:
+        self.absorb()
+        return self._dropped
 
     def count_received(self, n: int = 1) -> None:
         with self._lock:
-            self.received += n
+            self._received += n
+
+    def count_arrivals(self, received: int, dropped: int) -> None:
+        """Count a batch of arrivals (one lock for all of them)."""
+        with self._lock:
+            self._received += received
+            self._dropped += dropped
 
     def count_published(self, n: int = 1) -> None:
         with self._lock:
@@ -266,7 +291,7 @@ class Status:
 
     def count_dropped(self, n: int = 1) -> None:
         with self._lock:
-            self.dropped += n
+            self._dropped += n
 
     def reject(self, error: BaseException | str) -> None:
         """Count a bad input and remember why (logged by the caller)."""
@@ -310,11 +335,12 @@ class Status:
         (None before the first observation), samples (processing times in the window),
         params, extra, started.
         """
+        self.absorb()  # before the lock: it takes the node's, then this one
         with self._lock:
             times = np.fromiter(self._times_ms, dtype=float, count=len(self._times_ms))
             snap: dict[str, Any] = {
-                "received": self.received, "published": self.published,
-                "dropped": self.dropped, "rejected": self.rejected, "failed": self.failed,
+                "received": self._received, "published": self.published,
+                "dropped": self._dropped, "rejected": self.rejected, "failed": self.failed,
                 "last_error": self.last_error, "params": dict(self.params),
                 "extra": dict(self.extra), "started": self.started,
             }
@@ -430,80 +456,199 @@ class SourcedPublisher:
 
 # -- the inbox: the delivery semantics both nodes share ------------------------------------
 
+class _Route:
+    """How payloads of one subscription are taken in: latest-only or reliable, and the
+    publishers' ``seq`` sequences seen on it."""
+
+    __slots__ = ("latest", "gaps")
+
+    def __init__(self, latest: bool) -> None:
+        self.latest = latest
+        self.gaps = SeqGaps()
+
+
 class _Inbox:
-    """Reliable FIFO + one latest-only slot per key, behind one condition variable.
+    """Reliable FIFO + one latest-only slot per key, fed by Zenoh without Python.
+
+    Zenoh's receiving thread only puts each sample on a ``queue.SimpleQueue`` (a C call, the
+    subscriber's callback run in that thread), which is also what the loop waits on: one
+    wake-up primitive for every input, waited on with the GIL released. Everything else
+    (the payload's bytes, counting, ``seq`` gaps, latest-only overwrites) is done when the
+    samples are taken in (:meth:`absorb`), by the loop in :meth:`get` or by whoever reads the
+    counters first (the status queryable, a test). Python code in Zenoh's thread, or in the
+    thread zenoh-python starts by default to run a Python callback, cost 60 to 100 us more a
+    64 KiB message here than a zenoh ``RingChannel`` read in a loop: that thread's Python
+    state and the GIL going back and forth between threads; this costs what the ring does
+    (measured with two processes on this machine, see ``vistrack bench pipeline``).
 
     Why not one zenoh RingChannel(1) per latest-only key and a FifoChannel per reliable one:
-    ``recv`` must wait on *any* input without polling several handlers, and a RingChannel
-    drops silently while the ``dropped`` counter must count every overwrite. A callback that
-    only stores the payload and notifies is cheap enough for Zenoh's delivery thread.
+    ``recv`` must wait on *any* input, and their ``recv`` has no timeout.
+
+    Reliable samples count against ``capacity`` from their arrival: when it is reached the
+    callback of a reliable subscription waits (``block``: backpressure through Zenoh, whose
+    BLOCK publishers then wait) or :meth:`arrive` raises :class:`BusError` (not ``block``).
     """
 
-    def __init__(self, capacity: int) -> None:
+    def __init__(self, capacity: int, *, block: bool, status: Status) -> None:
         if capacity < 1:
             raise ValueError(f"capacity={capacity} must be >= 1")
         self._capacity = capacity
+        self._block = block
+        self._status = status
         self._lock = threading.Lock()
-        self._not_empty = threading.Condition(self._lock)
-        self._not_full = threading.Condition(self._lock)
+        self._loop_waiting = False  # the loop waits on ``arrivals`` in get()
         self._reliable: collections.deque[tuple[str, bytes]] = collections.deque()
         # dict order = order in which slots became pending; an overwrite keeps the position
         self._latest: dict[str, bytes] = {}
+        #: what Zenoh's callbacks put (samples) and wake-up tokens (None)
+        self.arrivals: queue.SimpleQueue[zenoh.Sample | None] = queue.SimpleQueue()
+        self._routes: list[tuple[zenoh.KeyExpr, _Route]] = []
+        self._route_of: dict[str, _Route] = {}  # key of a sample -> its subscription's route
+        # reliable samples arrived and not yet taken (block mode): the callbacks wait on it
+        self._room = threading.Condition(threading.Lock())
+        self._reliable_pending = 0
         self._closed = False
         self.taken = 0  # payloads handed out by get()
 
-    def put(self, key: str, payload: bytes, *, latest: bool, block: bool) -> bool:
-        """Queue a payload; return True if it overwrote a pending latest-only payload.
+    # -- Zenoh's side ---------------------------------------------------------------------
+    def add_route(self, key: str, route: _Route) -> None:
+        with self._lock:
+            self._routes.append((zenoh.KeyExpr(key), route))
+            self._route_of.clear()
 
-        A full reliable queue blocks (``block``) until there is room or the inbox closes,
-        or raises :class:`BusError` (``not block``).
+    def reliable_callback(self) -> Callable[[zenoh.Sample], None]:
+        """The callback of a reliable subscription: waits while ``capacity`` reliable
+        payloads are pending, then queues the sample (block mode)."""
+        put, room, capacity = self.arrivals.put, self._room, self._capacity
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            with room:
+                while self._reliable_pending >= capacity and not self._closed:
+                    room.wait(_STOP_POLL_S)
+                self._reliable_pending += 1
+            put(sample)
+        return on_sample
+
+    # -- the loop's side ------------------------------------------------------------------
+    def absorb(self) -> int:
+        """Take in every sample Zenoh has queued (from a reader of the counters); return how
+        many. Nothing while the loop waits in :meth:`get`: it takes them in itself at once,
+        and a sample it has just been handed must go in before any that came after it."""
+        with self._lock:
+            return 0 if self._loop_waiting else self._absorb()
+
+    def _absorb(self) -> int:
+        taken = 0
+        get = self.arrivals.get_nowait
+        while True:
+            try:
+                sample = get()
+            except queue.Empty:
+                return taken
+            if sample is not None:
+                self._take_in(sample)
+                taken += 1
+
+    def wake(self) -> None:
+        self.arrivals.put(None)
+
+    def _take_in(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        route = self._route_of.get(key)
+        if route is None:
+            route = self._route(key)
+        if sample.kind != _PUT:
+            if not route.latest:
+                self._release_room()
+            return
+        self._arrive(key, sample.payload.to_bytes(), source_of(sample), route)
+
+    def _route(self, key: str) -> _Route:
+        # a key two subscriptions match (a wildcard and an exact one) arrives once for each:
+        # the first subscription's mode, or reliable if any is (lose nothing)
+        matches = [route for expr, route in self._routes if expr.intersects(key)]
+        route = next((r for r in matches if not r.latest), matches[0] if matches else None)
+        if route is None:  # cannot happen: Zenoh only delivers what a subscription matches
+            route = _Route(latest=False)
+        self._route_of[key] = route
+        return route
+
+    def arrive(self, key: str, payload: bytes, source: str | None, route: _Route) -> None:
+        """Count ``payload`` (from the publisher ``source``) and queue it per ``route``.
+
+        Raises
+        ------
+        BusError
+            In non-block mode, if ``capacity`` reliable payloads are pending.
         """
         with self._lock:
-            if self._closed:
-                return False
-            if latest:
-                overwritten = key in self._latest
-                self._latest[key] = payload
-                self._not_empty.notify()
-                return overwritten
-            while len(self._reliable) >= self._capacity:
-                if not block:
-                    raise BusError(f"inbox full ({self._capacity} reliable payloads "
-                                   "pending): consume with recv() first")
-                self._not_full.wait(_STOP_POLL_S)
-                if self._closed:
-                    return False
+            self._arrive(key, payload, source, route)
+
+    def _arrive(self, key: str, payload: bytes, source: str | None, route: _Route) -> None:
+        if self._closed:
+            return
+        missing = route.gaps.update(key, payload, source)
+        if route.latest:
+            overwritten = key in self._latest
+            self._latest[key] = payload
+            missing += overwritten
+        else:
+            if not self._block and len(self._reliable) >= self._capacity:
+                raise BusError(f"inbox full ({self._capacity} reliable payloads "
+                               "pending): consume with recv() first")
             self._reliable.append((key, payload))
-            self._not_empty.notify()
-            return False
+        self._status.count_arrivals(1, missing)
+
+    def _release_room(self) -> None:
+        if self._block:
+            with self._room:
+                self._reliable_pending -= 1
+                self._room.notify()
 
     def get(self, timeout: float, stop: threading.Event) -> tuple[str, bytes] | None:
-        deadline = time.monotonic() + max(0.0, timeout)
-        with self._lock:
-            while True:
+        deadline = -1.0
+        get = self.arrivals.get
+        sample: zenoh.Sample | None = None
+        while True:
+            with self._lock:
+                self._loop_waiting = False
+                if sample is not None:
+                    self._take_in(sample)
+                    sample = None
+                self._absorb()
                 if self._reliable:
                     item = self._reliable.popleft()
-                    self._not_full.notify()
+                    self._release_room()
                     self.taken += 1
                     return item
                 if self._latest:
                     key = next(iter(self._latest))
                     self.taken += 1
                     return key, self._latest.pop(key)
-                remaining = deadline - time.monotonic()
-                if self._closed or stop.is_set() or remaining <= 0:
+                now = _monotonic()
+                if deadline < 0.0:
+                    deadline = now + max(0.0, timeout)
+                remaining = deadline - now
+                if self._closed or remaining <= 0 or stop.is_set():
                     return None
-                self._not_empty.wait(min(remaining, _STOP_POLL_S))
+                self._loop_waiting = True
+            try:
+                sample = get(timeout=min(remaining, _STOP_POLL_S))
+            except queue.Empty:
+                pass
 
     def close(self) -> None:
         with self._lock:
             self._closed = True
-            self._not_empty.notify_all()
-            self._not_full.notify_all()
+        with self._room:
+            self._room.notify_all()
+        self.wake()
 
     def pending(self) -> int:
         """Payloads queued and not yet taken."""
         with self._lock:
+            if not self._loop_waiting:
+                self._absorb()
             return len(self._reliable) + len(self._latest)
 
 
@@ -540,7 +685,8 @@ class Node(abc.ABC):
         self.keys = Keys(robot)
         self.status = Status()
         self.stop = threading.Event()
-        self._inbox = _Inbox(capacity)
+        self._inbox = _Inbox(capacity, block=self._BLOCK_WHEN_FULL, status=self.status)
+        self.status.absorb = self._inbox.absorb
         self._subscriptions: dict[str, bool] = {}
         self._closed = False
         # when the loop last came back from waiting (recv, sleep); None while it waits and
@@ -563,7 +709,9 @@ class Node(abc.ABC):
                 raise BusError(f"{key} is already subscribed with latest="
                                f"{self._subscriptions[key]}")
             return
-        self._declare(key, latest, self._arrival(latest))
+        route = _Route(latest)
+        self._inbox.add_route(key, route)
+        self._declare(key, route)
         self._subscriptions[key] = latest
 
     def declare_alive(self) -> None:
@@ -660,10 +808,8 @@ class Node(abc.ABC):
 
     # -- the transport seam -------------------------------------------------------------------
     @abc.abstractmethod
-    def _declare(self, key: str, latest: bool,
-                 deliver: Callable[[str, bytes, str | None], None]) -> None:
-        """Start delivering payloads of ``key`` to ``deliver(actual_key, payload, source)``
-        (``source``: the publisher's id, None if unknown)."""
+    def _declare(self, key: str, route: _Route) -> None:
+        """Start delivering payloads of ``key`` to the inbox, taken in per ``route``."""
 
     @abc.abstractmethod
     def _send(self, key: str, payload: bytes, reliable: bool) -> None:
@@ -690,20 +836,6 @@ class Node(abc.ABC):
     def _release(self) -> None:
         """Release transport resources (called once, by :meth:`close`)."""
 
-    # -- arrival path shared by both transports -------------------------------------------
-    def _arrival(self, latest: bool) -> Callable[[str, bytes, str | None], None]:
-        gaps = SeqGaps()
-        block = self._BLOCK_WHEN_FULL
-
-        def deliver(key: str, payload: bytes, source: str | None = None) -> None:
-            self.status.count_received()
-            missing = gaps.update(key, payload, source)
-            if missing:
-                self.status.count_dropped(missing)
-            if self._inbox.put(key, payload, latest=latest, block=block):
-                self.status.count_dropped()
-        return deliver
-
 
 class Published(NamedTuple):
     """One payload a :class:`MemoryNode` published."""
@@ -729,8 +861,7 @@ class MemoryNode(Node):
         super().__init__(service, robot, capacity=capacity)
         self._waiting_after = 0  # inbox.taken when the loop last began to wait (wait_idle)
         self.published: list[Published] = []
-        self._deliver: dict[str, tuple[zenoh.KeyExpr,
-                                       Callable[[str, bytes, str | None], None]]] = {}
+        self._deliver: dict[str, tuple[zenoh.KeyExpr, _Route]] = {}
         self._published_lock = threading.Lock()
 
     def feed(self, key: str, payload: bytes, source: str | None = None) -> bool:
@@ -743,10 +874,12 @@ class MemoryNode(Node):
             If the reliable queue is full (a test would deadlock waiting for itself).
         """
         matched = False
-        for expr, deliver in list(self._deliver.values()):
+        for expr, route in list(self._deliver.values()):
             if expr.intersects(key):
-                deliver(key, bytes(payload), source)
+                self._inbox.arrive(key, bytes(payload), source, route)
                 matched = True
+        if matched:
+            self._inbox.wake()
         return matched
 
     def published_on(self, key: str) -> list[bytes]:
@@ -774,9 +907,8 @@ class MemoryNode(Node):
             time.sleep(0.0005)
         return True
 
-    def _declare(self, key: str, latest: bool,
-                 deliver: Callable[[str, bytes, str | None], None]) -> None:
-        self._deliver[key] = (zenoh.KeyExpr(key), deliver)
+    def _declare(self, key: str, route: _Route) -> None:
+        self._deliver[key] = (zenoh.KeyExpr(key), route)
 
     def _advertise(self, key: str, reliable: bool) -> None:
         pass  # in memory there is nothing to declare
@@ -875,12 +1007,15 @@ class ZenohNode(Node):
         except zenoh.ZError as err:  # the session is closing or the querier went away
             log.debug("status reply failed: %s", err)
 
-    def _declare(self, key: str, latest: bool,
-                 deliver: Callable[[str, bytes, str | None], None]) -> None:
-        def on_sample(sample: zenoh.Sample) -> None:
-            if sample.kind == zenoh.SampleKind.PUT:
-                deliver(str(sample.key_expr), sample.payload.to_bytes(), source_of(sample))
-        self._subscribers.append(self.session.declare_subscriber(key, on_sample))
+    def _declare(self, key: str, route: _Route) -> None:
+        # Zenoh's receiving thread runs the callback itself (indirect=False), not a thread
+        # zenoh-python would start for it: for a latest-only key the callback is the C
+        # function that queues the sample for the loop (see _Inbox); a reliable key's waits
+        # for room first (backpressure).
+        on_sample = self._inbox.arrivals.put if route.latest else \
+            self._inbox.reliable_callback()
+        self._subscribers.append(self.session.declare_subscriber(
+            key, zenoh.handlers.Callback(on_sample, indirect=False)))
 
     def _publisher(self, key: str, reliable: bool) -> SourcedPublisher:
         with self._publishers_lock:

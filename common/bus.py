@@ -539,15 +539,15 @@ class _Inbox:
 
     def _absorb(self) -> int:
         taken = 0
-        get = self.arrivals.get_nowait
-        while True:
-            try:
-                sample = get()
-            except queue.Empty:
-                return taken
+        arrivals = self.arrivals
+        # only one thread takes from it at a time: one holding the lock, or the loop waiting
+        # in get() (when absorb() takes nothing)
+        while not arrivals.empty():
+            sample = arrivals.get_nowait()
             if sample is not None:
                 self._take_in(sample)
                 taken += 1
+        return taken
 
     def wake(self) -> None:
         self.arrivals.put(None)

@@ -208,6 +208,26 @@ def test_wait_for_subscribers(nodes):
     assert time.monotonic() - t0 < 1.0
 
 
+def test_subscriptions_start_no_python_thread_and_reads_count_what_is_pending(nodes):
+    # zenoh-python runs a plain Python callback in a thread of its own, one more thread to
+    # wake (and hand the GIL to) for every message: the node's callbacks run in Zenoh's
+    # receiving thread and only queue the sample; counting waits for someone to look
+    a, b = nodes()
+    before = threading.active_count()
+    subscribe_and_match(a, b, a.keys.frame, latest=True)
+    subscribe_and_match(a, b, a.keys.estimate, latest=True)
+    subscribe_and_match(a, b, a.keys.params, latest=False)
+    for seq in (0, 1, 3):
+        b.publish(b.keys.frame, msg(seq), reliable=True)
+    b.publish(b.keys.params, msg(0), reliable=True)
+    wait_for(lambda: a.status.as_dict()["received"] == 4, what="4 payloads")
+    assert threading.active_count() == before
+    assert a.status.dropped == 1 + 2  # seq 2 missing; seq 0 and 1 overwritten by the next
+    assert a.status.dropped == 3  # reading again counts nothing twice
+    assert drain(a) == [(a.keys.params, msg(0)), (a.keys.frame, msg(3))]
+    assert (a.status.received, a.status.dropped) == (4, 3)
+
+
 def test_latest_only_keeps_the_newest_and_counts_drops(nodes):
     a, b = nodes()
     # BLOCK on the publisher, so every payload reaches the node: drops are the slot's only

@@ -75,8 +75,8 @@ with zenoh.open(c) as s:
 # directly. A relay answers each sample with a payload of its output size whose first 8 bytes
 # are the input's (the capture stamp), from Zenoh's callback thread, or (HANDOFF 1) from a loop
 # thread that receives from a zenoh RingChannel(1), the latest-only reception the contract
-# prescribes for frames (and the cheapest hand-off: ours is a Python inbox); the camera puts
-# frames at FPS, or (FPS 0) with two in flight.
+# prescribes for frames (ours: Zenoh's thread queues the sample, the loop takes it in); the
+# camera puts frames at FPS, or (FPS 0) with two in flight.
 SKELETON_NODE = """
 import json, os, sys, threading, time, zenoh
 role, endpoint, fps, handoff, frame, pre, est, cmd = sys.argv[1], sys.argv[2], \
@@ -159,7 +159,7 @@ def _cpu_s(pids: list[int]) -> float:
 
 
 #: Zenoh's runtime threads by name prefix (zenoh 1.x names its tokio pools): ``rx`` reads the
-#: links and runs subscriber callbacks (so our hand-off of a payload into the loop's inbox),
+#: links and runs subscriber callbacks (ours only queue the sample for the loop),
 #: ``tx`` writes them; ``net``, ``acc``, ``app`` and the rest are its other pools.
 ZENOH_THREADS = ("rx", "tx")
 #: Where a process's CPU goes, in the order printed: the Python loop (a service's main thread,
@@ -560,9 +560,9 @@ def print_cpu_table(fig: dict[str, float], costs: dict[str, dict[str, float]],
     print("\n# where the CPU goes, unpaced, us a frame (per estimate delivered); from /proc, by "
           "thread: loop = the Python loop (a service's main thread; the skeleton's loop "
           "threads), rx = Zenoh's link readers, which run the subscriber callbacks (our "
-          "hand-off into the loop's inbox), tx = its writers, other = its other pools; "
+          "queuing of each sample for the loop), tx = its writers, other = its other pools; "
           "decode / work / encode = the loop's parts timed in this process on the same "
-          "frames, rest = loop minus those (receiving from the inbox, publishing, status "
+          "frames, rest = loop minus those (taking samples in, publishing, status "
           "counting, the loop itself)", file=out)
     print(f"{'process':18s}{'ours':>7s}{'skeleton':>9s}{'extra':>7s}  |{'loop':>6s}{'decode':>8s}"
           f"{'work':>7s}{'encode':>8s}{'rest':>7s}  |{'rx':>6s}{'tx':>6s}{'other':>7s}  "

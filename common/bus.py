@@ -941,8 +941,9 @@ class ZenohNode(Node):
     manager (or call :meth:`close`): a session with callback subscribers left open hangs the
     interpreter at exit.
 
-    Subscriptions use Zenoh callbacks that only store the payload in the node's inbox (see
-    :class:`_Inbox`). When ``capacity`` reliable payloads are pending the callback blocks,
+    Subscriptions use callbacks run in Zenoh's receiving thread that only queue the sample
+    for the loop (see :class:`_Inbox`). When ``capacity`` reliable payloads are pending the
+    callback of a reliable key blocks,
     which stalls that Zenoh link and, through BLOCK congestion control, the reliable
     publishers: backpressure instead of loss or unbounded memory.
 

@@ -6,32 +6,38 @@ about a second. Every front door that warms them up (``track``, ``tune``, ``demo
 services, the auto-tuner's worker) says on stderr when, and only when, that compile happens,
 so a first run is never half a minute of silence.
 
-Warm-ups take turns (a lock file beside numba's cache): processes that start at once, such as
-the services of a first ``vistrack up`` or ``vistrack demo``, compile the kernels once and load
-them, rather than each compiling them at the same time. The launcher takes its turn first and
-starts the services while it compiles, so their own start-up (imports, Zenoh, the fuzzy
-surface) overlaps the compile.
+Warm-ups take turns to compile (a lock file beside numba's cache): processes that start at
+once, such as the services of a first ``vistrack up`` or ``vistrack demo``, compile the kernels
+once and load them, rather than each compiling them at the same time. Loading needs no turn of
+its own: once the kernels are in the cache, the processes waiting load them at the same time.
+The launcher takes its turn first and starts the services while it compiles, so their own
+start-up (imports, Zenoh, the fuzzy surface) overlaps the compile.
 
 numba compiles in one thread. When a warm-up finds the cache cold, a second process compiles
 the default tracker's SSD search (``track_pyramid`` and the kernels it calls: most of the
-work) while this one compiles the kernels of a first frame (pre-processing, feature selection,
-the estimate) and of the motion estimate; the final :func:`~vistrack.common.vision.warm_up`
-then compiles what is left and loads the rest from the cache. The split only uses the public
-functions and only changes how long the compile takes: whatever the second process did not
-compile, or compiled for other types, the final warm-up compiles here.
+work) while this one compiles the rest; the final :func:`~vistrack.common.vision.warm_up` then
+compiles what is left and loads the rest from the cache. Each process compiles what the other
+will load from the cache before it needs it: the second process starts with the single-level
+search (through ``track_ssd``, whose ``_search_level`` is the one every level of the
+coarse-to-fine search calls), this one with the sub-pixel refinement that the coarse-to-fine
+search calls next (:func:`_compile_refinement`, with the types that search gives it), then the
+kernels of a first frame and of the motion estimate. The split only changes how long the
+compile takes: whatever the second process did not compile, or compiled for other types, the
+final warm-up compiles here.
 """
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
+import inspect
 import os
 import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO
 
 #: How long a cold compile takes on the reference machine (2 cores: 57 to 61 s measured for
 #: the default coarse-to-fine tracker on a quiet machine, far longer with other work taking
@@ -60,10 +66,10 @@ def warm_up_kernels(say: Callable[[str], None], *, helper: bool = True,
     -------
     Whether the kernels were compiled.
     """
-    with _turn():
+    with _turn() as cached:
         # a cold search (the longest compile) is known from numba's cache index: its process
         # then starts first, ahead of the services' start-up, which competes for the cores
-        early = _start_helper() if helper and not _search_cached() else None
+        early = _start_helper() if helper and not cached else None
         if on_turn is not None:
             on_turn()
         return _warm_up(say, helper, early)
@@ -75,9 +81,15 @@ def _search_cached() -> bool:
     from ..common.vision import pyramid
 
     try:
-        return bool(pyramid._track_frame._cache._cache_file._load_index())
+        return bool(cached_signatures(pyramid._track_frame))
     except Exception:  # numba's internals differ: not worth failing a start for
         return True
+
+
+def cached_signatures(kernel: Any) -> set[Any]:
+    """The argument types of the compiled versions of ``kernel`` (a ``numba.njit`` function
+    with ``cache=True``) that numba's on-disk cache holds for its present source."""
+    return {key[0] for key in kernel._cache._cache_file._load_index()}
 
 
 def _start_helper() -> subprocess.Popen[bytes]:
@@ -86,9 +98,12 @@ def _start_helper() -> subprocess.Popen[bytes]:
 
 
 @contextlib.contextmanager
-def _turn() -> Iterator[None]:
-    """Hold the warm-up lock, a file beside numba's cache (waiting for another process's
-    compile to end); without a writable cache folder, go ahead unlocked."""
+def _turn() -> Iterator[bool]:
+    """Hold the warm-up lock, a file beside numba's cache, once another process's compile has
+    ended: shared when the SSD search is in the cache (:func:`_search_cached`: the processes
+    that only load the kernels load them at once), exclusive when it is not (this process
+    compiles; the others wait). Yields whether the search was cached. Without a writable
+    cache folder, goes ahead unlocked."""
     from ..common.vision import kernel_cache_dir
 
     path = Path(kernel_cache_dir()) / LOCK_NAME
@@ -96,11 +111,17 @@ def _turn() -> Iterator[None]:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
     except OSError:
-        yield
+        yield _search_cached()
         return
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
+        fcntl.flock(fd, fcntl.LOCK_SH)  # waits while a compile holds it exclusively
+        cached = _search_cached()
+        if not cached:
+            # not atomic (the shared lock is let go first): a process that compiled
+            # meanwhile leaves this one only the loading
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            cached = _search_cached()
+        yield cached
     finally:
         os.close(fd)  # releases the lock
 
@@ -151,6 +172,7 @@ def _compile_first_frame() -> None:
     from ..common.vision import Tracker, incremental_motion
     from ..common.vision import tracker as tracker_kernels
 
+    _compile_refinement()  # first: the second process needs them after its first step
     (frame,) = sequence(1, size=(64, 64), seed=1)
     Tracker(TrackerParams(subpixel=True, max_features=20, search_size=5, corr_size=5)
             ).process(frame)
@@ -162,11 +184,63 @@ def _compile_first_frame() -> None:
                              np.arange(3, dtype=np.int64), 1.0, 5.0)
 
 
+def _refinement_calls() -> list[tuple[Callable[..., object], tuple]]:
+    """The sub-pixel refinement's kernels (:mod:`.ssd`: Gauss-Newton in int32 and int64, the
+    parabola of its fallback, with the kernels they call), each with arguments of the types
+    the coarse-to-fine search (:func:`~vistrack.common.vision.pyramid.track_pyramid`) gives
+    it: a window of 5 x 5 px at the middle of a 64 x 64 frame."""
+    from ..common.synthetic import sequence
+    from ..common.vision import ssd
+
+    (frame,) = sequence(1, size=(64, 64), seed=1)
+    wts = ssd.window_weights("uniform", 2)
+    scratch = ssd._refine_scratch(wts)
+    uniform, _, _ = ssd._weights_info(wts)
+    flat = frame.ravel()
+    return [(ssd._refine_with, (frame, frame, 32, 32, 32.0, 32.0, 2, scratch)),
+            (ssd._parabola, (flat, flat, 64, 64, 32, 32, 32, 32, 2, wts, uniform, 0.0))]
+
+
+#: the parameters of :func:`~vistrack.common.vision.ssd._search_level` that
+#: :func:`_single_level_call` knows the types of
+_SINGLE_LEVEL_PARAMS = ("prev", "curr", "anchors", "centers", "active", "n", "s", "wts",
+                        "exhaustive", "ratio", "allowance", "out_q", "out_ssd", "out_status")
+
+
+def _single_level_call() -> tuple[Callable[..., object], tuple] | None:
+    """The single-level search (:func:`~vistrack.common.vision.ssd._search_level`) with
+    arguments of the types each level of the coarse-to-fine search gives it (no feature
+    active: nothing is searched); None when its parameters are not the ones known here (the
+    coarse-to-fine search then compiles it in its turn)."""
+    import numpy as np
+
+    from ..common.synthetic import sequence
+    from ..common.vision import ssd
+
+    if tuple(inspect.signature(ssd._search_level.py_func).parameters) != _SINGLE_LEVEL_PARAMS:
+        return None
+    (frame,) = sequence(1, size=(64, 64), seed=1)
+    at = np.full((1, 2), 32, np.int64)
+    return ssd._search_level, (
+        frame, frame, at, at.copy(), np.zeros(1, np.bool_), 2, 2, ssd.window_weights("uniform", 2),
+        False, 1.25, 0.0, np.zeros((1, 2), np.int64), np.zeros(1), np.zeros(1, np.int8))
+
+
+def _compile_refinement() -> None:
+    """Compile the sub-pixel refinement's kernels (:func:`_refinement_calls`)."""
+    for kernel, args in _refinement_calls():
+        kernel(*args)
+
+
 def compile_search() -> None:
     """Compile (or load) the SSD search's kernels: the second process of a cold warm-up. The
     default tracker's coarse-to-fine search (:func:`~vistrack.common.vision.pyramid.
     track_pyramid`, with the single-level kernels it calls), with the types the tracker gives
-    it; the paper's ``track_ssd`` alone (``--paper``) compiles when first used."""
+    it. It starts with the single-level search that each level of the coarse-to-fine search
+    starts with (:func:`_single_level_call`; the most of the work), while the first process
+    compiles the sub-pixel refinement (:func:`_compile_refinement`) that the coarse-to-fine
+    search calls before it and then loads from the cache. The paper's ``track_ssd``
+    (``--paper``) compiles when first used."""
     import numpy as np
 
     from ..common.params import TrackerParams
@@ -174,6 +248,10 @@ def compile_search() -> None:
     from ..common.vision import window_weights
     from ..common.vision.pyramid import build_pyramid, track_pyramid
 
+    single = _single_level_call()
+    if single is not None:
+        kernel, args = single
+        kernel(*args)
     p = TrackerParams()
     first, second = sequence(2, size=(64, 64), seed=1)
     points = np.array([[32.0, 32.0], [24.0, 40.0]])

@@ -8,7 +8,7 @@ import pytest
 
 from vistrack.common import groundtruth, synthetic
 from vistrack.common.params import TrackerParams
-from vistrack.common.vision import Tracker, centroid_scatter, incremental_motion, to_gray
+from vistrack.common.vision import Tracker, centroid_scatter, incremental_motion, motion, to_gray
 
 from conftest import load_pair
 
@@ -107,6 +107,17 @@ def test_incremental_motion_ignores_outliers():
     expect = (b[inl] - a[inl]).mean(axis=0)  # computed on the true inliers only
     assert abs(dx - expect[0]) < 1e-9 and abs(dy - expect[1]) < 1e-9
     assert abs(scale - 1.05) < 1e-9
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 7, 8, 100, 129, 2000])
+def test_the_kernels_median_and_sum_are_numpys(n):
+    # the robust motion's MAD and sums reproduce numpy's bit for bit (the motion module's
+    # notes), ties and repeated values included
+    rng = np.random.default_rng(n)
+    for v in (rng.uniform(0, 5, n), rng.integers(0, 4, n).astype(np.float64), np.ones(n),
+              np.arange(n, 0, -1, dtype=np.float64)):
+        assert motion._median(v) == np.median(v)
+        assert motion._pairwise_sum(v, n) == np.add.reduce(v)
 
 
 def test_ids_persist_while_tracked_and_are_never_reused():

@@ -22,11 +22,12 @@ def numba_cache() -> None:
 
     The integration tests start several services at once; on a fresh clone each would compile
     the kernels itself (~25 s alone, far more three at a time on two cores) and miss its
-    ready timeout. With the cache filled they load in under a second.
+    ready timeout. With the cache filled they load in under a second. A cold cache is
+    compiled as a first run does, on two cores (services/kernels.py).
     """
-    from vistrack.common.vision import warm_up
+    from vistrack.services.kernels import warm_up_kernels
 
-    warm_up()
+    warm_up_kernels(lambda line: None)
 
 
 @pytest.fixture

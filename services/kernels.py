@@ -18,10 +18,10 @@ the default tracker's SSD search (``track_pyramid`` and the kernels it calls: mo
 work) while this one compiles the rest; the final :func:`~vistrack.common.vision.warm_up` then
 compiles what is left and loads the rest from the cache. Each process compiles what the other
 will load from the cache before it needs it: the second process starts with the single-level
-search (through ``track_ssd``, whose ``_search_level`` is the one every level of the
-coarse-to-fine search calls), this one with the sub-pixel refinement that the coarse-to-fine
-search calls next (:func:`_compile_refinement`, with the types that search gives it), then the
-kernels of a first frame and of the motion estimate. The split only changes how long the
+search that every level of the coarse-to-fine search calls, this one with the sub-pixel
+refinement that the coarse-to-fine search calls before it and the search's last checks
+(:func:`_compile_refinement`, with the types that search gives them), then the kernels of a
+first frame and of the motion estimate. The split only changes how long the
 compile takes: whatever the second process did not compile, or compiled for other types, the
 final warm-up compiles here.
 """
@@ -186,19 +186,26 @@ def _compile_first_frame() -> None:
 
 def _refinement_calls() -> list[tuple[Callable[..., object], tuple]]:
     """The sub-pixel refinement's kernels (:mod:`.ssd`: Gauss-Newton in int32 and int64, the
-    parabola of its fallback, with the kernels they call), each with arguments of the types
-    the coarse-to-fine search (:func:`~vistrack.common.vision.pyramid.track_pyramid`) gives
-    it: a window of 5 x 5 px at the middle of a 64 x 64 frame."""
+    parabola of its fallback, with the kernels they call) and the coarse-to-fine search's last
+    steps (:mod:`.pyramid`: consensus, wide window), each with arguments of the types the
+    coarse-to-fine search (:func:`~vistrack.common.vision.pyramid.track_pyramid`) gives it: a
+    window of 5 x 5 px at the middle of a 64 x 64 frame; one feature, not found (the last
+    steps have nothing to do)."""
+    import numpy as np
+
     from ..common.synthetic import sequence
-    from ..common.vision import ssd
+    from ..common.vision import pyramid, ssd
 
     (frame,) = sequence(1, size=(64, 64), seed=1)
     wts = ssd.window_weights("uniform", 2)
     scratch = ssd._refine_scratch(wts)
     uniform, _, _ = ssd._weights_info(wts)
     flat = frame.ravel()
+    pts = np.full((1, 2), 32.0)
     return [(ssd._refine_with, (frame, frame, 32, 32, 32.0, 32.0, 2, scratch)),
-            (ssd._parabola, (flat, flat, 64, 64, 32, 32, 32, 32, 2, wts, uniform, 0.0))]
+            (ssd._parabola, (flat, flat, 64, 64, 32, 32, 32, 32, 2, wts, uniform, 0.0)),
+            (pyramid._consensus, (pts, pts.copy(), np.full(1, ssd.LEFT, np.int8), 2.0)),
+            (pyramid._widen, (frame, frame, pts, 10, np.zeros(1, np.bool_), pts.copy()))]
 
 
 #: the parameters of :func:`~vistrack.common.vision.ssd._search_level` that

@@ -16,7 +16,7 @@ from pathlib import Path
 import numba as nb
 from numba.core import event as numba_event
 
-from vistrack.common.vision import kernel_cache_dir, ssd, tracker
+from vistrack.common.vision import kernel_cache_dir, pyramid, ssd, tracker
 from vistrack.services import kernels
 from vistrack.services.kernels import LOCK_NAME, say_on_stderr, warm_up_kernels
 
@@ -75,7 +75,8 @@ def test_the_compile_split_compiles_only_what_the_tracker_calls():
     # (the second one's single-level search, this one's refinement): with types of their own,
     # each would compile a version nobody uses, and the tracker's search its own besides.
     # The session's warm-up compiled (or loaded) exactly what the tracker calls.
-    split = (ssd._search_level, ssd._refine_with, ssd._parabola)
+    split = (ssd._search_level, ssd._refine_with, ssd._parabola, pyramid._consensus,
+             pyramid._widen)
     before = [kernels.cached_signatures(k) for k in split]
     assert all(before)
     assert kernels._single_level_call() is not None  # else its parameters changed: see there

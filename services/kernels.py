@@ -185,12 +185,13 @@ def _compile_first_frame() -> None:
 
 
 def _refinement_calls() -> list[tuple[Callable[..., object], tuple]]:
-    """The sub-pixel refinement's kernels (:mod:`.ssd`: Gauss-Newton in int32 and int64, the
-    parabola of its fallback, with the kernels they call) and the coarse-to-fine search's last
-    steps (:mod:`.pyramid`: consensus, wide window), each with arguments of the types the
-    coarse-to-fine search (:func:`~vistrack.common.vision.pyramid.track_pyramid`) gives it: a
-    window of 5 x 5 px at the middle of a 64 x 64 frame; one feature, not found (the last
-    steps have nothing to do)."""
+    """The sub-pixel refinement's kernels (:mod:`.ssd`: Gauss-Newton in the int32 sums of
+    the default windows, the parabola of its fallback, with the kernels they call) and the
+    coarse-to-fine search's last steps (:mod:`.pyramid`: consensus, wide window), each with
+    arguments of the types the coarse-to-fine search
+    (:func:`~vistrack.common.vision.pyramid.track_pyramid`) gives it: a window of 5 x 5 px at
+    the middle of a 64 x 64 frame; one feature, not found (the last steps have nothing to
+    do)."""
     import numpy as np
 
     from ..common.synthetic import sequence
@@ -198,14 +199,15 @@ def _refinement_calls() -> list[tuple[Callable[..., object], tuple]]:
 
     (frame,) = sequence(1, size=(64, 64), seed=1)
     wts = ssd.window_weights("uniform", 2)
-    scratch = ssd._refine_scratch(wts)
+    acc = ssd.refine_acc(wts)  # int32, as for the default windows
+    scratch = ssd._refine_scratch(wts, acc)
     uniform, _, _ = ssd._weights_info(wts)
     flat = frame.ravel()
     pts = np.full((1, 2), 32.0)
     return [(ssd._refine_with, (frame, frame, 32, 32, 32.0, 32.0, 2, scratch)),
             (ssd._parabola, (flat, flat, 64, 64, 32, 32, 32, 32, 2, wts, uniform, 0.0)),
             (pyramid._consensus, (pts, pts.copy(), np.full(1, ssd.LEFT, np.int8), 2.0)),
-            (pyramid._widen, (frame, frame, pts, 10, np.zeros(1, np.bool_), pts.copy()))]
+            (pyramid._widen, (frame, frame, pts, 10, acc, np.zeros(1, np.bool_), pts.copy()))]
 
 
 #: the parameters of :func:`~vistrack.common.vision.ssd._search_level` that
@@ -237,8 +239,8 @@ def _compile_refinement() -> None:
     """Compile the sub-pixel refinement's kernels (:func:`_refinement_calls`)."""
     try:
         calls = _refinement_calls()
-    except AttributeError:  # a kernel renamed: the final warm-up compiles what the search calls
-        return
+    except Exception:  # noqa: BLE001 - a kernel renamed or changed: the final warm-up
+        return  # compiles what the search calls
     for kernel, args in calls:
         try:
             kernel(*args)

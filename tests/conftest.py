@@ -22,12 +22,14 @@ def numba_cache() -> None:
 
     The integration tests start several services at once; on a fresh clone each would compile
     the kernels itself (~25 s alone, far more three at a time on two cores) and miss its
-    ready timeout. With the cache filled they load in under a second. A cold cache is
-    compiled as a first run does, on two cores (services/kernels.py).
+    ready timeout. With the cache filled they load in under a second. It compiles in this
+    process alone, not split over two as a first run does (services/kernels.py): the split's
+    own kernels would then be in the cache before test_kernels checks that they are the
+    tracker's.
     """
-    from vistrack.services.kernels import warm_up_kernels
+    from vistrack.common.vision import warm_up
 
-    warm_up_kernels(lambda line: None)
+    warm_up()
 
 
 @pytest.fixture

@@ -89,6 +89,7 @@ ROW_BLOCK = 4096
 FULL_VEC = 64
 # above any S of Eq. (1) with int32 weights (65^2 px * 255^2 * 2^31 < 2^62)
 BIG = 1 << 62
+INT32_MAX = (1 << 31) - 1
 
 
 @nb.njit(cache=True, nogil=True)
@@ -126,9 +127,12 @@ def _row_sums(curr, n, s, centers, out, bufs):  # pragma: no cover - numba
         ln = min(q1, last) - q0
         avail = min(ln + m - 1, total - q0)  # pixels the block's windows reach
         src = flat[q0:q0 + avail]
-        # m is odd: P_1, the pixels themselves, is the first term
-        for q in range(ln):
-            dst[q] = src[q]
+        # m is odd: P_1, the pixels themselves, is the first term, added with the second
+        # (not copied first: a pass fewer)
+        if m == 1:
+            for q in range(ln):
+                dst[q] = src[q]
+        alone = True  # dst holds nothing yet
         off = 1
         span = 1
         rem = m >> 1
@@ -151,8 +155,13 @@ def _row_sums(curr, n, s, centers, out, bufs):  # pragma: no cover - numba
             span *= 2
             if rem & 1:
                 seg = bufs[par, off:off + ln]
-                for q in range(ln):
-                    dst[q] += seg[q]
+                if alone:
+                    for q in range(ln):
+                        dst[q] = np.int16(src[q]) + seg[q]
+                    alone = False
+                else:
+                    for q in range(ln):
+                        dst[q] += seg[q]
                 off += span
             rem >>= 1
         dst[ln:] = 0
@@ -273,15 +282,25 @@ def _mark(bnd, lanes, mask, total, lim):  # pragma: no cover - numba
     return passing
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _count(bnd, lanes, total, lim):  # pragma: no cover - numba
+    """How many displacement lanes have a bound at most ``lim``, of ``bnd``'s type: one
+    vectorised pass in that width (an int64 ``lim`` would widen an int32 pass to int64)."""
+    passing = np.int32(0)
+    for q in range(total):
+        passing = np.int32(passing + ((bnd[q] <= lim) & lanes[q]))
+    return passing
+
+
 @nb.njit(cache=True, nogil=True)
 def _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol, width, total, n, wts, uniform,
-            bnd, mscale, lanes, mask):  # pragma: no cover - numba
+            bnd, mscale, lanes, mask, btype, bmax):  # pragma: no cover - numba
     """The first (row-major) minimum of S over the search, pruned by the bounds ``bnd``.
 
     Returns (S, rank) with rank = r * ncol + k for the window centred at (lo_x + k, lo_y + r).
     ``bnd`` bounds ``mscale`` * S (m, or 0 with all bounds 0 when they are not used);
     ``lanes[q]`` is 1 where ``bnd[q]`` belongs to a displacement, else 0; ``mask``: uint8
-    scratch as long.
+    scratch as long; ``btype``: ``bnd``'s integer type, ``bmax`` its largest value.
 
     The valid position nearest the prediction is scored first, then its 8 neighbours: the
     minimum is among them for ~97 % of features on real sequences, after which the bounds rule
@@ -304,15 +323,16 @@ def _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol, width, total, n, 
                 best = v
                 best_k = rank
     lim = best * mscale
-    # mark the displacements that pass their bound and compare their number with those among
+    # count the displacements that pass their bound and compare their number with those among
     # the 9 already scored
-    passing = _mark(bnd, lanes, mask, total, lim)
+    passing = _count(bnd, lanes, total, btype(min(lim, bmax)))
     near = 0
     for r in range(max(py - 1, 0), min(py + 2, nrow)):
         for k in range(max(px - 1, 0), min(px + 2, ncol)):
             near += bnd[r * width + k] <= lim
     if passing == near:
         return best, best_k
+    _mark(bnd, lanes, mask, total, lim)
     # score the others, visiting only the marked ones: 8 mask bytes at a time, the set bytes
     # found by their bit (one each)
     words = mask.view(np.uint64)
@@ -597,13 +617,13 @@ def _search_level(prev, curr, anchors, centers, active, n, s, wts, exhaustive, r
                                 blk, bnd32)
                 best, best_k = _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol,
                                        width, total, n, wts, uniform, bnd32, mscale, lanes,
-                                       mask)
+                                       mask, np.int32, INT32_MAX)
             else:
                 total = _bounds(rs, w, trs, wmin, uniform, lo_x, lo_y, nrow, ncol, width, n,
                                 blk, bnd64)
                 best, best_k = _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol,
                                        width, total, n, wts, uniform, bnd64, mscale, lanes,
-                                       mask)
+                                       mask, np.int64, BIG)
         qx = lo_x + best_k % ncol
         qy = lo_y + best_k // ncol
         # a minimum on an edge that the image cut short may be a piece of a minimum outside

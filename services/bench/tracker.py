@@ -8,7 +8,10 @@ exhaustive search at (15, 9) and (50, 30); the default tracker's SSD tracking (t
 coarse-to-fine search with its checks and sub-pixel refinement, given both frames' pyramids),
 the pyramid it builds once a frame, the same search without its checks, and the tracker
 without each of its costliest steps in turn (what that step costs); and our whole
-frame (pre-processing + tracking + estimate). It prints time per frame, the ratios, and the
+frame (pre-processing + tracking + estimate) with the default tracker and with the paper's
+(one level, no rules), and the pre-processing done every frame alone (the filter; candidates
+are computed only on the frames that select or re-detect features) against
+``cv2.GaussianBlur`` alone. It prints time per frame, the ratios, and the
 median end-point error of ours (default parameters) and of LK against the Middlebury ground
 truth.
 Everything runs on one core (OpenCV's threads set to 1; numba kernels are single-threaded).
@@ -26,6 +29,7 @@ import numpy as np
 from ...common import groundtruth, synthetic
 from ...common.params import TrackerParams
 from ...common.vision import Tracker, preprocess, to_gray, track_ssd, warm_up, window_weights
+from ...common.vision.preprocess import gaussian_filter
 from ...common.vision.pyramid import build_pyramid, track_pyramid
 
 
@@ -181,10 +185,20 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
                                          winSize=(win, win), maxLevel=level)
         return run
 
-    def whole() -> None:
-        tr = Tracker(params)
+    def whole(p: TrackerParams = params) -> Callable[[], None]:
+        def run() -> None:
+            tr = Tracker(p)
+            for f in frames[1:]:
+                tr.process(f)
+        return run
+
+    def pre_only() -> None:
         for f in frames[1:]:
-            tr.process(f)
+            preprocess(f, params)
+
+    def blur() -> None:
+        for f in frames[1:]:
+            gaussian_filter(f, params.blur_sigma)
 
     k = len(jobs)
     fig = {
@@ -206,7 +220,11 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
         "ssd_15_9_exhaustive": _best_of(ssd_at(15, 9, kind="exhaustive")) / k * 1e6,
         "ssd_50_30_exhaustive": _best_of(ssd_at(50, 30, kind="exhaustive"), repeats=3) / k * 1e6,
         # the first frame of each run selects features; the rest track: t_ms of tf frames
-        "whole_frame": _best_of(whole, repeats=5) / (len(frames) - 1) * 1e6,
+        "whole_frame": _best_of(whole(), repeats=5) / (len(frames) - 1) * 1e6,
+        "whole_frame_paper": _best_of(whole(TrackerParams.paper()), repeats=5)
+        / (len(frames) - 1) * 1e6,
+        "preprocess": _best_of(pre_only) / (len(frames) - 1) * 1e6,
+        "gaussian_blur": _best_of(blur) / (len(frames) - 1) * 1e6,
     }
     print(f"# vistrack bench tracker: {what}; {n_feat} features per frame (mean); one core",
           file=out)
@@ -228,7 +246,10 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
               ("ssd_50_30", "ours SSD reference (50, 30)"),
               ("ssd_15_9_exhaustive", "ours SSD (15, 9), exhaustive search"),
               ("ssd_50_30_exhaustive", "ours SSD (50, 30), exhaustive search"),
-              ("whole_frame", "ours whole frame: pre + track + estimate")]
+              ("whole_frame", "ours whole frame: pre + track + estimate"),
+              ("whole_frame_paper", "  the same with the paper's tracker (levels 1)"),
+              ("preprocess", "  its pre-processing, every frame (filter)"),
+              ("gaussian_blur", "  cv2.GaussianBlur alone, the same filter")]
     for key, label in labels:
         print(f"{label:44s} {fig[key]:10.1f} {fig[key] / base:14.2f}x", file=out)
     print(f"default tracker (levels {params.levels}, checks, sub-pixel {params.subpixel}): "
@@ -236,7 +257,8 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
           f"single-level search, {fig['default_ssd'] / fig['lk_default']:.2f}x OpenCV's LK "
           f"with its defaults; with its pyramid {fig['default_ssd'] + fig['pyramid_build']:.1f}"
           " us", file=out)
-    print(f"speed-up over the matchTemplate loop: {fig['matchtemplate_15_9'] / base:.1f}x; "
+    print(f"speed-up over the matchTemplate loop: {fig['matchtemplate_15_9'] / base:.1f}x, over "
+          f"LK level 0: {fig['lk_level0'] / base:.2f}x; "
           f"tf ratio (50, 30) / (15, 9): {fig['ssd_50_30'] / base:.1f}x pruned, "
           f"{fig['ssd_50_30_exhaustive'] / fig['ssd_15_9_exhaustive']:.1f}x exhaustive (the "
           "paper's search, which scores every displacement in full)", file=out)

@@ -63,6 +63,7 @@ import numba as nb
 import numpy as np
 
 from ..params import SEARCH_KINDS
+from .motion import _median_small
 from .ssd import (
     AGREE_PX,
     AMBIGUOUS,
@@ -582,28 +583,6 @@ def _consensus(pts, pos, status, bound):  # pragma: no cover - numba
     for a in range(c):
         if reject[a]:
             status[idx[a]] = DISAGREES
-
-
-@nb.njit(cache=True, nogil=True)
-def _median_small(v):  # pragma: no cover - numba
-    """The median of ``v``, sorting it in place (a Shell sort: no allocation, and for the
-    few values of a neighbourhood an insertion sort)."""
-    n = v.shape[0]
-    gap = 1
-    while gap < n // 3:
-        gap = 3 * gap + 1
-    while gap > 0:
-        for i in range(gap, n):
-            x = v[i]
-            j = i
-            while j >= gap and v[j - gap] > x:
-                v[j] = v[j - gap]
-                j -= gap
-            v[j] = x
-        gap //= 3
-    if n % 2:
-        return v[n // 2]
-    return 0.5 * (v[n // 2 - 1] + v[n // 2])
 
 
 @nb.njit(cache=True, nogil=True)

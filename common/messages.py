@@ -797,6 +797,107 @@ def encode_estimate(*, seq: int, stamp_ns: int, npi: int, xc: float, yc: float, 
     return pack(values)
 
 
+def _exact_scalars(values: dict[str, Any], kinds: Mapping[str, type]) -> bool:
+    """Whether every value of ``values`` named in ``kinds`` has exactly that type (an int or
+    float as Python makes it, not a numpy scalar or a bool): then the checks of the hot-path
+    encoders below return it as it is."""
+    for name, kind in kinds.items():
+        if type(values[name]) is not kind:
+            return False
+    return True
+
+
+_FRAME_SCALARS = {"seq": int, "stamp_ns": int}
+_PRE_FRAME_SCALARS = {"seq": int, "stamp_ns": int, "params_id": int, "deferred": bool}
+
+
+def _plain_image(data: Any) -> bool:
+    """A (height, width) uint8 C-contiguous array of a size a frame may have."""
+    return (type(data) is np.ndarray and data.dtype == np.uint8 and data.ndim == 2
+            and data.flags.c_contiguous and 1 <= data.shape[0] <= MAX_SIDE
+            and 1 <= data.shape[1] <= MAX_SIDE)
+
+
+def encode_frame(image: np.ndarray, *, seq: int, stamp_ns: int) -> bytes:
+    """``Frame.from_image(image, seq=seq, stamp_ns=stamp_ns).encode()``, byte for byte.
+
+    The camera's hot path: for what a camera produces (a C-contiguous uint8 image, plain
+    ints) the checks are a few type and range tests and no message object is built (13 to
+    5 us a 64 KiB frame); anything else goes through the message, which names what is wrong.
+
+    Raises
+    ------
+    MessageError
+        As :meth:`Frame.from_image` would, naming the field.
+    """
+    values = {"seq": seq, "stamp_ns": stamp_ns}
+    if not (_plain_image(image) and _exact_scalars(values, _FRAME_SCALARS)
+            and seq >= 0 and stamp_ns >= 0):
+        return Frame.from_image(image, seq=seq, stamp_ns=stamp_ns).encode()
+    height, width = image.shape
+    return _ENCODER.encode({"v": SCHEMA_VERSION, **values, "width": width, "height": height,
+                            "encoding": "mono8", "data": image.data})
+
+
+def encode_pre_frame(*, seq: int, stamp_ns: int, data: np.ndarray, candidates: np.ndarray,
+                     strength: np.ndarray, params_id: int, deferred: bool = False) -> bytes:
+    """``PreFrame(...).encode()`` of a (height, width) ``data``, byte for byte.
+
+    Pre-processing's hot path: for what it produces (a C-contiguous uint8 image, ``(N, 2)``
+    int16 candidates inside it and ``(N,)`` finite float32 strengths, plain ints) the checks
+    are type tests and, when there are candidates, their bounds and finiteness in numpy; no
+    message object is built (38 to 6 us a deferred 64 KiB frame). Anything else goes through
+    the message, which names what is wrong.
+
+    Raises
+    ------
+    MessageError
+        As the constructor would, naming the field.
+    """
+    values = {"seq": seq, "stamp_ns": stamp_ns, "params_id": params_id, "deferred": deferred}
+    plain = (_plain_image(data) and _exact_scalars(values, _PRE_FRAME_SCALARS)
+             and seq >= 0 and stamp_ns >= 0 and 0 <= params_id <= MAX_PARAMS_ID
+             and type(candidates) is np.ndarray and candidates.dtype == np.int16
+             and candidates.ndim == 2 and candidates.shape[1] == 2
+             and candidates.flags.c_contiguous and type(strength) is np.ndarray
+             and strength.dtype == np.float32 and strength.shape == (len(candidates),)
+             and strength.flags.c_contiguous and not (deferred and len(candidates)))
+    if plain and len(candidates):
+        height, width = data.shape
+        xy = candidates.reshape(-1)
+        plain = (xy.min() >= 0 and xy[0::2].max() < width and xy[1::2].max() < height
+                 and bool(np.isfinite(strength).all()))
+    if not plain:
+        if not isinstance(data, np.ndarray) or data.ndim != 2:
+            raise _error(PreFrame.KEY, "data", "must be a 2-D (height, width) array", data)
+        return PreFrame(seq=seq, stamp_ns=stamp_ns, width=data.shape[1],
+                        height=data.shape[0], data=data, candidates=candidates,
+                        strength=strength, params_id=params_id, deferred=deferred).encode()
+    height, width = data.shape
+    return _ENCODER.encode({
+        "v": SCHEMA_VERSION, "seq": seq, "stamp_ns": stamp_ns, "width": width,
+        "height": height, "encoding": "mono8", "data": data.data,
+        "candidates": _bin_of(candidates, "<i2"), "strength": _bin_of(strength, "<f4"),
+        "params_id": params_id, "deferred": deferred})
+
+
+def encode_cmd_vel(*, seq: int, stamp_ns: int, vx: float, vy: float, wz: float,
+                   stale: bool = False) -> bytes:
+    """``CmdVel(...).encode()``, byte for byte, with the constructor's checks and no message
+    object (22 to 3 us): the fuzzy controller's hot path.
+
+    Raises
+    ------
+    MessageError
+        As the constructor would, naming the field.
+    """
+    key, checks = CmdVel.KEY, CmdVel._CHECKS
+    values = {"seq": seq, "stamp_ns": stamp_ns, "vx": vx, "vy": vy, "wz": wz, "stale": stale}
+    for name, value in values.items():
+        values[name] = checks[name](key, name, value)
+    return pack(values)
+
+
 @dataclass(frozen=True, kw_only=True)
 class Params(_Message):
     """The tracker parameters in force (``tuner/params``).

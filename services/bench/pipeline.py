@@ -48,7 +48,15 @@ import zenoh
 from ...common import synthetic
 from ...common.bus import alive_services, loopback_config, query_status
 from ...common.keys import Keys
-from ...common.messages import CmdVel, Estimate, Frame, PreFrame, peek_int
+from ...common.messages import (
+    Estimate,
+    Frame,
+    PreFrame,
+    encode_cmd_vel,
+    encode_frame,
+    encode_pre_frame,
+    peek_int,
+)
 from ...common.params import TrackerParams
 from ...common.vision import Preprocessed, Tracker, preprocess, warm_up
 from ...common.vision.preprocess import DeferredPreprocessed
@@ -341,17 +349,16 @@ def stage_costs(frames: list[np.ndarray], passes: int = 3) -> dict[str, dict[str
         for k, f in enumerate(frames):
             stamp = time.time_ns()
             t = time.perf_counter()
-            payload = Frame.from_image(f, seq=k, stamp_ns=stamp).encode()
+            payload = encode_frame(f, seq=k, stamp_ns=stamp)
             t = lap("camera", "encode", t)
             frame = Frame.decode(payload)
             t = lap("preprocessing", "decode", t)
             pre = preprocess(frame.data, params)
             cands = (pre.candidates, pre.strength) if wanted else (NO_CANDIDATES, NO_STRENGTH)
             t = lap("preprocessing", "work", t)
-            pre_payload = PreFrame(seq=k, stamp_ns=stamp, width=frame.width,
-                                   height=frame.height, data=pre.filtered,
-                                   candidates=cands[0], strength=cands[1],
-                                   params_id=0, deferred=not wanted).encode()
+            pre_payload = encode_pre_frame(seq=k, stamp_ns=stamp, data=pre.filtered,
+                                           candidates=cands[0], strength=cands[1],
+                                           params_id=0, deferred=not wanted)
             t = lap("preprocessing", "encode", t)
             pre_msg = PreFrame.decode(pre_payload)
             t = lap("motion-estimation", "decode", t)
@@ -369,7 +376,7 @@ def stage_costs(frames: list[np.ndarray], passes: int = 3) -> dict[str, dict[str
             t = lap("fuzzy-controller", "decode", t)
             ctrl.update(e.xc, e.scale, k / 30.0 + 1.0 + 100 * p, frame.width, npi=e.npi)
             t = lap("fuzzy-controller", "work", t)
-            CmdVel(seq=k, stamp_ns=stamp, vx=0.1, vy=-0.1, wz=0.0).encode()
+            encode_cmd_vel(seq=k, stamp_ns=stamp, vx=0.1, vy=-0.1, wz=0.0)
             t = lap("fuzzy-controller", "encode", t)
             kept = Frame.decode(payload)
             Estimate.decode(est_payload)

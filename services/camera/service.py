@@ -33,7 +33,7 @@ import numpy as np
 
 from ...common import rmw_zenoh as rmw
 from ...common.bus import Node
-from ...common.messages import MAX_SIDE, Frame, peek_int
+from ...common.messages import MAX_SIDE, encode_frame, peek_int
 from ...common.sources import (
     BUILTIN,
     SourceError,
@@ -240,7 +240,7 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
 
 
 def _publish(node: Node, image: np.ndarray, seq: int, stamp: int) -> None:
-    node.publish(node.keys.frame, Frame.from_image(image, seq=seq, stamp_ns=stamp).encode(),
+    node.publish(node.keys.frame, encode_frame(image, seq=seq, stamp_ns=stamp),
                  reliable=False)
 
 

@@ -16,7 +16,7 @@ import logging
 import time
 
 from ...common.bus import Node
-from ...common.messages import CmdVel, Estimate, Frame, MessageError, Pose
+from ...common.messages import CmdVel, Estimate, MessageError, Pose, encode_frame
 from ...common.sources import parse_size
 from ..runtime import Faults, ready, wait_for_consumers
 from .scenarios import ScenarioError, load_scenario
@@ -82,7 +82,7 @@ def _drain_commands(node: Node) -> CmdVel | None:
 def _publish(node: Node, sim: Simulator, seq: int, stamp: int) -> None:
     """Render the current view and publish it with the ground truth."""
     frame = sim.render()
-    node.publish(node.keys.frame, Frame.from_image(frame, seq=seq, stamp_ns=stamp).encode(),
+    node.publish(node.keys.frame, encode_frame(frame, seq=seq, stamp_ns=stamp),
                  reliable=False)
     node.publish(node.keys.pose, Pose(seq=seq, stamp_ns=stamp, **sim.pose()).encode(),
                  reliable=True)

@@ -18,7 +18,7 @@ import logging
 import time
 
 from ...common.bus import Node
-from ...common.messages import MAX_SIDE, CmdVel, Estimate
+from ...common.messages import MAX_SIDE, Estimate, encode_cmd_vel
 from ..runtime import add_service_args, decode_or_reject, dispatch, ready, reject, serve
 from ..usage import add_number
 from .control import (
@@ -89,8 +89,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
 
     def send(stamp_ns: int, vx: float, vy: float, wz: float, stale: bool) -> None:
         nonlocal seq
-        node.publish(node.keys.cmd_vel, CmdVel(seq=seq, stamp_ns=stamp_ns, vx=vx, vy=vy, wz=wz,
-                                                stale=stale).encode(), reliable=True)
+        node.publish(node.keys.cmd_vel, encode_cmd_vel(seq=seq, stamp_ns=stamp_ns, vx=vx, vy=vy,
+                                                       wz=wz, stale=stale), reliable=True)
         seq += 1
 
     def watchdog() -> None:

@@ -36,7 +36,7 @@ import numpy as np
 from ...common import rmw_zenoh as rmw
 from ...common import ros2types as r2
 from ...common.bus import Node
-from ...common.messages import Demand, Frame, PreFrame
+from ...common.messages import Demand, Frame, encode_pre_frame
 from ...common.vision import preprocess
 from ..camera import ros2cam
 from ..kernels import warm_up_kernels
@@ -111,15 +111,15 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     def process(frame: Frame, t0: float) -> None:
         pre = preprocess(frame.data, state.params)
         if wanted:
-            out = PreFrame(seq=frame.seq, stamp_ns=frame.stamp_ns, width=frame.width,
-                           height=frame.height, data=pre.filtered, candidates=pre.candidates,
-                           strength=pre.strength, params_id=state.params_id)
+            out = encode_pre_frame(seq=frame.seq, stamp_ns=frame.stamp_ns, data=pre.filtered,
+                                   candidates=pre.candidates, strength=pre.strength,
+                                   params_id=state.params_id)
         else:
-            out = PreFrame(seq=frame.seq, stamp_ns=frame.stamp_ns, width=frame.width,
-                           height=frame.height, data=pre.filtered, candidates=NO_CANDIDATES,
-                           strength=NO_STRENGTH, params_id=state.params_id, deferred=True)
+            out = encode_pre_frame(seq=frame.seq, stamp_ns=frame.stamp_ns, data=pre.filtered,
+                                   candidates=NO_CANDIDATES, strength=NO_STRENGTH,
+                                   params_id=state.params_id, deferred=True)
             node.status.extra["deferred"] += 1
-        node.publish(node.keys.pre_frame, out.encode(), reliable=False)
+        node.publish(node.keys.pre_frame, out, reliable=False)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
 
     def on_frame(payload: bytes) -> None:

@@ -749,3 +749,67 @@ def test_encode_estimate_refuses_what_the_constructor_refuses(change, name, word
     with pytest.raises(MessageError) as info:
         encode_estimate(**{**fields, **change})
     assert info.value.field == name and words in str(info.value)
+
+
+# -- the other hot paths: frames, pre-processed frames and commands without message objects --
+
+def test_encode_frame_pre_frame_and_cmd_vel_write_what_the_messages_write():
+    """For the services' own outputs (a camera image, a filtered frame with and without its
+    candidates, a command), and for inputs the fast path hands to the message (a view, numpy
+    scalars), byte for byte."""
+    from vistrack.common import synthetic
+    from vistrack.common.messages import encode_cmd_vel, encode_frame, encode_pre_frame
+    from vistrack.common.vision import preprocess
+
+    image = synthetic.builtin_sequence(3)[1]
+    for img, seq in ((image, 7), (image[10:50, 3:99], 8), (image, np.int64(9))):
+        assert encode_frame(img, seq=seq, stamp_ns=123) == \
+            Frame.from_image(img, seq=seq, stamp_ns=123).encode()
+    pre = preprocess(image, TrackerParams())
+    assert len(pre.candidates) > 100
+    none = dict(candidates=np.empty((0, 2), np.int16), strength=np.empty(0, np.float32))
+    for arrays, deferred in ((dict(candidates=pre.candidates, strength=pre.strength), False),
+                             (none, True), (none, False),
+                             (dict(candidates=pre.candidates.astype(np.int32),
+                                   strength=pre.strength.astype(np.float64)), False)):
+        fields = dict(seq=5, stamp_ns=6, data=pre.filtered, params_id=3, deferred=deferred,
+                      **arrays)
+        assert encode_pre_frame(**fields) == PreFrame(width=256, height=256, **fields).encode()
+    for stale in (False, True):
+        fields = dict(seq=4, stamp_ns=5, vx=0.25, vy=-0.5, wz=0.0, stale=stale)
+        assert encode_cmd_vel(**fields) == CmdVel(**fields).encode()
+    assert encode_cmd_vel(seq=4, stamp_ns=5, vx=np.float32(0.5), vy=1, wz=0.0) == \
+        CmdVel(seq=4, stamp_ns=5, vx=np.float32(0.5), vy=1, wz=0.0).encode()
+
+
+@pytest.mark.parametrize(("encoder", "change", "name", "words"), [
+    ("frame", {"seq": -1}, "seq", ">= 0"),
+    ("frame", {"stamp_ns": True}, "stamp_ns", "integer"),
+    ("frame", {"image": np.zeros((4, 4), np.float32)}, "data", "uint8"),
+    ("frame", {"image": np.zeros(4, np.uint8)}, "data", "2-D"),
+    ("frame", {"image": np.zeros((1, 4097), np.uint8)}, "width", "1..4096"),
+    ("pre", {"candidates": np.array([[0, 256]], np.int16)}, "candidates", "inside"),
+    ("pre", {"candidates": np.array([[-1, 0]], np.int16)}, "candidates", "inside"),
+    ("pre", {"strength": np.array([np.nan], np.float32)}, "strength", "finite"),
+    ("pre", {"strength": np.zeros(2, np.float32)}, "strength", "one value per candidate"),
+    ("pre", {"deferred": True}, "candidates", "empty when deferred"),
+    ("pre", {"params_id": -1}, "params_id", "in 0.."),
+    ("pre", {"data": np.zeros((4, 4, 3), np.uint8)}, "data", "2-D"),
+    ("cmd", {"vx": math.nan}, "vx", "finite"),
+    ("cmd", {"stale": 1}, "stale", "true or false"),
+    ("cmd", {"seq": 1.5}, "seq", "integer"),
+])
+def test_the_fast_encoders_refuse_what_the_constructors_refuse(encoder, change, name, words):
+    from vistrack.common.messages import encode_cmd_vel, encode_frame, encode_pre_frame
+
+    fields: dict = {
+        "frame": dict(image=np.zeros((8, 6), np.uint8), seq=1, stamp_ns=2),
+        "pre": dict(seq=1, stamp_ns=2, data=np.zeros((256, 256), np.uint8),
+                    candidates=np.array([[3, 4]], np.int16),
+                    strength=np.array([1.5], np.float32), params_id=0),
+        "cmd": dict(seq=1, stamp_ns=2, vx=0.0, vy=0.0, wz=0.0),
+    }[encoder]
+    encode = {"frame": encode_frame, "pre": encode_pre_frame, "cmd": encode_cmd_vel}[encoder]
+    with pytest.raises(MessageError) as info:
+        encode(**{**fields, **change})
+    assert info.value.field == name and words in str(info.value)

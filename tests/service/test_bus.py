@@ -240,6 +240,23 @@ def test_latest_only_keeps_the_newest_and_counts_drops(nodes):
     assert a.status.dropped == 19
 
 
+def test_a_stalled_loop_holds_one_frame_of_a_latest_only_key(nodes):
+    # a loop that does not take its inputs (stuck, or a service run by hand that nobody asks
+    # the status of) keeps the newest frame, not every frame that came since it stopped
+    a, b = nodes()
+    subscribe_and_match(a, b, a.keys.frame, latest=True)
+    frames = [Frame.from_image(np.full((64, 64), seq, np.uint8), seq=seq, stamp_ns=seq).encode()
+              for seq in range(50)]
+    for payload in frames:
+        b.publish(b.keys.frame, payload, reliable=True)
+    inbox = a._inbox  # the loop's side is not called: nothing here takes samples in
+    wait_for(lambda: inbox.arrivals.qsize() == 0 and inbox._latest.get(a.keys.frame) == frames[-1],
+             what="the node's sweep to leave only the newest frame")
+    assert len(inbox._latest) == 1 and not inbox._reliable
+    assert (a.status.received, a.status.dropped) == (50, 49)
+    assert drain(a) == [(a.keys.frame, frames[-1])]
+
+
 def test_reliable_before_latest(nodes):
     a, b = nodes()
     subscribe_and_match(a, b, a.keys.frame, latest=True)

@@ -26,6 +26,8 @@ import argparse
 import collections
 import itertools
 import logging
+import select
+import sys
 import time
 from collections.abc import Iterable, Iterator
 
@@ -73,6 +75,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                help="with --fps 0, most frames sent and not yet estimated, %(allowed)s "
                     "(default 1: no frame lost; 2: pre-processing and tracking overlap, "
                     "faster, but a frame may be dropped at motion-estimation's input)")
+    parser.add_argument("--start-on-stdin", action="store_true",
+                        help="say ready and send the first frame only after a line on standard "
+                             "input (the launcher starts the camera with the other services "
+                             "and releases it once they are ready)")
     add_number(parser, "--ack-timeout", lo=0, hi=3600, lo_open=True, default=1.0, metavar="S",
                help="with --fps 0, longest wait for a frame's estimate, %(allowed)s "
                     "(default 1 s)")
@@ -170,15 +176,30 @@ def _size(args: argparse.Namespace) -> tuple[int, int] | None:
     return parse_size(args.size, "--size", sides=FRAME_SIDES) if args.size else None
 
 
+def released(node: Node, args: argparse.Namespace) -> bool:
+    """With ``--start-on-stdin``, wait for a line on stdin: True once it came (or without the
+    flag); False if stdin ends first (the launcher is gone) or the node is stopped."""
+    if not getattr(args, "start_on_stdin", False):
+        return True
+    while not node.stop.is_set():
+        if select.select([sys.stdin], [], [], 0.1)[0]:
+            return bool(sys.stdin.readline())
+    return False
+
+
 def loop(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray] | None = None
          ) -> int:
-    """Publish the frames of ``--source`` (``frames``, already opened by :func:`main`)."""
+    """Publish the frames of ``--source`` (``frames``, already opened by :func:`main`), once
+    :func:`released`."""
     if frames is None:
         if _is_sim(args):
-            return run_sim(node, args, make_simulator(args))
+            sim = make_simulator(args)
+            return run_sim(node, args, sim) if released(node, args) else 0
         if is_ros2(args.source):
-            return run_ros2(node, args, _size(args))
+            return run_ros2(node, args, _size(args)) if released(node, args) else 0
         frames = open_source(args.source, _size(args), args.loop)
+    if not released(node, args):
+        return 0
     # estimates tell when a frame has been through the pipeline (pacing with --fps 0, and the
     # end of a file either way); pre-processed frames when pre-processing is free again
     window = 1 if args.fps > 0 else args.in_flight

@@ -1,7 +1,8 @@
 """The process supervisor behind ``vistrack up`` and ``vistrack demo``.
 
 :class:`Launcher` starts the services of a :class:`~.launchfile.LaunchSpec` as child
-processes (downstream first, the camera once its consumers are ready and subscribed), with an
+processes (downstream first; the camera with them, but it says ready and sends its first frame
+only once its consumers are ready and subscribed), with an
 embedded Zenoh router unless it connects to one; it watches their liveliness tokens, prefixes
 their output with their names, restarts them by policy with exponential back-off, kills and
 restarts (by the same policy) a service that hangs, and stops them all (SIGTERM, then
@@ -48,6 +49,14 @@ LAUNCH_ORDER = ("ros2", "fuzzy_controller", "motion_estimation", "preprocessing"
 #: (ARCHITECTURE.md's table of keys).
 CONSUMES = {"preprocessing": "frame", "motion_estimation": "pre_frame", "auto_tuner": "frame",
             "fuzzy_controller": "estimate"}
+
+#: The camera flag that holds its start (its ready, its first frame) until a line on its
+#: stdin: the launcher starts the camera's process with the others, so that its own start-up
+#: (imports, session, simulator: ~1.4 s) is done when they are ready, and releases it then.
+HOLD_FLAG = "--start-on-stdin"
+#: Camera sources that are not started early: a live device's first frame would be read at
+#: start-up and sent, stale, once released.
+LIVE_SOURCES = ("device:",)
 
 # Seconds between SIGTERM and SIGKILL when stopping (the whole stop stays within 5 s).
 TERM_GRACE_S = 3.0
@@ -228,9 +237,10 @@ class Launcher:
                     for c in self._children}
 
     def start(self) -> None:
-        """Open the router (or connect to one), then start every service but the camera; the
-        camera follows once the others are ready and subscribed to their inputs (checked by
-        :meth:`wait_ready` and :meth:`poll`), or after ``ready_timeout``.
+        """Open the router (or connect to one), then start every service; the camera is held
+        (:data:`HOLD_FLAG`: it says ready and sends frames only when released; a live device
+        starts only then) until the others are ready and subscribed to their inputs (checked
+        by :meth:`wait_ready` and :meth:`poll`), or after ``ready_timeout``.
 
         Raises
         ------
@@ -250,7 +260,9 @@ class Launcher:
         self._gate_deadline = time.monotonic() + self.launch.ready_timeout
         for child in self._children:
             if child.spec.name == "camera" and len(self._children) > 1:
-                child.held = True  # started by _release_held once its consumers are up
+                child.held = True  # released by _release_held once its consumers are up
+                if _can_hold(child.spec):
+                    self._spawn(child)  # starts now, sends nothing until released
             else:
                 self._spawn(child)
 
@@ -420,7 +432,22 @@ class Launcher:
         self._drop_probes()
         for child in held:
             child.held = False
-            self._spawn(child)
+            if child.running and child.proc is not None and child.proc.stdin is not None:
+                self._release(child)
+            elif not child.running and child.restart_at is None:
+                self._spawn(child)
+            # else a restart is due: it starts unheld
+
+    def _release(self, child: _Child) -> None:
+        """Let a camera started early (:data:`HOLD_FLAG`) say ready and send frames."""
+        assert child.proc is not None and child.proc.stdin is not None
+        try:
+            child.proc.stdin.write(b"go\n")
+            child.proc.stdin.close()
+        except OSError:
+            pass  # it exited meanwhile: its exit is handled as any other
+        self._log(f"released {child.spec.cli_name} (pid {child.proc.pid}): every consumer "
+                  "is ready")
 
     def _inputs_subscribed(self, consumers: list[_Child]) -> bool:
         """Whether the input key of each of ``consumers`` has a subscriber somewhere."""
@@ -538,7 +565,10 @@ class Launcher:
         child.started_at = time.monotonic()  # before the child can declare its token
         proc = self._from_spare(child.spec) if child.restarts else None
         how = ", from the spare" if proc is not None else ""
-        if proc is None:
+        if proc is None and child.held:  # started early: it waits for _release
+            proc = self._popen([*self._command(child.spec), HOLD_FLAG], stdin=subprocess.PIPE)
+            how = ", held until its consumers are ready"
+        elif proc is None:
             proc = self._popen(self._command(child.spec), stdin=subprocess.DEVNULL)
         child.proc, child.returncode, child.ready = proc, None, False
         child.reader = threading.Thread(target=self._pump, args=(child.spec.cli_name, proc),
@@ -652,8 +682,22 @@ class Launcher:
         for child in self._children:
             if child.proc is not None:
                 child.returncode = child.proc.poll()
+                if child.proc.stdin is not None and not child.proc.stdin.closed:
+                    child.proc.stdin.close()  # a camera never released
             if child.reader is not None:
                 child.reader.join(max(0.0, deadline - time.monotonic()))
+
+
+def _can_hold(spec: ServiceSpec) -> bool:
+    """Whether the camera of ``spec`` is started early and held (not a live device)."""
+    flags = list(spec.flags)
+    source = ""  # the last --source wins, as in argparse
+    for i, flag in enumerate(flags):
+        if flag == "--source" and i + 1 < len(flags):
+            source = flags[i + 1]
+        elif flag.startswith("--source="):
+            source = flag.split("=", 1)[1]
+    return not source.startswith(LIVE_SOURCES)
 
 
 def compile_kernels(command: str = "up", start: Callable[[], None] | None = None) -> None:

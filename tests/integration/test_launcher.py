@@ -226,6 +226,35 @@ def start_up(procs, tmp_path, port, robot):
 
 # -- supervision -----------------------------------------------------------------------------
 
+def test_the_camera_starts_with_the_others_but_says_ready_after_them(procs, tmp_path, free_port):
+    """The camera's process starts with the other services, so that its own start-up
+    (imports, session, source: ~1.4 s) is over by the time they are ready, and a first run's
+    demo does not wait for it after the compile; but it is held: it says ready (and sends its
+    first frame) only once every other service has, as the README promises."""
+    up = start_up(procs, tmp_path, free_port, f"t{uuid.uuid4().hex[:8]}")
+    up.wait_line(r"^\[camera\] .* ready \(robot", 10)  # its line may follow the launcher's
+    out = up.output
+    lines = out.splitlines()
+    others = ("fuzzy-controller", "motion-estimation", "preprocessing", "auto-tuner")
+    started = next(i for i, line in enumerate(lines) if re.match(
+        r"\[launcher\] started camera \(pid \d+, held until its consumers are ready\)", line))
+    first_ready = min(i for i, line in enumerate(lines)
+                      if re.match(rf"\[({'|'.join(others)})\] .* ready \(robot", line))
+    assert started < first_ready, out  # started with them, not after them
+    assert "[launcher] released camera" in out, out
+    camera = service_ready_at(out, "camera")
+    for service in others:  # the services' own clocks: the pipes' line order is not theirs
+        assert service_ready_at(out, service) < camera, (service, out)
+
+
+def service_ready_at(out: str, service: str) -> float:
+    """The time of day (s) in the ready line of ``service`` in ``out``."""
+    m = re.search(rf"^\[{service}\] (\d\d):(\d\d):(\d\d\.\d+) .* ready \(robot", out,
+                  flags=re.M)
+    assert m, f"no ready line of {service} in:\n" + out
+    return int(m[1]) * 3600 + int(m[2]) * 60 + float(m[3])
+
+
 def test_killed_service_is_restarted_alone_and_estimates_again(procs, tmp_path, free_port):
     robot = f"t{uuid.uuid4().hex[:8]}"
     keys = Keys(robot)

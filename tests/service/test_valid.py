@@ -141,3 +141,30 @@ def test_the_controller_does_not_move_the_robot_on_an_invalid_estimate():
     # the set point came from the first valid estimate (xc 90), so the target is centred on it
     # and the robot is not sent towards the image centre of the invalid one
     assert abs(answered[1].vy) < 1e-9 and abs(answered[2].vy) < 1e-9
+
+
+def test_a_held_camera_sends_nothing_until_a_line_on_its_stdin(monkeypatch):
+    """``--start-on-stdin`` (how the launcher starts the camera early): no liveliness token,
+    no frame until a line arrives on stdin, then frames; the same camera without the line
+    stops cleanly when asked, having sent nothing."""
+    import os
+
+    from vistrack.services.camera.service import loop
+
+    read_fd, write_fd = os.pipe()
+    with os.fdopen(read_fd) as stdin, os.fdopen(write_fd, "w") as go:
+        monkeypatch.setattr("sys.stdin", stdin)
+        args = parse("camera", "--source", "sim", "--fps", "50", "--start-on-stdin")
+        with Running("camera", loop, args) as node:
+            time.sleep(0.5)  # held: half a second of nothing (50 fps would be 25 frames)
+            assert node.published_on(node.keys.frame) == [] and not node.alive
+            go.write("go\n")
+            go.flush()
+            wait_for(lambda: len(node.published_on(node.keys.frame)) >= 3, what="frames")
+            assert node.alive
+    read_fd, write_fd = os.pipe()
+    with os.fdopen(read_fd) as stdin, os.fdopen(write_fd, "w"):
+        monkeypatch.setattr("sys.stdin", stdin)
+        with Running("camera", loop, args) as node:
+            time.sleep(0.3)
+        assert node.published_on(node.keys.frame) == []

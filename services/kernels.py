@@ -18,12 +18,15 @@ the default tracker's SSD search (``track_pyramid`` and the kernels it calls: mo
 work) while this one compiles the rest; the final :func:`~vistrack.common.vision.warm_up` then
 compiles what is left and loads the rest from the cache. Each process compiles what the other
 will load from the cache before it needs it: the second process starts with the single-level
-search that every level of the coarse-to-fine search calls, this one with the sub-pixel
-refinement that the coarse-to-fine search calls before it and the search's last checks
-(:func:`_compile_refinement`, with the types that search gives them), then the kernels of a
-first frame and of the motion estimate. The split only changes how long the compile takes:
-whatever the second process did not compile, or compiled for other types, the final warm-up
-compiles here.
+search that every level of the coarse-to-fine search calls, this one with the last kernels that
+search compiles (:func:`_search_tail_signatures`), the sub-pixel refinement that the
+coarse-to-fine search calls after it and the search's last checks (:func:`_compile_refinement`,
+with the types that search gives them), the other kernels of its matching
+(:func:`_match_signatures`), then the kernels of a first frame and of the motion estimate:
+measured on a quiet machine, this process was done 7 s before the second one without the
+kernels of those two lists (~3.4 s of compile), which the second then had to compile. The
+split only changes how long the compile takes: whatever the second process did not compile,
+or compiled for other types, the final warm-up compiles here.
 """
 
 from __future__ import annotations
@@ -172,7 +175,9 @@ def _compile_first_frame() -> None:
     from ..common.vision import Tracker, incremental_motion
     from ..common.vision import tracker as tracker_kernels
 
-    _compile_refinement()  # first: the second process needs them after its first step
+    _compile_ahead(_search_tail_signatures())  # before the second process reaches them
+    _compile_refinement()  # the second process needs them after its first step
+    _compile_ahead(_match_signatures())  # they call the refinement
     (frame,) = sequence(1, size=(64, 64), seed=1)
     Tracker(TrackerParams(subpixel=True, max_features=20, search_size=5, corr_size=5)
             ).process(frame)
@@ -233,6 +238,66 @@ def _single_level_call() -> tuple[Callable[..., object], tuple] | None:
     return ssd._search_level, (
         frame, frame, at, at.copy(), np.zeros(1, np.bool_), 2, 2, ssd.window_weights("uniform", 2),
         False, 1.25, 0.0, np.zeros((1, 2), np.int64), np.zeros(1), np.zeros(1, np.int8))
+
+
+#: the parameters of the kernels of :func:`_search_tail_signatures` and
+#: :func:`_match_signatures`, as their types there were written for
+_AHEAD_PARAMS = {
+    "_ambiguous_pruned": ("pf", "cf", "w", "ax", "ay", "lo_x", "lo_y", "nrow", "ncol", "width",
+                          "total", "n", "wts", "uniform", "bnd", "mscale", "lanes", "mask",
+                          "best_k", "lim"),
+    "_descend": ("prev", "curr", "ax", "ay", "cx", "cy", "n", "wts", "uniform", "steps",
+                 "seen"),
+    "_from_integer": ("prev", "curr", "ax", "ay", "qx", "qy", "n", "wts", "uniform", "ssd",
+                      "scratch"),
+}
+
+
+def _search_tail_signatures() -> list[tuple[Any, tuple]]:
+    """The last kernels the single-level search (:func:`~vistrack.common.vision.ssd.
+    _search_level`, the second process's first step) compiles, with the types it gives them:
+    the uniqueness test of the pruned search, over int32 and int64 sums (~1.3 s of compile
+    that the second process then loads)."""
+    from numba import types as t
+
+    from ..common.vision import ssd
+
+    u8, i64, i32_2 = t.Array(t.uint8, 1, "C"), t.int64, t.Array(t.int32, 2, "C")
+    return [(ssd._ambiguous_pruned, (u8, u8, *[i64] * 10, i32_2, t.boolean,
+                                     t.Array(bound, 1, "C"), i64, u8, u8, i64, t.float64))
+            for bound in (t.int64, t.int32)]
+
+
+def _match_signatures() -> list[tuple[Any, tuple]]:
+    """The kernels the coarse-to-fine search's matching (:func:`~vistrack.common.vision.
+    pyramid._match`, the second process's second step) calls besides the single-level search,
+    with the types it gives them: the descent at the finest level and the sub-pixel estimate
+    from an integer minimum (~2 s of compile that the second process then loads)."""
+    from numba import types as t
+
+    from ..common.vision import pyramid
+
+    u8_2, i64, i32_1 = t.Array(t.uint8, 2, "C"), t.int64, t.Array(t.int32, 1, "C")
+    wts = t.Array(t.int32, 2, "C")
+    scratch = t.Tuple((i32_1, i32_1, i32_1, wts))
+    return [(pyramid._descend, (u8_2, u8_2, *[i64] * 5, wts, t.boolean, t.literal(3),
+                                t.Array(t.int64, 2, "C"))),
+            (pyramid._from_integer, (u8_2, u8_2, *[i64] * 5, wts, t.boolean, t.float64,
+                                     scratch))]
+
+
+def _compile_ahead(signatures: list[tuple[Any, tuple]]) -> None:
+    """Compile (not run) each kernel for its types, into numba's cache, for the second process
+    to load; a kernel whose parameters are not the ones its types were written for is left to
+    the second process (the unit test test_the_compile_split_compiles_only_what_the_tracker_
+    calls says when the types no longer match)."""
+    for kernel, sig in signatures:
+        try:
+            params = tuple(inspect.signature(kernel.py_func).parameters)
+            if params == _AHEAD_PARAMS.get(kernel.__name__):
+                kernel.compile(sig)
+        except Exception:  # noqa: BLE001 - a changed kernel: the second process compiles it
+            pass
 
 
 def _compile_refinement() -> None:

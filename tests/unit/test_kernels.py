@@ -8,6 +8,7 @@ functions of the test's own, and the cached case runs on the cache the session f
 from __future__ import annotations
 
 import fcntl
+import inspect
 import os
 import subprocess
 import sys
@@ -75,11 +76,18 @@ def test_the_compile_split_compiles_only_what_the_tracker_calls():
     # (the second one's single-level search, this one's refinement): with types of their own,
     # each would compile a version nobody uses, and the tracker's search its own besides.
     # The session's warm-up compiled (or loaded) exactly what the tracker calls.
+    # The kernels compiled ahead by their types (not run) must also have the parameters
+    # those types were written for, else the second process compiles them after all.
+    ahead = kernels._search_tail_signatures() + kernels._match_signatures()
+    for kernel, _ in ahead:
+        assert tuple(inspect.signature(kernel.py_func).parameters) == \
+            kernels._AHEAD_PARAMS[kernel.__name__], kernel.__name__  # else see there
     split = (ssd._search_level, ssd._refine_with, ssd._parabola, pyramid._consensus,
-             pyramid._widen)
+             pyramid._widen, *{kernel for kernel, _ in ahead})
     before = [kernels.cached_signatures(k) for k in split]
     assert all(before)
     assert kernels._single_level_call() is not None  # else its parameters changed: see there
+    kernels._compile_ahead(ahead)
     kernels._compile_refinement()
     kernels.compile_search()
     assert [kernels.cached_signatures(k) for k in split] == before

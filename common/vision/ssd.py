@@ -87,8 +87,10 @@ ROW_BLOCK = 4096
 # the sums of an exhaustive search are padded to a multiple of this many: an int32 vector loop
 # takes 4 x 16 lanes a trip, and padding to VEC cost small searches up to 20 % more
 FULL_VEC = 64
-# above any S of Eq. (1) with int32 weights (65^2 px * 255^2 * 2^31 < 2^62)
-BIG = 1 << 62
+# above any S of Eq. (1) with int32 weights (65^2 px * 255^2 * 2^31 < 2^62); typed, so that
+# a kernel given it compiles the signature it has when given an int64 bound (a plain int
+# literal is a type of its own to numba: a second compile)
+BIG = np.int64(1 << 62)
 INT32_MAX = (1 << 31) - 1
 
 
@@ -169,7 +171,7 @@ def _row_sums(curr, n, s, centers, out, bufs):  # pragma: no cover - numba
 
 
 @nb.njit(cache=True, nogil=True)
-def _bounds(rs, w, trs, wmin, uniform, lo_x, lo_y, nrow, ncol, width, n, blk,
+def _bounds(rs, w, trs, wmin, caps, unit, lo_x, lo_y, nrow, ncol, width, n, blk,
             bnd):  # pragma: no cover - numba
     """Lower bounds (times m) of S for every displacement of one search.
 
@@ -181,8 +183,14 @@ def _bounds(rs, w, trs, wmin, uniform, lo_x, lo_y, nrow, ncol, width, n, blk,
 
     The row sums of the search area are first copied into ``blk`` with rows ``width`` long, so
     that each pass below is one long contiguous loop, which LLVM vectorises; a per-row loop of
-    ``width`` lanes would cost more in loop overhead than in arithmetic. ``bnd``'s dtype (int32
-    where it cannot overflow) sets the vector width. Returns the number of lanes computed.
+    ``width`` lanes would cost more in loop overhead than in arithmetic. Returns the number of
+    lanes computed.
+
+    The bounds are int32 (twice the vector width of int64) whatever the window: each row's
+    term is capped at ``caps[j]`` (:func:`_bound_caps`), so that their sum cannot overflow; a
+    capped term is smaller, so the sum is still a lower bound (a weaker one only for windows
+    so unlike the template that no best match comes near). With ``unit`` (uniform weights, no
+    term able to reach its cap) neither caps nor weights are applied.
     """
     m = 2 * n + 1
     _copy_block(rs, w, lo_x - n, lo_y - n, nrow + m - 1, width, blk)
@@ -200,9 +208,38 @@ def _bounds(rs, w, trs, wmin, uniform, lo_x, lo_y, nrow, ncol, width, n, blk,
         r1 = blk[j1 * width:j1 * width + total]
         r2 = blk[j2 * width:j2 * width + total]
         # rows past the window count with weight 0
-        _add_squares(bnd, total, t0, t1, t2, r0, r1, r2, wmin[j], wmin[j1] if j + 1 < m else 0,
-                     wmin[j2] if j + 2 < m else 0, uniform and j + 2 < m)
+        _add_capped(bnd, total, t0, t1, t2, r0, r1, r2, wmin[j], wmin[j1] if j + 1 < m else 0,
+                    wmin[j2] if j + 2 < m else 0, caps[j], caps[j1], caps[j2],
+                    unit and j + 2 < m)
     return total
+
+
+@nb.njit(cache=True, nogil=True)
+def _bound_caps(wmin, uniform):  # pragma: no cover - numba
+    """The caps of :func:`_bounds`' terms (each row's at most INT32_MAX // m, weight
+    included, so that m of them fit int32) and whether uniform weights leave every term
+    below its cap (``unit``: the terms are then summed as they are)."""
+    m = wmin.shape[0]
+    caps = np.empty(m, np.int64)
+    for j in range(m):
+        caps[j] = INT32_MAX // m // max(wmin[j], 1)
+    top = m * 255  # the largest |T_j - I_j|
+    return caps, uniform and top * top <= INT32_MAX // m
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _add_capped(acc, total, t0, t1, t2, r0, r1, r2, w0, w1, w2, c0, c1, c2,
+                unit):  # pragma: no cover - numba
+    """:func:`_add_squares` for the bounds: each square capped at ``c0``, ``c1``, ``c2``
+    before its weight (with ``unit``: neither cap nor weight)."""
+    if unit:
+        _add_squares(acc, total, t0, t1, t2, r0, r1, r2, w0, w1, w2, True)
+        return
+    for q in range(total):
+        d0 = t0 - np.int32(r0[q])
+        d1 = t1 - np.int32(r1[q])
+        d2 = t2 - np.int32(r2[q])
+        acc[q] += w0 * min(d0 * d0, c0) + w1 * min(d1 * d1, c1) + w2 * min(d2 * d2, c2)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -548,11 +585,10 @@ def _search_level(prev, curr, anchors, centers, active, n, s, wts, exhaustive, r
         _row_sums(curr, n, s, reach, rs, bufs)
     width_max = (side + LANES - 1) // LANES * LANES
     size = prune * ((side * width_max + VEC - 1) // VEC * VEC)
-    # int32 bounds (twice the vector width) unless they could overflow: large weighted windows
-    top = m * 255
-    use32 = float(wmin.sum()) * top * top < 2.0**31
-    bnd32 = np.empty(size if use32 else 0, np.int32)
-    bnd64 = np.empty(0 if use32 else size, np.int64)
+    # int32 bounds (twice the vector width of int64), their terms capped (see _bounds): one
+    # variant of the pruned search's kernels to compile
+    caps, unit = _bound_caps(wmin, uniform)
+    bnd = np.empty(size, np.int32)
     blk = np.empty(prune * ((side + m - 1) * width_max + VEC), np.int16)
     lanes = np.zeros(size, np.uint8)
     mask = np.empty(size, np.uint8)
@@ -612,18 +648,11 @@ def _search_level(prev, curr, anchors, centers, active, n, s, wts, exhaustive, r
                     lanes[r * width:r * width + ncol] = 1
                 lanes_nrow = nrow
                 lanes_ncol = ncol
-            if use32:
-                total = _bounds(rs, w, trs, wmin, uniform, lo_x, lo_y, nrow, ncol, width, n,
-                                blk, bnd32)
-                best, best_k = _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol,
-                                       width, total, n, wts, uniform, bnd32, mscale, lanes,
-                                       mask, np.int32, INT32_MAX)
-            else:
-                total = _bounds(rs, w, trs, wmin, uniform, lo_x, lo_y, nrow, ncol, width, n,
-                                blk, bnd64)
-                best, best_k = _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol,
-                                       width, total, n, wts, uniform, bnd64, mscale, lanes,
-                                       mask, np.int64, BIG)
+            total = _bounds(rs, w, trs, wmin, caps, unit, lo_x, lo_y, nrow, ncol, width, n,
+                            blk, bnd)
+            best, best_k = _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol, width,
+                                   total, n, wts, uniform, bnd, mscale, lanes, mask, np.int32,
+                                   INT32_MAX)
         qx = lo_x + best_k % ncol
         qy = lo_y + best_k // ncol
         # a minimum on an edge that the image cut short may be a piece of a minimum outside
@@ -645,13 +674,9 @@ def _search_level(prev, curr, anchors, centers, active, n, s, wts, exhaustive, r
                     amb = _ambiguous_full(acc32, nrow, ncol, ncol + m - 1, best_k, lim)
                 else:
                     amb = _ambiguous_full(acc64, nrow, ncol, ncol + m - 1, best_k, lim)
-            elif use32:
-                amb = _ambiguous_pruned(pf, cf, w, ax, ay, lo_x, lo_y, nrow, ncol, width, total,
-                                        n, wts, uniform, bnd32, mscale, lanes, mask, best_k,
-                                        lim)
             else:
                 amb = _ambiguous_pruned(pf, cf, w, ax, ay, lo_x, lo_y, nrow, ncol, width, total,
-                                        n, wts, uniform, bnd64, mscale, lanes, mask, best_k,
+                                        n, wts, uniform, bnd, mscale, lanes, mask, best_k,
                                         lim)
             if amb:
                 status = AMBIGUOUS

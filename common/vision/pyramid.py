@@ -61,6 +61,7 @@ correlation window and ~1 us for the wide one, are about 40 % of the total.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numba as nb
@@ -715,6 +716,21 @@ def _widen(prev, curr, pts, wide, acc, ok, out_pos):  # pragma: no cover - numba
             out_pos[f, 1] = pts[f, 1] + (yw - ay)
 
 
+@functools.lru_cache(maxsize=16)
+def _sum_type(weights: bytes, corr_half: int, wide_half: int) -> np.ndarray:
+    """The sub-pixel sums' type (:func:`.ssd.refine_acc`) for the correlation window of
+    ``weights`` (int32 W, the bytes of a (2 corr_half + 1)^2 array) and the wide window of
+    ``wide_half`` (-1: no sub-pixel refinement, so none is summed: int32, the kernels' one
+    specialisation). Kept per window: it took ~7 us a frame, 1 % of the default tracker."""
+    if wide_half < 0:
+        return np.empty(0, np.int32)
+    m = 2 * corr_half + 1
+    wts = np.frombuffer(weights, np.int32).reshape(m, m)
+    if wide_half > corr_half:
+        return refine_acc(wts, np.ones((2 * wide_half + 1,) * 2, np.int32))
+    return refine_acc(wts)
+
+
 def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions: np.ndarray,
                   *, corr_half: int, search_half: int, weights: np.ndarray,
                   subpixel: bool = False, search: str = "pruned", uniqueness: float = 0.0,
@@ -769,14 +785,7 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
     ssd = np.empty(n_feat, np.float64)
     status = np.empty(n_feat, np.int8)
     wts = np.ascontiguousarray(weights, np.int32)
-    # the sub-pixel sums' type, for the correlation window and the wide one (without
-    # sub-pixel refinement none is summed: int32, the kernels' one specialisation)
-    if not subpixel:
-        acc = np.empty(0, np.int32)
-    elif wide_half > corr_half:
-        acc = refine_acc(wts, np.ones((2 * wide_half + 1,) * 2, np.int32))
-    else:
-        acc = refine_acc(wts)
+    acc = _sum_type(wts.tobytes(), int(corr_half), int(wide_half) if subpixel else -1)
     _track_frame(prev.data, curr.data, prev.geo, pts, preds, int(corr_half), int(search_half),
                  wts, search == "exhaustive", float(uniqueness), float(allowance),
                  bool(reject_border), bool(guided_retry), float(max_fb_error),

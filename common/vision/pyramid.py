@@ -57,6 +57,20 @@ forward-backward check +2.6 (a second coarse-to-fine search, with its tests), th
 and the wide window +0.9: 7.2 in all (main before the flat buffer: 7.25). Five Gauss-Newton
 refinements a feature (two levels each way and the wide window), ~0.6 us each for the
 correlation window and ~1 us for the wide one, are about 40 % of the total.
+
+Since then (issue 12's speed target, measured old against new compiled side by side in one
+process, interleaved, best of 40 rounds, bench data): the way back without its middle-level
+refinement (step 4) 740.7 -> 677.1 us, the uniqueness test visiting only the displacements that
+pass their bound and the wrapper's cached sum type 677.1 -> 650.9 us, against the single-level
+search's 110.2 us of the same rounds: 6.72x -> 5.90x; the same statuses. Counted on the same
+data: a third of the features (31 %) cannot start at the coarsest level (their template leaves
+it: within ~16 px of the frame's edge) and start a level finer, whose search and uniqueness
+test cost more per feature (smoother images, weaker bounds); each way holds ~1.5 searches a
+feature. Tried and dropped: two levels (Urban2's pair loses to LK, 0.094 against 0.087 px); a
+wide window of 17 px (every median still at most LK's, but RubberWhale rendered at 0.040
+against 0.041: too thin a margin for ~0.4x); the patch copies of Gauss-Newton by flat index or
+in blocks of 8, and a brute-force nearest-neighbour search for the consensus (no measurable
+gain side by side).
 """
 
 from __future__ import annotations

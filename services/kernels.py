@@ -45,7 +45,7 @@ from typing import Any, TextIO
 #: How long a cold compile takes on the reference machine (2 cores: 42 s measured for the
 #: default coarse-to-fine tracker on a quiet machine, 80 s with other work taking the cores),
 #: for the line that announces it.
-COLD_COMPILE = "about a minute on two cores"
+COLD_COMPILE = "about half a minute on two cores"
 #: The warm-up lock's file, in numba's cache folder.
 LOCK_NAME = "vistrack-warm-up.lock"
 #: Longest wait for the second process; beyond, this one compiles what is left itself.

@@ -103,27 +103,60 @@ def _row_sums(curr, n, s, centers, out, bufs):  # pragma: no cover - numba
     ``y * w + x - n``. Where q is within m - 1 of a row's end the sum runs on into the next row:
     such entries belong to no valid window and only fill vector lanes past a search's edge.
 
-    Computed once per frame pair and shared by all features, whose search areas overlap; blocks
-    of rows that no search reaches are zeroed instead. The sum of m terms is built by doubling
-    (P_2k[q] = P_k[q] + P_k[q + k], summing the P_k of m's binary digits): O(log m) long,
-    vectorised passes per pixel instead of m. ``bufs``: (2, ROW_BLOCK + w + 2m) int16 scratch.
+    Computed once per frame pair and shared by all features, whose search areas overlap, in
+    blocks of rows: only the blocks that a search reads (its rows, and the next ones, into
+    which the vector lanes past its right edge run) are computed, the others left unread. The
+    sum of m terms is built by doubling (P_2k[q] = P_k[q] + P_k[q + k], summing the P_k of m's
+    binary digits): O(log m) long, vectorised passes per pixel instead of m. ``bufs``: (2,
+    ROW_BLOCK + w + 2m) int16 scratch.
     """
     h, w = curr.shape
     m = 2 * n + 1
     total = h * w
     flat = curr.ravel()
+    last = total - m + 1  # entries from here on have no full window: zero
+    # the entries a search reads in each of its rows, from its leftmost window's
+    span = 2 * s + LANES
+    if centers.shape[0] * (2 * s + m) * (span + m) * 4 < total:
+        # few searches (the few features of a frame that do not follow their prediction):
+        # their own entries only, a sliding sum along the flat frame each. Blocks of whole
+        # rows cost ~4 us a call at 256x256 for a single search, zeroing the rest as much
+        # again; this, ~2 us
+        out[total:] = 0
+        for f in range(centers.shape[0]):
+            cx = centers[f, 0]
+            cy = centers[f, 1]
+            x0 = max(cx - s, n) - n
+            for y in range(max(cy - s - n, 0), min(cy + s + n + 1, h)):
+                q0 = y * w + x0
+                q1 = min(q0 + span, last)
+                if q1 <= q0:
+                    continue
+                acc = np.int32(0)
+                for i in range(m):
+                    acc += np.int32(flat[q0 + i])
+                for q in range(q0, q1 - 1):
+                    out[q] = acc
+                    acc += np.int32(flat[q + m]) - np.int32(flat[q])
+                out[q1 - 1] = acc
+                out[q1:q0 + span] = 0  # past the last full window
+        return
     rows = max(ROW_BLOCK // w, 1)
     need = np.zeros(h // rows + 1, np.bool_)
+    # a search's lanes run at most LANES entries past its rightmost window: into the next
+    # row, or further in a frame narrower than LANES
+    spill = 1 + LANES // w
     for f in range(centers.shape[0]):
         cy = centers[f, 1]
-        for y in range(max(cy - s - n, 0), min(cy + s + n + 1, h)):
+        for y in range(max(cy - s - n, 0), min(cy + s + n + 1 + spill, h)):
             need[y // rows] = True
-    last = total - m + 1  # entries from here on have no full window: zero
     for y0 in range(0, h, rows):
         q0 = y0 * w
         q1 = min(q0 + rows * w, total)
         dst = out[q0:q1]
-        if not need[y0 // rows] or q0 >= last:
+        if not need[y0 // rows]:
+            continue
+        if q0 >= last:
             dst[:] = 0
             continue
         ln = min(q1, last) - q0

@@ -292,3 +292,28 @@ def test_ties_go_to_the_first_displacement_in_row_major_order(search):
     result = track_ssd(blocks, shifted, anchors, near, corr_half=n, search_half=s, weights=wts,
                        search=search)
     assert check_bruteforce(blocks, shifted, anchors, near, n, s, wts, result, False) >= 10
+
+
+# 256x256: the sums around the searches alone; 400x16 with three features, 600x12: in blocks
+# of rows, those no search reads skipped (12: narrower than a vector of sums)
+@pytest.mark.parametrize("shape", [(256, 256), (400, 16), (600, 12)])
+def test_a_few_searches_equal_the_exhaustive_one(real_image, shape):
+    """One to three features at a time, the way the coarse-to-fine search hands over the few
+    that do not follow their prediction: the pruned search then sums the rows of frame t+1
+    around those searches only, and finds what the exhaustive search finds, at the frame's
+    edges and in frames narrower than a vector too."""
+    h, w = shape
+    tall = np.tile(real_image, (3, 1))
+    prev = np.ascontiguousarray(tall[:h, :w])
+    curr = np.ascontiguousarray(np.roll(tall, (2, -1), axis=(0, 1))[:h, :w])
+    n, s = 4, 7
+    wts = window_weights("uniform", n)
+    rng = np.random.default_rng(h * w)
+    anchors, centers = border_features(rng, prev.shape, 60, n + s, 3)
+    found = 0
+    for k in range(0, len(anchors), 3):
+        for size in (1, 3):
+            pos, _, ok = both_searches(prev, curr, anchors[k:k + size], centers[k:k + size], n,
+                                       s, wts, False)
+            found += int(ok.sum())
+    assert found >= 10  # not all cut short: the narrowest frame holds few searches

@@ -70,14 +70,14 @@ MIN_VALID_NPI = 3
 PAPER_TRACKER: dict[str, Any] = {"levels": 1, "subpixel": False, "uniqueness": 0.0,
                                  "max_fb_error": 0.0, "consensus": 0.0,
                                  "reject_border": False,
-                                 "guided_retry": False, "refine_size": 0}
+                                 "guided_retry": False, "refine_size": 0, "follow": False}
 
 #: The paper's five factors, in Table 2's order (A..E of the 2^(5-1) design).
 FACTORS = ("max_features", "thres_percent", "search_size", "corr_size", "ungroup_size")
 
 _INT_FIELDS = {"max_features", "search_size", "corr_size", "ungroup_size", "grid_rows",
                "grid_cols", "cell_cap", "levels", "refine_size"}
-_BOOL_FIELDS = {"subpixel", "reject_border", "guided_retry"}
+_BOOL_FIELDS = {"subpixel", "reject_border", "guided_retry", "follow"}
 
 
 @dataclass(frozen=True)
@@ -135,6 +135,11 @@ class TrackerParams:
         correlation window only.
     quality_level : a candidate's strength must also reach this fraction of the frame's
         strongest (OpenCV's ``goodFeaturesToTrack`` qualityLevel).
+    follow : a feature tracked in the frame before is first refined by Gauss-Newton from its
+        prediction at the frame's own level and taken when that converges within a pixel and
+        its way back returns within ``max_fb_error``; only the others are searched coarse to
+        fine (needs ``subpixel`` and ``max_fb_error`` > 0). See
+        :mod:`vistrack.common.vision.pyramid`.
     """
 
     max_features: int = 100
@@ -161,6 +166,7 @@ class TrackerParams:
     guided_retry: bool = True
     refine_size: int = 21
     quality_level: float = 0.01
+    follow: bool = True
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):

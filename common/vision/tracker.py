@@ -111,6 +111,8 @@ class Tracker:
         self._pos = np.empty((0, 2), np.float64)
         self._vel = np.empty((0, 2), np.float64)
         self._ids = np.empty(0, np.int64)
+        # whether each feature was tracked into the current frame (not chosen in it)
+        self._held = np.empty(0, np.bool_)
         self._next_id = 0
         self._acc_dx = 0.0
         self._acc_dy = 0.0
@@ -119,6 +121,8 @@ class Tracker:
         self._frame = 0
         self._lost = np.zeros(len(STATUS_NAMES), np.int64)
         self.redetections = 0
+        # matches that followed their prediction (step 0 of .pyramid) rather than a search
+        self.followed = 0
 
     @property
     def lost_total(self) -> int:
@@ -222,12 +226,15 @@ class Tracker:
             # what noise alone adds to S at a perfect match: both frames' noise, over the
             # window
             allowance = 2.0 * p.noise_sigma ** 2 * self._wsum
+            taken = np.zeros(len(self._pos), np.bool_)
             found, ssd, status = track_pyramid(
                 prev, pyr, self._pos, self._pos + self._vel, corr_half=p.corr_half,
                 search_half=p.search_half, weights=self._weights, subpixel=p.subpixel,
                 search=p.search, uniqueness=p.uniqueness, allowance=allowance,
                 reject_border=p.reject_border, guided_retry=p.guided_retry,
-                max_fb_error=p.max_fb_error, consensus=p.consensus, wide_half=p.refine_half)
+                max_fb_error=p.max_fb_error, consensus=p.consensus, wide_half=p.refine_half,
+                held=self._held, follow=p.follow, followed=taken)
+            self.followed += int(np.count_nonzero(taken))
         pos, vel, ids, lost, moved, dx, dy, scale = _advance(
             self._pos, found, ssd, status, self._ids, self._wsum, float(p.max_residual))
         if moved:
@@ -239,6 +246,7 @@ class Tracker:
         self._pos = pos
         self._vel = vel
         self._ids = ids
+        self._held = np.ones(len(ids), np.bool_)
 
     def _add_features(self, pre: Preprocessed, shape: tuple[int, int]) -> None:
         p = self._params
@@ -256,6 +264,7 @@ class Tracker:
         self._vel = np.concatenate([self._vel, np.tile(np.array(motion), (len(new), 1))])
         self._ids = np.concatenate([self._ids, np.arange(self._next_id,
                                                          self._next_id + len(new))])
+        self._held = np.concatenate([self._held, np.zeros(len(new), np.bool_)])
         self._next_id += len(new)
         if self._frame > 0:
             self.redetections += 1

@@ -117,18 +117,22 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
     # one real run fixes, for every frame pair, the 100 features (anchors in frame t) and
     # their predicted positions in frame t+1: every method below gets exactly these inputs
     tracker = Tracker(params)
-    anchors, centers, points, preds = [], [], [], []
+    anchors, centers, points, preds, helds = [], [], [], [], []
     est = tracker.update(pre[0])
     vel = np.zeros_like(est.points)
+    held = np.zeros(len(est.points), np.bool_)
     for p in pre[1:]:
         anchors.append(np.rint(est.points).astype(np.int64))
         centers.append(np.rint(est.points + vel).astype(np.int64))
         points.append(est.points.copy())
         preds.append(est.points + vel)
+        helds.append(held)
         prev_pts = dict(zip(est.ids.tolist(), est.points, strict=True))
         est = tracker.update(p)
         vel = np.array([pt - prev_pts.get(i, pt)
                         for i, pt in zip(est.ids.tolist(), est.points, strict=True)])
+        # tracked from the frame before (not chosen in this one): what the tracker follows
+        held = np.array([i in prev_pts for i in est.ids.tolist()], np.bool_)
     n_feat = int(np.mean([len(a) for a in anchors]))
     jobs = list(zip(pre[:-1], pre[1:], anchors, centers, strict=True))
     raw = list(zip(frames[:-1], frames[1:], anchors, strict=True))
@@ -144,13 +148,15 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
         return run
 
     pyrs = [build_pyramid(p.filtered, params.levels) for p in pre]
-    pjobs = list(zip(pyrs[:-1], pyrs[1:], points, preds, strict=True))
+    pjobs = list(zip(pyrs[:-1], pyrs[1:], points, preds, helds, strict=True))
     allowance = 2.0 * params.noise_sigma ** 2 * float(window_weights(params.weights,
                                                                      params.corr_half).sum())
 
-    def default_tracker(checks: bool = True, **without: object) -> Callable[[], None]:
-        """The default tracker's SSD tracking (:meth:`Tracker._track`), pyramids given;
-        ``without``: parameters that turn one of its steps off."""
+    def default_tracker(checks: bool = True, pairs: slice = slice(None),
+                        **without: object) -> Callable[[], None]:
+        """The default tracker's SSD tracking (:meth:`Tracker._track`), pyramids given, over
+        ``pairs`` of the frame pairs; ``without``: parameters that turn one of its steps
+        off."""
         p = params if checks else params.replace(uniqueness=0.0, max_fb_error=0.0,
                                                  consensus=0.0, reject_border=False,
                                                  guided_retry=False, subpixel=False,
@@ -159,13 +165,13 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
         wts = window_weights(p.weights, p.corr_half)
 
         def run() -> None:
-            for a, b, pts, pr in pjobs:
+            for a, b, pts, pr, hd in pjobs[pairs]:
                 track_pyramid(a, b, pts, pr, corr_half=p.corr_half, search_half=p.search_half,
                               weights=wts, subpixel=p.subpixel, search=p.search,
                               uniqueness=p.uniqueness, allowance=allowance,
                               reject_border=p.reject_border, guided_retry=p.guided_retry,
                               max_fb_error=p.max_fb_error, consensus=p.consensus,
-                              wide_half=p.refine_half)
+                              wide_half=p.refine_half, held=hd, follow=p.follow)
         return run
 
     def pyramid() -> None:
@@ -210,6 +216,9 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
         "lk_default": _best_of(lk(3, 21)) / k * 1e6,
         "default_ssd": _best_of(default_tracker()) / k * 1e6,
         "default_ssd_no_checks": _best_of(default_tracker(False)) / k * 1e6,
+        # the frame pairs after the first, whose features were tracked into frame t
+        "default_ssd_steady": _best_of(default_tracker(pairs=slice(1, None))) / (k - 1) * 1e6,
+        "default_ssd_no_follow": _best_of(default_tracker(follow=False)) / k * 1e6,
         # what each step of the default tracker costs: the tracker without it
         "default_ssd_no_fb": _best_of(default_tracker(max_fb_error=0.0)) / k * 1e6,
         "default_ssd_no_wide": _best_of(default_tracker(refine_size=0)) / k * 1e6,
@@ -237,8 +246,10 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
               ("lk_level2", "cv2.calcOpticalFlowPyrLK win 9 maxLevel 2"),
               ("lk_default", "cv2.calcOpticalFlowPyrLK defaults (21, 3)"),
               ("default_ssd", "ours default tracker: SSD tracking"),
+              ("default_ssd_steady", "  its frames after the first (features held)"),
+              ("default_ssd_no_follow", "  every feature coarse to fine (no follow)"),
               ("default_ssd_no_checks", "  its search alone (no checks, integer)"),
-              ("default_ssd_no_fb", "  without the forward-backward check"),
+              ("default_ssd_no_fb", "  without the forward-backward check (or follow)"),
               ("default_ssd_no_wide", "  without the wide sub-pixel window"),
               ("default_ssd_no_consensus", "  without the consensus"),
               ("default_ssd_no_uniqueness", "  without the uniqueness test"),

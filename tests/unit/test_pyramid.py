@@ -255,3 +255,99 @@ def test_track_pyramid_checks_its_input(real_image):
     pos, ssd, status = track_pyramid(p1, p1, np.empty((0, 2)), np.empty((0, 2)), corr_half=4,
                                      search_half=7, weights=wts)
     assert pos.shape == (0, 2) and ssd.shape == (0,) and status.shape == (0,)
+
+
+def _steady_run(image, step, frames, follow, occlude=None):
+    """A tracker over ``frames`` frames of ``image`` moving by ``step`` px a frame (the last
+    one's patches at ``occlude`` covered, if given); its estimates and the tracker."""
+    tracker = Tracker(TrackerParams(redetect_fraction=0.0, follow=follow))
+    out = [tracker.process(image)]
+    for k in range(1, frames):
+        nxt = shifted(image, step[0] * k, step[1] * k)
+        if occlude is not None and k == frames - 1:
+            occlude(nxt, out[-1])
+        out.append(tracker.process(nxt))
+    return out, tracker
+
+
+def _truth_errors(first, last, shift):
+    start = dict(zip(first.ids.tolist(), first.points, strict=True))
+    return np.array([np.hypot(*(q - start[i] - shift))
+                     for i, q in zip(last.ids.tolist(), last.points, strict=True)])
+
+
+@pytest.mark.parametrize("step", [(1.3, -0.6), (-4.2, 2.7)])
+def test_held_features_follow_to_the_matches_of_the_search(real_image, step):
+    """A scene moving steadily: from the third frame on, the features tracked before follow
+    their prediction (no search), to where the coarse-to-fine search puts them, within a
+    few thousandths of a pixel, and to the true motion; they keep the features the search
+    keeps, and a few it rejects (its tests are not step 0's), rightly placed too."""
+    fol, tracker = _steady_run(real_image, step, 4, follow=True)
+    ref, ref_tracker = _steady_run(real_image, step, 4, follow=False)
+    assert ref_tracker.followed == 0
+    # the second frame's features have no velocity of their own yet: held from the third on
+    assert tracker.followed >= 0.9 * (len(fol[2].ids) + len(fol[3].ids))
+    for k, (a, b) in enumerate(zip(fol, ref, strict=True)):
+        pa = dict(zip(a.ids.tolist(), a.points, strict=True))
+        pb = dict(zip(b.ids.tolist(), b.points, strict=True))
+        both = pa.keys() & pb.keys()
+        assert len(pb.keys() - pa.keys()) <= 0.02 * len(pb)  # hardly one lost that it keeps
+        assert np.median([np.abs(pa[i] - pb[i]).max() for i in both]) < 0.005
+        # every match reported is right, those the search rejects included
+        assert _truth_errors(fol[0], a, k * np.array(step)).max() < 0.25
+    err = _truth_errors(fol[0], fol[3], 3 * np.array(step))
+    assert len(err) > 60 and np.median(err) < 0.1 and err.max() < 1.0
+
+
+def test_a_wrong_prediction_is_searched_for_not_followed(real_image):
+    """After three steady frames the scene jumps 9 px the other way: hardly a feature can
+    follow its prediction (11.5 px off), and those that seem to are not trusted: every
+    feature is searched, and the coarse-to-fine search finds them all the same; a jump of
+    2.5 px is followed coarse to fine by Gauss-Newton alone."""
+    step = np.array([2.5, 0.0])
+    for jump, followed in ((np.array([-9.0, 0.0]), False), (np.array([2.0, -1.5]), True)):
+        tracker = Tracker(TrackerParams(redetect_fraction=0.0))
+        ests = [tracker.process(shifted(real_image, *(step * k))) for k in range(3)]
+        before = tracker.followed
+        last = step * 2 + jump
+        ests.append(tracker.process(shifted(real_image, *last)))
+        taken = tracker.followed - before
+        n = len(ests[2].ids)
+        assert (taken == 0) if not followed else (taken >= 0.8 * n), (jump, taken, n)
+        err = _truth_errors(ests[0], ests[3], last)
+        assert len(err) >= 0.8 * n and np.median(err) < 0.1 and err.max() < 1.0, jump
+
+
+@pytest.mark.parametrize("occluder", ["grey", "real", "texture"])
+def test_an_occluded_held_feature_is_rejected_not_followed(real_image, occluder):
+    """As test_an_occluded_feature_is_rejected_not_reported_at_a_wrong_place, for features
+    that were tracked before and so try to follow their prediction first."""
+    step = (2.2, -1.4)
+    other = occluders()[occluder]
+    covered = {}
+
+    def occlude(nxt, est):
+        inner = [(i, p) for i, p in zip(est.ids.tolist(), est.points, strict=True)
+                 if 30 < p[0] < 226 and 30 < p[1] < 226]
+        for i, p in inner[::4]:
+            covered[i] = p
+            x, y = int(round(p[0] + step[0])), int(round(p[1] + step[1]))
+            nxt[y - 10:y + 11, x - 10:x + 11] = other[y - 10:y + 11, x - 10:x + 11]
+
+    ests, tracker = _steady_run(real_image, step, 4, follow=True, occlude=occlude)
+    assert len(covered) >= 8
+    assert tracker.followed > 100  # the uncovered ones of the third and fourth frames
+    ids = ests[3].ids.tolist()
+    assert [i for i in covered if i in ids] == []
+    err = _truth_errors(ests[0], ests[3], 3 * np.array(step))
+    assert np.median(err) < 0.1
+    # a patch that a square half covers has no one true place: the search itself may put it
+    # a pixel off (seen: 1.2 px, depending on the guided retry's prediction); the others are
+    # held to a pixel
+    start = dict(zip(ests[2].ids.tolist(), ests[2].points, strict=True))
+    clear = [j for j, i in enumerate(ids)
+             if all(np.abs(start[i] - c).max() > 10 + 5 + 1 for c in covered.values())]
+    assert len(clear) > 40 and err[clear].max() < 1.0
+    # and as many of the others as the search keeps
+    searched, _ = _steady_run(real_image, step, 4, follow=False, occlude=occlude)
+    assert len(err) >= len(searched[3].ids) - 2 and len(err) > 50

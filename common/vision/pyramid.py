@@ -289,6 +289,21 @@ def _descend(prev, curr, ax, ay, cx, cy, n, wts, uniform, steps,
 
 
 @nb.njit(cache=True, nogil=True)
+def _starting(anchors, pending, n, shape, k):  # pragma: no cover - numba
+    """How many ``pending`` features can start at level k of the given shape: at a coarse
+    level, those whose template fits it (the others start a level finer; a search for them
+    alone would only say so, at the fixed cost of a search: ~3 us, most of what an edge
+    feature cost); at the frame's level, every pending one (whose status it sets)."""
+    h, w = shape
+    count = 0
+    for f in range(anchors.shape[0]):
+        if pending[f] and (k == 0 or (n <= anchors[f, 0] < w - n
+                                      and n <= anchors[f, 1] < h - n)):
+            count += 1
+    return count
+
+
+@nb.njit(cache=True, nogil=True)
 def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, allowance,
            reject_border, subpixel, scratch, seen, out_pos, out_ssd,
            out_status):  # pragma: no cover - numba
@@ -326,12 +341,11 @@ def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, 
         prev = _level(pdata, geo, k)
         curr = _level(cdata, geo, k)
         scale = 2.0 ** k
-        starting = 0
         for f in range(n_feat):
-            starting += pending[f]
             for c in range(2):
                 anchors[f, c] = int(np.rint(pts[f, c] / scale))
                 centers[f, c] = int(np.rint(preds[f, c] / scale))
+        starting = _starting(anchors, pending, n, prev.shape, k)
         # refine the matches of the level above, their displacement doubled
         for f in range(n_feat):
             if at[f] != k + 1:
@@ -655,6 +669,8 @@ def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaus
             for c in range(2):
                 anchors[f, c] = int(np.rint(back[f, c] / scale))
                 centers[f, c] = int(np.rint(mirrored[f, c] / scale))
+        if _starting(anchors, pending, n, (geo[k, 1], geo[k, 2]), k) == 0:
+            continue
         _search_level(_level(cdata, geo, k), _level(pdata, geo, k), anchors, centers, pending,
                       n, s, wts, exhaustive, ratio, allowance * NOISE_GAIN ** k, lq, lssd,
                       lstatus)

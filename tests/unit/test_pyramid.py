@@ -11,8 +11,8 @@ from test_ssd import border_features, random_pair
 from vistrack.common import synthetic
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker, preprocess, track_ssd, window_weights
-from vistrack.common.vision.pyramid import build_pyramid, track_pyramid
-from vistrack.common.vision.ssd import AMBIGUOUS, BORDER, FB, OK, STATUS_NAMES
+from vistrack.common.vision.pyramid import NEIGHBOURS, _consensus, build_pyramid, track_pyramid
+from vistrack.common.vision.ssd import AMBIGUOUS, BORDER, DISAGREES, FB, OK, STATUS_NAMES
 
 from conftest import load_pair
 
@@ -168,6 +168,76 @@ def test_a_match_that_moves_unlike_its_neighbours_is_rejected():
     assert STATUS_NAMES[status[-1]] == "disagrees"
     assert (status[:-1] == OK).all()
     np.testing.assert_array_equal(pos[len(grid):-1] - square, 9 * np.eye(2)[[0] * 8])
+
+
+def consensus_reference(pts, pos, status, bound):
+    """The consensus step as specified, plainly: every pair of matches, the NEIGHBOURS nearest
+    by (squared distance, index), numpy's medians; the statuses it leaves."""
+    out = status.copy()
+    ok = np.flatnonzero(status == OK)
+    if len(ok) <= NEIGHBOURS:
+        return out
+    disp = pos[ok] - pts[ok]
+    for a in range(len(ok)):
+        d = ((pts[ok] - pts[ok[a]]) ** 2).sum(axis=1)
+        others = np.delete(np.arange(len(ok)), a)
+        near = others[np.lexsort((others, d[others]))][:NEIGHBOURS]
+        m = np.median(disp[near], axis=0)
+        spread = np.median(np.sqrt(((disp[near] - m) ** 2).sum(axis=1)))
+        lim = max(bound, 3.0 * 1.4826 * spread)
+        if ((disp[a] - m) ** 2).sum() > lim * lim:
+            out[ok[a]] = DISAGREES
+    return out
+
+
+def consensus_cases(rng):
+    """Point sets of every kind the nearest-neighbour search must get exactly right: uniform,
+    integer lattices (equal x, equal distances, duplicate points), the tracker's features
+    (integer positions at least 8 px apart on a 256 x 256 frame), tight and far-apart
+    clusters, a line, large coordinates, and six or fewer matches."""
+    for trial in range(700):
+        kind = trial % 8
+        n = int(rng.integers(0, 130))
+        if kind == 0:
+            pts = rng.uniform(0, 256, (n, 2))
+        elif kind == 1:
+            pts = rng.integers(0, int(rng.integers(2, 12)), (n, 2)).astype(float)
+        elif kind == 2:
+            cand = rng.permutation(np.argwhere(np.ones((32, 32))))[:n] * 8
+            pts = (cand + rng.integers(0, 3, cand.shape)).astype(float)
+        elif kind == 3:
+            pts = rng.normal(100, float(rng.choice([1e-4, 0.5, 3.0])), (n, 2))
+        elif kind == 4:
+            centres = rng.uniform(0, 1000, (int(rng.integers(1, 5)), 2))
+            pts = centres[rng.integers(0, len(centres), n)] + rng.normal(0, 4, (n, 2))
+        elif kind == 5:
+            pts = np.column_stack([rng.uniform(0, 256, n), np.full(n, 17.0)])
+        elif kind == 6:
+            pts = rng.uniform(0, 64, (n, 2)) + 1e5
+        else:
+            n = int(rng.integers(0, 10))
+            pts = rng.uniform(0, 256, (n, 2))
+        # a common motion, a little noise, and a few matches far off
+        pos = pts + rng.normal(1.0, float(rng.choice([0.01, 0.3, 2.0])), (n, 2))
+        pos[rng.random(n) < 0.1] += rng.normal(0, 8, (1, 2))
+        status = np.where(rng.random(n) < 0.8, OK, FB).astype(np.int8)
+        yield np.ascontiguousarray(pts), pos, status, float(rng.choice([0.5, 2.0]))
+
+
+def test_the_consensus_kernel_equals_a_brute_force_reference():
+    """The grid search, the sorting networks and the early return of :func:`_consensus` give
+    exactly the statuses of the plain all-pairs reference, on ties (equal distances by index)
+    and on every layout."""
+    rng = np.random.default_rng(12)
+    rejected = small = 0
+    for pts, pos, status, bound in consensus_cases(rng):
+        want = consensus_reference(pts, pos, status, bound)
+        got = status.copy()
+        _consensus(pts, pos, got, bound)
+        np.testing.assert_array_equal(got, want, err_msg=f"{len(pts)} points: {pts.tolist()}")
+        rejected += int((want == DISAGREES).sum())
+        small += (status == OK).sum() <= NEIGHBOURS
+    assert rejected > 500 and small > 50  # the cases reject, and test the early return
 
 
 def test_repetitive_texture_is_ambiguous_not_matched():

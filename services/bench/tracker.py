@@ -249,7 +249,7 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
               ("default_ssd_steady", "  its frames after the first (features held)"),
               ("default_ssd_no_follow", "  every feature coarse to fine (no follow)"),
               ("default_ssd_no_checks", "  its search alone (no checks, integer)"),
-              ("default_ssd_no_fb", "  without the forward-backward check (or follow)"),
+              ("default_ssd_no_fb", "  without the FB check (nor follow)"),
               ("default_ssd_no_wide", "  without the wide sub-pixel window"),
               ("default_ssd_no_consensus", "  without the consensus"),
               ("default_ssd_no_uniqueness", "  without the uniqueness test"),

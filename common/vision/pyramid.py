@@ -79,6 +79,13 @@ wide window of 17 px (every median still at most LK's, but RubberWhale rendered 
 against 0.041: too thin a margin for ~0.4x); the patch copies of Gauss-Newton by flat index or
 in blocks of 8, and a brute-force nearest-neighbour search for the consensus (no measurable
 gain side by side).
+
+Then step 0 (``follow``, issue 12, quiet machine, ``vistrack bench tracker``): 632.2 -> 311.6
+us a frame (8.03x -> 3.83x the single-level search); 242.2 us (2.98x) on the frames whose
+features were all tracked before. What a followed feature costs: two 9x9 Gauss-Newton
+refinements (there and back, ~0.4 us each) and the wide window's (~0.9 us); the wide window
+is now the costliest step (82 us a frame), then the few features that are searched (edge
+features, whose window Gauss-Newton cannot sample: ~15 us each, most of it fixed costs).
 """
 
 from __future__ import annotations

@@ -250,6 +250,8 @@ _AHEAD_PARAMS = {
                  "seen"),
     "_from_integer": ("prev", "curr", "ax", "ay", "qx", "qy", "n", "wts", "uniform", "ssd",
                       "scratch"),
+    "_follow": ("pdata", "cdata", "geo", "pts", "preds", "held", "n", "wts", "fb_bound",
+                "scratch", "active", "out_pos", "out_ssd", "out_status"),
 }
 
 
@@ -270,8 +272,9 @@ def _search_tail_signatures() -> list[tuple[Any, tuple]]:
 def _match_signatures() -> list[tuple[Any, tuple]]:
     """The kernels the coarse-to-fine search's matching (:func:`~vistrack.common.vision.
     pyramid._match`, the second process's second step) calls besides the single-level search,
-    with the types it gives them: the descent at the finest level and the sub-pixel estimate
-    from an integer minimum (~2 s of compile that the second process then loads)."""
+    with the types it gives them: the descent at the finest level, the sub-pixel estimate
+    from an integer minimum and the following of the held features (step 0; ~4 s of compile
+    that the second process then loads)."""
     from numba import types as t
 
     from ..common.vision import pyramid
@@ -279,10 +282,16 @@ def _match_signatures() -> list[tuple[Any, tuple]]:
     u8_2, i64, i32_1 = t.Array(t.uint8, 2, "C"), t.int64, t.Array(t.int32, 1, "C")
     wts = t.Array(t.int32, 2, "C")
     scratch = t.Tuple((i32_1, i32_1, i32_1, wts))
+    u8_1, f64_1, f64_2 = t.Array(t.uint8, 1, "C"), t.Array(t.float64, 1, "C"), t.Array(
+        t.float64, 2, "C")
+    b_1 = t.Array(t.boolean, 1, "C")
     return [(pyramid._descend, (u8_2, u8_2, *[i64] * 5, wts, t.boolean, t.literal(3),
                                 t.Array(t.int64, 2, "C"))),
             (pyramid._from_integer, (u8_2, u8_2, *[i64] * 5, wts, t.boolean, t.float64,
-                                     scratch))]
+                                     scratch)),
+            (pyramid._follow, (u8_1, u8_1, t.Array(t.int64, 2, "C"), f64_2, f64_2, b_1, i64,
+                               wts, t.float64, scratch, b_1, f64_2, f64_1,
+                               t.Array(t.int8, 1, "C")))]
 
 
 def _compile_ahead(signatures: list[tuple[Any, tuple]]) -> None:

@@ -584,28 +584,37 @@ def _follow(pdata, cdata, geo, pts, preds, held, n, wts, fb_bound, scratch, acti
         ay = int(np.rint(pts[f, 1]))
         ox = preds[f, 0] - pts[f, 0]  # the predicted displacement
         oy = preds[f, 1] - pts[f, 1]
-        good, x, y = _refine_with(prev, curr, ax, ay, ax + ox, ay + oy, n, scratch)
-        if not good and levels > 1:
-            found = False
-            dx = dy = 0.0
-            for k in range(levels - 1, -1, -1):
-                scale = 2.0 ** k
-                kx = int(np.rint(pts[f, 0] / scale))
-                ky = int(np.rint(pts[f, 1] / scale))
-                if found:
-                    dx *= 2.0
-                    dy *= 2.0
-                else:
-                    dx = ox / scale
-                    dy = oy / scale
-                found, xk, yk = _refine_with(_level(pdata, geo, k), _level(cdata, geo, k), kx,
-                                             ky, kx + dx, ky + dy, n, scratch)
-                if found:
-                    dx = xk - kx
-                    dy = yk - ky
-            good = found
-            x = ax + dx
-            y = ay + dy
+        # at the frame's level, then (where that fails) from the coarsest level down; one
+        # call of the refinement in the loop: LLVM inlines each call, compile time
+        k = 0
+        first = True
+        have = False
+        dx = dy = 0.0
+        while True:
+            scale = 2.0 ** k
+            kx = int(np.rint(pts[f, 0] / scale))
+            ky = int(np.rint(pts[f, 1] / scale))
+            if have:
+                dx *= 2.0
+                dy *= 2.0
+            else:
+                dx = ox / scale
+                dy = oy / scale
+            have, xk, yk = _refine_with(_level(pdata, geo, k), _level(cdata, geo, k), kx, ky,
+                                        kx + dx, ky + dy, n, scratch)
+            if have:
+                dx = xk - kx
+                dy = yk - ky
+            if k > 0:
+                k -= 1
+            elif have or not first or levels == 1:
+                break
+            else:
+                first = False
+                k = levels - 1
+        good = have
+        x = ax + dx
+        y = ay + dy
         if not good:
             continue
         px = pts[f, 0] + (x - ax)

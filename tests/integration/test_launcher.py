@@ -147,12 +147,27 @@ def is_spare(pid: int) -> bool:
         return False
 
 
+def cmdline(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return b""
+
+
 def services_and_spare(up_pid: int, n: int) -> set[int]:
-    """The launcher's children once they are its ``n`` services and its one spare."""
+    """The launcher's children once they are its ``n`` services and its one spare.
+
+    A child just forked still runs the launcher's command line until it execs; until then
+    it is neither (a spare turned service keeps the spare's command line, so counting
+    spares alone took such a child for the new spare: seen once, under load)."""
+    launcher = cmdline(up_pid)
+
     def complete() -> set[int] | None:
         children = child_pids(up_pid)
         spares = [pid for pid in children if is_spare(pid)]
-        return children if len(children) == n + 1 and len(spares) >= 1 else None
+        forked = [pid for pid in children if cmdline(pid) == launcher]
+        return (children if len(children) == n + 1 and len(spares) >= 1 and not forked
+                else None)
     return wait_for(complete, 30, f"{n} services and the spare")
 
 

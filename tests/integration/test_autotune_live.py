@@ -13,8 +13,6 @@ from __future__ import annotations
 import itertools
 import os
 import re
-import subprocess
-import sys
 import threading
 import time
 
@@ -22,6 +20,7 @@ import cv2
 import msgpack
 import pytest
 import zenoh
+from forkcli import vistrack
 
 from vistrack.common.messages import Report
 from vistrack.common.synthetic import Motion, sequence
@@ -169,8 +168,7 @@ def test_tunes_retunes_on_a_scene_change_and_never_stalls_the_estimates(frames_d
     (["--max-megapixels", "0"], "--max-megapixels 0 is out of range: allowed 0.1..1000"),
 ])
 def test_bad_flags_are_one_line_and_exit_2(flags, message):
-    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "auto-tuner", *flags],
-                         capture_output=True, text=True, timeout=60)
+    run = vistrack("auto-tuner", *flags, timeout=60)
     assert run.returncode == 2
     assert run.stderr.startswith("vistrack auto-tuner: error: ") and message in run.stderr
     assert run.stderr.count("\n") == 1, run.stderr

@@ -2,21 +2,24 @@
 one line ``vistrack <sub>: error: ...`` on stderr that names the flag, file or field, the
 value and what is allowed; no traceback, no library's own log lines, nothing started.
 
-Each case runs the real command in a subprocess (C libraries write to the process's stderr,
-which only a subprocess sees) and compares the whole of stderr with the expected line.
+Each case runs the real command in a process of its own (C libraries write to the process's
+stderr, which only a process of its own shows) and compares the whole of stderr with the
+expected line. The processes are forked from one that has imported vistrack once
+(tests/forkcli.py); :data:`FRESH` cases start a new interpreter, start-up and teardown
+included.
 Paths in the expected lines are written ``{d}``: the folder of the bad files.
 """
 
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import cv2
 import msgpack
 import numpy as np
 import pytest
+from forkcli import vistrack as run_vistrack
 
 pytestmark = pytest.mark.integration
 
@@ -59,9 +62,8 @@ def d(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return d
 
 
-def vistrack(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "vistrack.services.cli", *args],
-                          capture_output=True, text=True, timeout=TIMEOUT_S)
+def vistrack(*args: str, fresh: bool = False) -> subprocess.CompletedProcess:
+    return run_vistrack(*args, timeout=TIMEOUT_S, fresh=fresh)
 
 
 def check(run: subprocess.CompletedProcess, sub: str, message: str) -> None:
@@ -200,13 +202,18 @@ CASES = {
 }
 
 
+# run in a new interpreter: an offline command reading a damaged video, a service given a bad
+# Zenoh config, a tool with a bad flag (what start-up or shutdown prints shows there only)
+FRESH = {("track", "{d}/cut.avi"), ("camera", "-c"), ("echo", "camera/frame")}
+
+
 @pytest.mark.parametrize(("sub", "argv", "message"),
                          [(sub, argv, message) for sub, cases in CASES.items()
                           for argv, message in cases],
                          ids=[f"{sub} {' '.join(argv)}" for sub, cases in CASES.items()
                               for argv, _ in cases])
 def test_bad_input_is_one_line_and_exit_2(d, sub, argv, message):
-    run = vistrack(sub, *(a.format(d=d) for a in argv))
+    run = vistrack(sub, *(a.format(d=d) for a in argv), fresh=(sub, argv[0]) in FRESH)
     check(run, sub, message.format(d=d))
 
 

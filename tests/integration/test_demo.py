@@ -12,6 +12,7 @@ from pathlib import Path
 
 import cv2
 import pytest
+from forkcli import vistrack
 
 pytestmark = pytest.mark.integration
 
@@ -98,8 +99,7 @@ def test_demo_bad_flags_are_one_line_and_exit_2(flags, message, tmp_path):
     flags = [str(where.get(f, f)) for f in flags]
     if "--out" not in flags:
         flags += ["--out", str(tmp_path / "out")]
-    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "demo", *flags],
-                         capture_output=True, text=True, timeout=60)
+    run = vistrack("demo", *flags, timeout=60)
     assert run.returncode == 2
     assert run.stderr.startswith("vistrack demo: error: ") and message in run.stderr
     assert run.stderr.count("\n") == 1, run.stderr

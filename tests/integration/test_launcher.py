@@ -22,6 +22,7 @@ from pathlib import Path
 import cv2
 import pytest
 import zenoh
+from forkcli import vistrack
 
 from vistrack.common import synthetic
 from vistrack.common.bus import query_status
@@ -499,8 +500,7 @@ def test_bad_launch_file_is_a_one_line_error_with_its_line(text, expected, tmp_p
 def test_bad_launch_file_from_the_real_command_line(tmp_path):
     path = tmp_path / "bad.yaml"
     path.write_text("services:\n  camera:\n    restart: [never\n")
-    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "up", str(path)],
-                         capture_output=True, text=True, timeout=60)
+    run = vistrack("up", path, timeout=60)
     assert run.returncode == 2
     assert run.stdout == ""
     assert re.fullmatch(r"vistrack up: error: .*bad\.yaml, line 4, column 1: malformed YAML: "

@@ -24,13 +24,13 @@ import signal
 import socket
 import struct
 import subprocess
-import sys
 import time
 from collections import Counter
 
 import msgpack
 import pytest
 import zenoh
+from forkcli import vistrack
 from mcap.reader import make_reader
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
@@ -266,11 +266,9 @@ def test_replaying_the_mcap_into_a_pipeline_without_camera_gives_the_same_estima
     recorded = {e.seq: e for _, c, _, e in rows if c.topic.endswith("motion/estimate")}
     est = Collector(run["session"], "vistrack/replayed/motion/estimate")
     try:
-        replay = subprocess.run(
-            [sys.executable, "-m", "vistrack.services.cli", "replay", str(run["path"]),
-             "camera/frame", "tuner/params", "--fast", "--in-flight", "1",
-             "--remap-robot", "replayed", "-e", run["endpoint"], NS],
-            capture_output=True, text=True, timeout=120)
+        replay = vistrack("replay", run["path"], "camera/frame", "tuner/params", "--fast",
+                          "--in-flight", "1", "--remap-robot", "replayed", "-e",
+                          run["endpoint"], NS)
         assert replay.returncode == 0, replay.stderr
         # the replay waits for the last frame's estimate before it ends
         got = [msgpack.unpackb(p) for _, p in est.wait(lambda items: len(items) >= FRAMES)]
@@ -294,10 +292,8 @@ def test_a_truncated_mcap_replays_up_to_the_damage_then_exits_2(run, tmp_path):
     data = run["path"].read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[:len(data) * 2 // 3])
-    bad = subprocess.run(
-        [sys.executable, "-m", "vistrack.services.cli", "replay", str(cut), "--fast",
-         "--wait", "0", "--remap-robot", "nobody", "-e", run["endpoint"], NS],
-        capture_output=True, text=True, timeout=120)
+    bad = vistrack("replay", cut, "--fast", "--wait", "0", "--remap-robot", "nobody", "-e",
+                   run["endpoint"], NS)
     assert bad.returncode == 2
     lines = bad.stderr.splitlines()
     error = [line for line in lines if "error" in line]

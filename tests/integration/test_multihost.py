@@ -28,8 +28,6 @@ import json
 import re
 import signal
 import socket
-import subprocess
-import sys
 import threading
 import time
 import uuid
@@ -44,6 +42,7 @@ import msgpack
 import netns
 import pytest
 import zenoh
+from forkcli import vistrack
 from netns import NsProc, Stream, python, tool
 
 from vistrack.common import synthetic
@@ -116,8 +115,7 @@ def render(template: str, out: Path, certs: Path, *, cert_name: str | None = Non
 
 
 def certs_cli(*args: str) -> None:
-    proc = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "certs", *args],
-                          capture_output=True, text=True, timeout=60)
+    proc = vistrack("certs", *args, timeout=60)
     assert proc.returncode == 0, proc.stderr
 
 

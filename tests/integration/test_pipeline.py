@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 
 import cv2
 import msgpack
 import numpy as np
 import pytest
 import zenoh
+from forkcli import vistrack
 
 from vistrack.common import synthetic
 
@@ -24,9 +23,7 @@ def test_every_estimate_equals_vistrack_track(rubberwhale, free_port):
     """File camera over RubberWhale frame07-14 through all five services: every
     motion/estimate equals, field for field, what `vistrack track` prints."""
     flags = ["--search-size", "21", "--corr-size", "11", "--subpixel"]
-    offline = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "track",
-                              str(rubberwhale), "--format", "jsonl", *flags],
-                             capture_output=True, text=True, check=True).stdout
+    offline = vistrack("track", rubberwhale, "--format", "jsonl", *flags, check=True).stdout
     expected = [json.loads(line) for line in offline.splitlines()]
     assert len(expected) == 8
     tracker_flags = {"preprocessing": flags, "motion-estimation": flags, "auto-tuner": flags}
@@ -57,8 +54,7 @@ def test_every_estimate_equals_vistrack_track(rubberwhale, free_port):
     (["--ack-timeout", "0"], "--ack-timeout 0 is out of range: allowed 0 < S <= 3600"),
 ])
 def test_camera_bad_flags_are_one_line_and_exit_2(flags, message):
-    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "camera", *flags],
-                         capture_output=True, text=True, timeout=60)
+    run = vistrack("camera", *flags, timeout=60)
     assert run.returncode == 2
     assert run.stderr == f"vistrack camera: error: {message}\n"
 

@@ -26,6 +26,7 @@ from contextlib import contextmanager
 import msgpack
 import pytest
 import zenoh
+from forkcli import vistrack
 
 from vistrack.common.keys import Keys
 from vistrack.common.messages import pack
@@ -91,9 +92,7 @@ def pipeline(endpoint: str) -> Iterator[dict[str, Proc]]:
 
 def tool(endpoint: str, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
     """Run ``vistrack ARGS -e ENDPOINT --no-multicast-scouting`` to completion."""
-    return subprocess.run([sys.executable, "-m", "vistrack.services.cli", *args, "-e", endpoint,
-                           "--no-multicast-scouting"], capture_output=True, text=True,
-                          timeout=timeout)
+    return vistrack(*args, "-e", endpoint, "--no-multicast-scouting", timeout=timeout)
 
 
 def json_lines(text: str) -> list[dict]:

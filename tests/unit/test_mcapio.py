@@ -9,11 +9,10 @@ Frames are the built-in sequence, estimates the real tracker's over them.
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from forkcli import vistrack
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
@@ -166,14 +165,12 @@ def test_export_vtr_to_mcap_and_back_keeps_every_sample(samples, tmp_path):
         for key, payload, t_ns in samples:
             writer.write_at(key, payload, t_ns)
     out = tmp_path / "run.mcap"
-    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "export", str(vtr),
-                          str(out)], capture_output=True, text=True, timeout=120)
+    run = vistrack("export", vtr, out)
     assert run.returncode == 0, run.stderr
     assert "12 samples of vistrack/robot/sim/pose not written: it has no ROS 2 type" \
         in run.stderr
     back = tmp_path / "back.vtr"
-    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "export", str(out),
-                          str(back)], capture_output=True, text=True, timeout=120)
+    run = vistrack("export", out, back)
     assert run.returncode == 0, run.stderr
     records = list(Recording(back).records())
     assert [(r.key, r.t_ns) for r in records] == [(k, t) for k, _, t in samples
@@ -238,16 +235,13 @@ def test_a_foreign_mcap_file_is_refused_naming_what_it_holds(tmp_path):
              {"data": "hi"})
     with pytest.raises(RecordError, match="no vistrack topic"):
         McapRecording(wrong)
-    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "replay", str(path)],
-                         capture_output=True, text=True, timeout=120)
+    run = vistrack("replay", path)
     assert run.returncode == 2
     assert run.stderr.count("\n") == 1 and run.stderr.startswith("vistrack replay: error: ")
     assert str(path) in run.stderr and "/chatter" in run.stderr
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"PNG not an mcap file")
-    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "export", str(junk),
-                          str(tmp_path / "out.mcap")], capture_output=True, text=True,
-                         timeout=120)
+    run = vistrack("export", junk, tmp_path / "out.mcap")
     assert run.returncode == 2 and run.stderr.count("\n") == 1
     assert str(junk) in run.stderr and "not an MCAP file" in run.stderr
 

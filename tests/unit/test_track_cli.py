@@ -6,20 +6,14 @@ import csv
 import io
 import json
 import shutil
-import subprocess
-import sys
 
 import cv2
 import numpy as np
 import pytest
+from forkcli import vistrack
 
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker, to_gray
-
-
-def vistrack(*args, check=False):
-    return subprocess.run([sys.executable, "-m", "vistrack.services.cli", *args],
-                          capture_output=True, text=True, timeout=120, check=check)
 
 
 def test_jsonl_equals_the_library(rubberwhale):

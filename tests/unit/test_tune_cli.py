@@ -7,10 +7,9 @@ pass) keeps each run to a few seconds; the numbers are checked in test_experimen
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import pytest
+from forkcli import vistrack as run_vistrack
 from test_experiment import check_report
 
 from vistrack.services import cli
@@ -22,8 +21,7 @@ PNGS = {"halfnormal.png", "main_effects.png", "interactions.png", "sweep_t1.png"
 
 
 def vistrack(*args, check=False):
-    return subprocess.run([sys.executable, "-m", "vistrack.services.cli", *args],
-                          capture_output=True, text=True, timeout=180, check=check)
+    return run_vistrack(*args, timeout=180, check=check)
 
 
 def test_json_prints_the_report_fields():

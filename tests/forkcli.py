@@ -8,16 +8,13 @@ fifth of the whole run.
 :func:`vistrack` instead asks one server process (started on first use, ended when the test
 process exits) that has imported every subcommand and loaded the tracker's kernels once. For
 each command line it forks a child with stdin from ``/dev/null`` and stdout and stderr (the file
-descriptors, so what C libraries write is caught as well) into files. The child runs
-``vistrack``'s own ``main`` and ends as the interpreter would (an uncaught exception's
-traceback, exit code 1; non-daemon threads joined, ``atexit`` run, outputs flushed) but for the
-teardown of every module, 1.2 s of the 1.3 s a forked command took (that teardown is still run
-by the tests that start ``vistrack`` afresh: the services, ``fresh=True``). The server replies
-with the exit code and both outputs, as :class:`subprocess.CompletedProcess`. What the imports
-themselves print would be
-hidden from the children, so the server checks that they printed nothing and refuses to start
-otherwise. It holds no thread when it forks (checked at start): nothing is left half-locked in
-the children.
+descriptors, so what C libraries write is caught as well) into files. The child runs what the
+``vistrack`` command runs, :func:`vistrack.services.cli.entry`, exit included (it ends the
+process without the teardown of every module, as the command does). The server replies with
+the exit code and both outputs, as :class:`subprocess.CompletedProcess`. What the imports
+themselves print would be hidden from the children, so the server checks that they printed
+nothing and refuses to start otherwise. It holds no thread when it forks (checked at start):
+nothing is left half-locked in the children.
 
 A command line that needs its own environment or start-up (``env``, or the module's import
 under test) is run as a plain subprocess: pass ``fresh=True``.
@@ -35,7 +32,7 @@ import threading
 from pathlib import Path
 
 _SERVER = r"""
-import atexit, json, os, sys, tempfile, threading, time
+import json, os, sys, tempfile, time
 from vistrack.services import threads
 threads.configure()
 from vistrack.services import cli
@@ -67,25 +64,7 @@ for line in channel:
         if req["cwd"]:
             os.chdir(req["cwd"])
         sys.argv = ["vistrack", *req["argv"]]
-        try:
-            rc = cli.main(req["argv"])
-        except SystemExit as e:
-            rc = e.code
-        except BaseException:
-            sys.excepthook(*sys.exc_info())
-            rc = 1
-        if not isinstance(rc, int):
-            if rc is not None:
-                print(rc, file=sys.stderr)
-            rc = 0 if rc is None else 1
-        # the interpreter's own shutdown, but for the teardown of every module (1.2 s here)
-        for t in threading.enumerate():
-            if t is not threading.main_thread() and not t.daemon:
-                t.join()
-        atexit._run_exitfuncs()
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(rc)
+        cli.entry(req["argv"])               # the command's whole end, exit code included
     deadline = time.monotonic() + req["timeout"]
     while True:
         done, status = os.waitpid(pid, os.WNOHANG)

@@ -42,27 +42,28 @@ def make_simulator(args: argparse.Namespace) -> Simulator:
 
 
 def _wait_answer(node: Node, stamp_ns: int, want_cmd: bool, timeout: float
-                 ) -> CmdVel | None:
-    """Wait for the command (or estimate) of the frame stamped ``stamp_ns``; returns the
-    newest command seen meanwhile."""
+                 ) -> tuple[bool, CmdVel | None]:
+    """Wait for the command (or estimate) of the frame stamped ``stamp_ns``; returns whether
+    it came (False: ``timeout`` s passed, or the node stopped) and the newest command seen
+    meanwhile."""
     deadline = time.monotonic() + timeout
     latest: CmdVel | None = None
     while not node.stop.is_set():
         item = node.recv(timeout=max(0.0, deadline - time.monotonic()))
         if item is None:
-            return latest
+            return False, latest
         key, payload = item
         try:
             if key == node.keys.cmd_vel:
                 latest = CmdVel.decode(payload)
                 if want_cmd and latest.stamp_ns >= stamp_ns:
-                    return latest
+                    return True, latest
             elif not want_cmd and Estimate.decode(payload).stamp_ns >= stamp_ns:
-                return latest
+                return True, latest
         except MessageError as e:
             node.status.reject(e)
             log.error("rejected %s: %s", key, e)
-    return latest
+    return False, latest
 
 
 def _drain_commands(node: Node) -> CmdVel | None:
@@ -110,7 +111,9 @@ def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
     while not node.stop.is_set():
         if sim.done:
             if not args.loop:
-                log.info("scenario %s finished after %d frames", sim.scenario.name, seq)
+                log.info("scenario %s finished after %d frames (%d answered late: "
+                         "--ack-timeout)", sim.scenario.name, seq,
+                         node.status.extra.get("ack_timeouts", 0))
                 return 0
             sim.reset()
         # the capture time is when the frame exists, as for a file or device camera: the
@@ -120,7 +123,10 @@ def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
         sent = faults.call(node.keys.frame, seq, _publish, node, sim, seq, stamp)
         node.status.extra["frames"] = seq + 1
         if args.lockstep and sent:
-            got = _wait_answer(node, stamp, control, args.ack_timeout)
+            answered, got = _wait_answer(node, stamp, control, args.ack_timeout)
+            if not answered and not node.stop.is_set():
+                extra = node.status.extra
+                extra["ack_timeouts"] = extra.get("ack_timeouts", 0) + 1
         elif args.lockstep:
             got = None
         else:

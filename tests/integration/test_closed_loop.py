@@ -40,6 +40,9 @@ def run(endpoint: str, session: zenoh.Session, scenario: str, control: bool) -> 
         assert cam.p.wait(120) == 0, "\n".join(cam.lines[-20:])
     finally:
         cam.stop()
+    # every frame's answer came: none waited out --ack-timeout (on the host's clock, the
+    # controller refused the simulated clock's estimates once 1 s ahead: 13 a run)
+    assert cam.wait_for("finished after").rstrip().endswith("(0 answered late: --ack-timeout)")
     time.sleep(0.2)  # the last pose is in flight: the run is over, this is not a handshake
     poses.sub.undeclare()
     return [msgpack.unpackb(p) for _, p in poses.items]
@@ -56,7 +59,8 @@ def errors(poses: list[dict]) -> tuple[float, float]:
 def loop_services(free_port_module):
     with router(free_port_module) as ep, zenoh.open(zenoh_config(ep)) as session, \
             services(ep, names=("preprocessing", "motion-estimation", "fuzzy-controller"),
-                     extra={"preprocessing": TRACKER, "motion-estimation": TRACKER}):
+                     extra={"preprocessing": TRACKER, "motion-estimation": TRACKER,
+                            "fuzzy-controller": ["--clock", "camera"]}):
         yield ep, session
 
 

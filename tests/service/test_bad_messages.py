@@ -152,3 +152,43 @@ def test_the_controller_refuses_an_estimate_from_the_future():
             node.stop.set()
             thread.join(5)
         assert not answered(future) and node.status.rejected == 1
+
+
+def test_on_the_cameras_clock_a_simulated_clock_ahead_of_the_host_is_followed():
+    """A lockstep simulator stamps its frames on a simulated clock running faster than real
+    time. On the host's clock its estimates more than 1 s ahead were refused and the simulator
+    waited a second for each missing command; with ``--clock camera`` each is answered, and the
+    watchdog still stops the robot once none has come for ``--stale-after`` s of host time."""
+    from vistrack.services.fuzzy_controller.service import loop
+
+    def estimate(seq: int, stamp_ns: int) -> bytes:
+        return Estimate(seq=seq, stamp_ns=stamp_ns, npi=50, xc=128.0 + seq, yc=128.0, xe=400.0,
+                        ye=400.0, dx=float(seq), dy=0.0, scale=1.0, t_ms=1.0, first=seq == 0,
+                        features=[], params_id=0).encode()
+
+    def commands() -> list[CmdVel]:
+        return [CmdVel.decode(p) for p in node.published_on(node.keys.cmd_vel)]
+
+    start = time.time_ns() + 3_600 * 10**9  # an hour ahead of this host, and 10 s a frame
+    stamps = [start + seq * 10 * 10**9 for seq in range(4)]
+    with MemoryNode("fuzzy_controller") as node:
+        args = parse("fuzzy-controller", "--clock", "camera", "--stale-after", "0.3")
+        thread = threading.Thread(target=loop, args=(node, args))
+        thread.start()
+        try:
+            wait_for(lambda: node.feed(node.keys.estimate, estimate(0, stamps[0])),
+                     what="the controller's subscription")
+            for seq, stamp in enumerate(stamps):
+                if seq:
+                    node.feed(node.keys.estimate, estimate(seq, stamp))
+                wait_for(lambda stamp=stamp: any(c.stamp_ns == stamp for c in commands()),
+                         what=f"the command of estimate {seq}")
+            assert node.status.rejected == 0
+            answers = [c for c in commands() if c.stamp_ns in stamps]
+            assert not any(c.stale for c in answers) and answers[-1].vy != 0.0
+            # no estimate for longer than --stale-after: the watchdog stops the robot
+            wait_for(lambda: commands()[-1].stale, timeout=5.0, what="the watchdog's stop")
+            assert commands()[-1].vy == commands()[-1].vx == commands()[-1].wz == 0.0
+        finally:
+            node.stop.set()
+            thread.join(5)

@@ -58,6 +58,16 @@ def _skfuzzy(sim: ControlSystemSimulation, ex: float, dex: float, ez: float,
     return float(sim.output["vx"]), float(sim.output["vy"])
 
 
+def _skfuzzy_points(limits: FuzzyLimits, points: np.ndarray) -> np.ndarray:
+    """(n, 2) vx, vy of scikit-fuzzy's compute() at (n, 4) points ex, dex, ez, dez, all at
+    once (array inputs: the same numbers as one compute() a point, 40 times faster)."""
+    sim = _reference(limits)
+    for name, column in zip(("ex", "dex", "ez", "dez"), points.T, strict=True):
+        sim.input[name] = column
+    sim.compute()
+    return np.column_stack([sim.output["vx"], sim.output["vy"]])
+
+
 def _random_inputs(limits: FuzzyLimits, n: int, seed: int) -> np.ndarray:
     """(n, 4) ex, dex, ez, dez drawn over 1.2x the limits, so some are clipped."""
     rng = np.random.default_rng(seed)
@@ -68,10 +78,10 @@ def _random_inputs(limits: FuzzyLimits, n: int, seed: int) -> np.ndarray:
 # -- the surface against scikit-fuzzy ------------------------------------------------------------
 
 def test_surface_matches_skfuzzy(surface):
-    sim = _reference(LIMITS)
+    points = _random_inputs(LIMITS, 300, seed=1)
     errors = []
-    for ex, dex, ez, dez in _random_inputs(LIMITS, 300, seed=1):
-        vx_ref, vy_ref = _skfuzzy(sim, ex, dex, ez, dez)
+    for (ex, dex, ez, dez), (vx_ref, vy_ref) in zip(points, _skfuzzy_points(LIMITS, points),
+                                                     strict=True):
         vx, vy = surface.evaluate(ex, dex, ez, dez)
         errors.append((abs(vx - vx_ref) / (2 * LIMITS.vx_max),
                        abs(vy - vy_ref) / (2 * LIMITS.vy_max)))
@@ -85,9 +95,9 @@ def test_other_limits_scale_without_recompiling(surface):
     limits = FuzzyLimits(ex_max=0.6, dex_max=2.0, ez_max=0.3, dez_max=0.2, vy_max=0.8,
                          vx_max=0.25)
     scaled = surface.with_limits(limits)
-    sim = _reference(limits)
-    for ex, dex, ez, dez in _random_inputs(limits, 40, seed=2):
-        vx_ref, vy_ref = _skfuzzy(sim, ex, dex, ez, dez)
+    points = _random_inputs(limits, 40, seed=2)
+    for (ex, dex, ez, dez), (vx_ref, vy_ref) in zip(points, _skfuzzy_points(limits, points),
+                                                     strict=True):
         vx, vy = scaled.evaluate(ex, dex, ez, dez)
         assert abs(vx - vx_ref) <= 0.01 * 2 * limits.vx_max
         assert abs(vy - vy_ref) <= 0.01 * 2 * limits.vy_max

@@ -75,6 +75,17 @@ LOOPBACK_LISTEN: dict[str, list[str]] = {"peer": ["tcp/127.0.0.1:0"],
 #: How often a :class:`ZenohNode` takes in what its loop has left queued (see its notes): what a
 #: stalled loop holds of a latest-only key is the newest payload and what came in this time.
 SWEEP_S = 0.1
+#: Congestion control of latest-only streams (``reliable=False``: frames, estimates).
+#: DROP loses a message whose fragments (a frame is over one 64 KiB batch) do not all find a
+#: free batch within 1 to 50 ms, even alone on an idle link: with the two cores busy, Zenoh's
+#: writer thread may not run that soon. A new session's first large messages go as fragments
+#: (its shared memory is still being set up), so a file camera lost its first frame now and
+#: then. BLOCK_FIRST waits up to 1 ms for the one message of its link and priority still being
+#: pushed, else drops the new one; the message it keeps is pushed as BLOCK would, by a Zenoh
+#: thread, and put() returns at once. So the message in flight is never lost to a late
+#: writer, and a stalled link drops newer ones without blocking the publisher or queueing a
+#: backlog. A router forwards it as BLOCK_FIRST (the F flag of the network QoS extension).
+LATEST_CONGESTION = zenoh.CongestionControl.BLOCK_FIRST
 # Longest a blocked recv() sleeps before re-checking ``stop``: bounds the shutdown delay
 # without costing latency (data wake it at once through the condition variable).
 _STOP_POLL_S = 0.05
@@ -159,6 +170,13 @@ def _names_listen_endpoints(conf: zenoh.Config) -> bool:
     too) but the value Zenoh uses when it is not set (every interface)."""
     unset = json.loads(zenoh.Config().get_json("listen/endpoints"))
     return bool(json.loads(conf.get_json("listen/endpoints")) != unset)
+
+
+def congestion(reliable: bool) -> zenoh.CongestionControl:
+    """The congestion control of a publisher: BLOCK for what must all arrive (parameters,
+    reports, commands), :data:`LATEST_CONGESTION` for latest-only streams (frames,
+    estimates)."""
+    return zenoh.CongestionControl.BLOCK if reliable else LATEST_CONGESTION
 
 
 def loopback_config(endpoint: str, *, router: bool = False) -> zenoh.Config:
@@ -805,7 +823,9 @@ class Node(abc.ABC):
         """Publish ``payload`` on ``key``.
 
         ``reliable=True`` (parameters, reports, commands) blocks rather than drop under
-        congestion; ``reliable=False`` (frames, estimates) lets the network drop.
+        congestion; ``reliable=False`` (frames, estimates) never blocks for long: under
+        congestion the network keeps the one message in flight and drops newer ones (see
+        :data:`LATEST_CONGESTION`).
         """
         if self._closed:
             raise BusError(f"node {self.service!r} is closed: cannot publish on {key}")
@@ -978,7 +998,7 @@ class ZenohNode(Node):
     every frame since it stopped.
 
     Publishers are declared once per (key, reliable) and cached; ``reliable`` selects
-    congestion control BLOCK, otherwise DROP.
+    congestion control BLOCK, otherwise BLOCK_FIRST (:func:`congestion`).
 
     Raises
     ------
@@ -1062,10 +1082,8 @@ class ZenohNode(Node):
         with self._publishers_lock:
             pub = self._publishers.get((key, reliable))
             if pub is None:
-                congestion = (zenoh.CongestionControl.BLOCK if reliable
-                              else zenoh.CongestionControl.DROP)
                 pub = SourcedPublisher(self.session.declare_publisher(
-                    key, congestion_control=congestion))
+                    key, congestion_control=congestion(reliable)))
                 self._publishers[(key, reliable)] = pub
             return pub
 

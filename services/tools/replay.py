@@ -9,12 +9,13 @@ pipeline that makes its own estimates.
 
 Samples are published in file order, each at its recorded time since the first sample, divided
 by ``--speed`` (``--fast``: no waiting at all). Frames, estimates and poses are published like
-the services publish them, latest-only (congestion control DROP: a slow consumer skips to the
-newest); parameters, reports and commands reliably (BLOCK). So a recorded ``camera/frame``
-stream drives the pipeline as a camera would. Before the first sample the replay waits up to
-``--wait`` s for a subscriber of its key, since what is published before the subscription is
-known is lost, and for the robot's services that are still starting (see ``vistrack status``)
-to be ready, as ``vistrack up`` starts its camera only once the other services are.
+the services publish them, latest-only (congestion control BLOCK_FIRST: the one sample in
+flight is not lost, a congested link drops the newer ones); parameters, reports and commands
+reliably (BLOCK). So a recorded ``camera/frame`` stream drives the pipeline as a camera would.
+Before the first sample the replay waits up to ``--wait`` s for a subscriber of its key, since
+what is published before the subscription is known is lost, and for the robot's services that
+are still starting (see ``vistrack status``) to be ready, as ``vistrack up`` starts its camera
+only once the other services are.
 
 ``--in-flight N`` also holds each ``camera/frame`` until motion-estimation has published the
 estimate of the frame N before it (or ``--ack-timeout`` s have passed), as the camera does with
@@ -41,7 +42,7 @@ from collections.abc import Iterable
 import msgpack
 import zenoh
 
-from ...common.bus import SourcedPublisher
+from ...common.bus import SourcedPublisher, congestion
 from ...common.keys import PREFIX, Keys, key_suffix, validate_robot_id
 from ...common.messages import peek_int
 from ..usage import add_number, plural
@@ -59,8 +60,9 @@ from .shared import (
     warn,
 )
 
-# Streams where only the newest sample matters: published with congestion control DROP, as
-# the camera, preprocessing and motion-estimation services do.
+# Streams where only the newest sample matters: published with the congestion control of
+# latest-only streams (bus.LATEST_CONGESTION), as the camera, preprocessing and
+# motion-estimation services do.
 LATEST_ONLY = frozenset({"camera/frame", "preprocessing/frame", "motion/estimate", "sim/pose"})
 
 
@@ -233,8 +235,7 @@ class _Player:
             latest = key_suffix(key) in LATEST_ONLY
             try:
                 pub = SourcedPublisher(self.session.declare_publisher(
-                    key, congestion_control=(zenoh.CongestionControl.DROP if latest
-                                             else zenoh.CongestionControl.BLOCK)))
+                    key, congestion_control=congestion(reliable=not latest)))
             except zenoh.ZError as e:
                 raise ToolError(f"cannot publish on {key!r}: {e}") from None
             self._publishers[key] = pub

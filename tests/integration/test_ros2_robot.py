@@ -126,9 +126,9 @@ PATHS = {"camera": ("camera", ["--source", "ros2:/camera/image_raw", "--domain",
 def frame_lost_after_the_reader(st: dict[str, dict], path: str, n: int, resent: int) -> bool:
     """Whether the reader of the images (``st``: every service's status) has published the
     frame of image ``n`` and the stage after it has not received it: the first frame hop,
-    ``camera/frame`` or ``preprocessing/frame``, both DROP by the contract (latest-only, a
-    slow reader must not stall the stage before it) and both out of the process that
-    started last. A frame lost anywhere else, or more than one, is not this."""
+    ``camera/frame`` or ``preprocessing/frame``, both latest-only by the contract (a slow
+    reader must not stall the stage before it) and both out of the process that started
+    last. A frame lost anywhere else, or more than one, is not this."""
     if path == "camera":  # the camera publishes camera/frame only
         return st["camera"]["published"] == n + resent \
             and st["preprocessing"]["received"] == n - 1
@@ -192,10 +192,10 @@ def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_p
                         st = {s["service"]: s for s in query_status(session, Keys())}
                         if attempt < 2 and frame_lost_after_the_reader(st, path, n, resent):
                             # on this busy 2-core machine a DROP frame fresh out of a
-                            # process that has just started is lost now and then (its
+                            # process that has just started was lost now and then (its
                             # route was there: every session is a client and the stage
-                            # after it subscribed before it started); a live camera sends
-                            # the next image, and so does this one
+                            # after it subscribed before it started; frames are BLOCK_FIRST
+                            # since); a live camera sends the next image, and so does this
                             resent += 1
                             continue
                         raise AssertionError(f"{e}; " + "; ".join(

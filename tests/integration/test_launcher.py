@@ -160,15 +160,18 @@ def services_and_spare(up_pid: int, n: int) -> set[int]:
 
     A child just forked still runs the launcher's command line until it execs; until then
     it is neither (a spare turned service keeps the spare's command line, so counting
-    spares alone took such a child for the new spare: seen once, under load)."""
+    spares alone took such a child for the new spare: seen once, under load). Nor is a child
+    that has exited and not yet been reaped (its command line reads empty): seen once under
+    load, a child neither spare nor service where the new spare was expected."""
     launcher = cmdline(up_pid)
 
     def complete() -> set[int] | None:
         children = child_pids(up_pid)
         spares = [pid for pid in children if is_spare(pid)]
         forked = [pid for pid in children if cmdline(pid) == launcher]
+        gone = [pid for pid in children if not alive(pid)]
         return (children if len(children) == n + 1 and len(spares) >= 1 and not forked
-                else None)
+                and not gone else None)
     return wait_for(complete, 30, f"{n} services and the spare")
 
 

@@ -128,6 +128,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         now = clock()
         if now - last_stop >= STALE_REPEAT_S and ctrl.x_ref is not None \
                 and ctrl.command_at(now).stale:
+            # stamped on the host's clock whatever --clock says: on the camera's, a stop
+            # stamped after a lockstep simulator's next frame would pass for that frame's answer
             send(time.time_ns(), 0.0, 0.0, 0.0, True)
             last_stop = now
 

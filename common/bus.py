@@ -82,9 +82,11 @@ SWEEP_S = 0.1
 #: (its shared memory is still being set up), so a file camera lost its first frame now and
 #: then. BLOCK_FIRST waits up to 1 ms for the one message of its link and priority still being
 #: pushed, else drops the new one; the message it keeps is pushed as BLOCK would, by a Zenoh
-#: thread, and put() returns at once. So the message in flight is never lost to a late
-#: writer, and a stalled link drops newer ones without blocking the publisher or queueing a
-#: backlog. A router forwards it as BLOCK_FIRST (the F flag of the network QoS extension).
+#: thread, and put() returns at once. So the message in flight is not lost to a late writer,
+#: and a stalled link drops newer ones without blocking the publisher or queueing a backlog.
+#: A router forwards it as BLOCK_FIRST (the F flag of the network QoS extension). Zenoh still
+#: lost one now and then at start-up with the two cores busy, on any hop of the pipeline: a
+#: file camera in lockstep sends a frame again whose estimate does not come.
 LATEST_CONGESTION = zenoh.CongestionControl.BLOCK_FIRST
 # Longest a blocked recv() sleeps before re-checking ``stop``: bounds the shutdown delay
 # without costing latency (data wake it at once through the condition variable).

@@ -1,6 +1,7 @@
 """auto-tuner: tune the tracker on a rolling buffer of recent frames, off the hot path.
 
-Reads   ``vistrack/<robot>/camera/frame``     (latest only, into the rolling buffer)
+Reads   ``vistrack/<robot>/camera/frame``     (latest only, into the rolling buffer; a frame
+        sent again, the ``stamp_ns`` of the newest one buffered, is not buffered twice)
         ``vistrack/<robot>/motion/estimate``  (latest only: scene and distance watch)
         ``vistrack/<robot>/tuner/params``     (reliable: what users set, to keep params_id rising)
 Writes  ``vistrack/<robot>/tuner/params``     (reliable)
@@ -177,6 +178,8 @@ class AutoTuner:
         # a read-only view of the payload, kept as it is: a received payload is bytes,
         # never reused, and a copy of every frame cost the loop 64 KiB a frame
         pixels = msg.data
+        if self.frames and self.frames[-1][1] == msg.stamp_ns:
+            return  # sent again (a camera in lockstep whose estimate was lost): buffered
         if self.frames and self.frames[-1][0].shape != pixels.shape:
             self.frames.clear()  # another camera: one tuning runs on one frame size
         self.frames.append((pixels, msg.stamp_ns))

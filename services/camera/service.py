@@ -13,10 +13,15 @@ textured scene), ``sim[:SCENARIO]`` (the robot simulator, see :mod:`.simcam`), `
 consumers allow": frame n is sent once motion-estimation has published frame n - ``--in-flight``
 and, with more than one in flight, pre-processing has published frame n-1 (it is free again, so
 nothing overwrites a frame waiting at its input), or after ``--ack-timeout`` s. With the default,
-1, a file camera loses no frame however slow the pipeline. With 2, pre-processing works on
-frame n while motion-estimation tracks frame n-1 (about 1.5x the frames a second), but a frame
-can still be overwritten at motion-estimation's latest-only input when that process is slow to
-wake (counted in its ``dropped``): a frame waits there for it while the next is pre-processed.
+1, a file camera loses no frame however slow the pipeline: a frame whose estimate does not come
+within ``--ack-timeout`` s is sent again, the same bytes (seq and stamp), up to
+:data:`RESENDS` times, before the camera goes on without it (status ``extra``: ``resent``,
+``ack_timeouts``). Zenoh may lose the one message in flight on a loaded machine, on any hop;
+motion-estimation answers a frame it has already tracked with the same estimate again. With 2,
+pre-processing works on frame n while motion-estimation tracks frame n-1 (about 1.5x the
+frames a second), but a frame can still be overwritten at motion-estimation's latest-only input
+when that process is slow to wake (counted in its ``dropped``): a frame waits there for it
+while the next is pre-processed.
 A file camera without ``--loop`` exits 0 after its last frame has been processed.
 """
 
@@ -54,6 +59,11 @@ log = logging.getLogger("vistrack.camera")
 LOOP_CACHE_BYTES = 256 * 1024 * 1024
 #: Frame sides the camera sends, px: a ``camera/frame`` carries at most MAX_SIDE a side.
 FRAME_SIDES = (8, MAX_SIDE)
+#: Times a file camera in lockstep (``--fps 0 --in-flight 1``) sends a frame again whose
+#: estimate has not come within ``--ack-timeout``, before it goes on without it (a service
+#: restarted, or is gone): one loss on the way is made good, and a pipeline that stopped
+#: answering costs (1 + RESENDS) x ``--ack-timeout`` a frame.
+RESENDS = 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -81,7 +91,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "and releases it once they are ready)")
     add_number(parser, "--ack-timeout", lo=0, hi=3600, lo_open=True, default=1.0, metavar="S",
                help="with --fps 0, longest wait for a frame's estimate, %(allowed)s "
-                    "(default 1 s)")
+                    f"(default 1 s); with --in-flight 1 the frame is then sent again, up to "
+                    f"{RESENDS} times, before the camera goes on")
     sim = parser.add_argument_group("simulator source")
     sim.add_argument("--lockstep", action="store_true",
                      help="render a frame only after the previous frame's command (or, with "
@@ -226,6 +237,10 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
     period = 1.0 / args.fps if args.fps > 0 else 0.0
     next_t = time.perf_counter()
     sent: collections.deque[int] = collections.deque(maxlen=window)  # stamps of the last sent
+    # in lockstep, the frame in flight, sent again should its estimate not come; a live
+    # device's next frame is worth more than the one lost
+    lockstep = not period and window == 1 and not args.source.startswith("device:")
+    last: list[bytes] = []
     faults = Faults(node, log)
     for seq, image in enumerate(frames):
         if node.stop.is_set():
@@ -242,27 +257,46 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
             need = {keys.estimate: sent[0]} if len(sent) == window else {}
             if window > 1:
                 need[keys.pre_frame] = sent[-1]
-            if not acks.wait(need, args.ack_timeout):
-                extra = node.status.extra
-                extra["ack_timeouts"] = extra.get("ack_timeouts", 0) + 1
+            if not _wait(node, acks, need, args.ack_timeout, last if lockstep else []):
                 sent.clear()  # lost downstream (a service restarted): go on
         stamp = time.time_ns()
         node.status.extra["frames"] = seq + 1
-        if not faults.call(keys.frame, seq, _publish, node, image, seq, stamp):
+        if not faults.call(keys.frame, seq, _publish, node, image, seq, stamp, last):
             continue  # skipped (counted in failed): nothing to wait for
         acks.sent = stamp
         sent.append(stamp)
         if period:
             acks.drain()
     if acks.sent >= 0 and not node.stop.is_set():
-        acks.wait({keys.estimate: acks.sent}, max(args.ack_timeout, 1.0))
+        _wait(node, acks, {keys.estimate: acks.sent}, max(args.ack_timeout, 1.0),
+              last if lockstep else [])
     log.info("end of %s after %d frames", args.source, node.status.extra.get("frames", 0))
     return 0
 
 
-def _publish(node: Node, image: np.ndarray, seq: int, stamp: int) -> None:
-    node.publish(node.keys.frame, encode_frame(image, seq=seq, stamp_ns=stamp),
-                 reliable=False)
+def _wait(node: Node, acks: _Acks, need: dict[str, int], timeout: float,
+          last: list[bytes]) -> bool:
+    """:meth:`_Acks.wait`, and while ``need`` is not met, ``last`` (the frame in flight, in
+    lockstep) sent again up to :data:`RESENDS` times, ``timeout`` s apart. False (counted in
+    ``ack_timeouts``) if it still is not met."""
+    extra = node.status.extra
+    for attempt in range(RESENDS + 1):
+        if attempt:
+            node.publish(node.keys.frame, last[0], reliable=False)
+            extra["resent"] = extra.get("resent", 0) + 1
+            log.info("no estimate of frame %s within %g s: sent again",
+                     extra.get("frames", 0) - 1, timeout)
+        if acks.wait(need, timeout):
+            return True
+        if not last or node.stop.is_set():
+            break
+    extra["ack_timeouts"] = extra.get("ack_timeouts", 0) + 1
+    return False
+
+
+def _publish(node: Node, image: np.ndarray, seq: int, stamp: int, last: list[bytes]) -> None:
+    last[:] = [encode_frame(image, seq=seq, stamp_ns=stamp)]
+    node.publish(node.keys.frame, last[0], reliable=False)
 
 
 def check_args(args: argparse.Namespace) -> None:

@@ -1,7 +1,9 @@
 """fuzzy-controller: turn each motion estimate into a velocity command that cancels the
 apparent motion (keeps the target centred and at the reference distance).
 
-Reads   ``vistrack/<robot>/motion/estimate``  (latest only)
+Reads   ``vistrack/<robot>/motion/estimate``  (latest only; the same one again, ``seq`` and
+        ``stamp_ns`` of the last one used, is ignored: motion-estimation answered a frame a
+        camera in lockstep sent again)
 Writes  ``vistrack/<robot>/control/cmd_vel``  (reliable; zero with ``stale: true`` while the
         estimates are older than the watchdog bound, not ``valid``, or too few features are
         tracked)
@@ -115,6 +117,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     camera_clock = CameraClock() if args.clock == "camera" else None
     clock = time.time if camera_clock is None else camera_clock.now
     xc0: float | None = None  # xc of the track's first estimate
+    used = (-1, -1)  # (seq, stamp_ns) of the last estimate turned into a command
 
     def send(stamp_ns: int, vx: float, vy: float, wz: float, stale: bool) -> None:
         nonlocal seq
@@ -134,11 +137,14 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             last_stop = now
 
     def on_estimate(payload: bytes) -> None:
-        nonlocal last_stop, xc0
+        nonlocal last_stop, xc0, used
         t0 = time.perf_counter()
         now = clock()
         est = decode_or_reject(Estimate, payload, node, log)
         if est is None:
+            return
+        if (est.seq, est.stamp_ns) == used:  # published again: its command has been sent
+            node.status.extra["repeated"] = node.status.extra.get("repeated", 0) + 1
             return
         if camera_clock is not None:
             camera_clock.arrived(est.stamp_ns * 1e-9)
@@ -165,6 +171,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             return
         if cmd is STOP or cmd.stale:
             last_stop = now
+        used = (est.seq, est.stamp_ns)
         send(est.stamp_ns, cmd.vx, cmd.vy, cmd.wz, cmd.stale)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
 

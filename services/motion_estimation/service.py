@@ -8,7 +8,10 @@ Writes  ``vistrack/<robot>/motion/estimate``       (one per processed frame)
 The tracker is the library's :class:`~vistrack.common.vision.Tracker`, fed the filtered frame
 and candidates computed upstream, so the pipeline computes exactly what ``vistrack track`` does.
 Estimates keep the camera frame's ``seq``; when it goes back (the camera restarted), or the
-frame size changes, the track starts again (``first: true``).
+frame size changes, the track starts again (``first: true``). A frame that comes again, the
+same ``seq`` and ``stamp_ns`` as the one just tracked (a camera in lockstep sends a frame again
+when its estimate was lost on the way back), is not tracked twice: the same estimate is
+published again (status ``extra``: ``repeated``).
 
 The tracker reads a frame's candidates only to select features (a first frame, a re-detection
 once fewer than ``redetect_fraction * max_features`` survive). ``motion/demand`` tells
@@ -121,16 +124,22 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     node.advertise(node.keys.demand, reliable=True)
     demand = DemandSignal(node)
     last_seq = -1
+    # (seq, stamp_ns) of the frame last tracked, and its estimate: what a frame sent again gets
+    answered: tuple[int, int, bytes] = (-1, -1, b"")
 
     def on_params(payload: bytes) -> None:
         if state.apply(payload, node, log):
             tracker.set_params(state.params)
 
     def on_frame(payload: bytes) -> None:
-        nonlocal last_seq
+        nonlocal last_seq, answered
         t0 = time.perf_counter()
         msg = decode_or_reject(PreFrame, payload, node, log)
         if msg is None:
+            return
+        if (msg.seq, msg.stamp_ns) == answered[:2]:
+            node.publish(node.keys.estimate, answered[2], reliable=False)
+            node.status.extra["repeated"] = node.status.extra.get("repeated", 0) + 1
             return
         # decoded arrays are read-only views of the payload; numba would compile (and cache)
         # a second specialisation of every kernel for read-only inputs, 40 ms on frame one
@@ -149,9 +158,10 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             tracker.reset()
             redetections = 0
             est = tracker.update(pre, seq=msg.seq, t_start=t0)
-        node.publish(node.keys.estimate, estimate_payload(
-            est, seq=msg.seq, stamp_ns=msg.stamp_ns, params_id=state.params_id),
-            reliable=False)
+        out = estimate_payload(est, seq=msg.seq, stamp_ns=msg.stamp_ns,
+                               params_id=state.params_id)
+        node.publish(node.keys.estimate, out, reliable=False)
+        answered = (msg.seq, msg.stamp_ns, out)
         if isinstance(pre, DeferredPreprocessed) and pre.computed:
             node.status.extra["candidates_here"] = \
                 node.status.extra.get("candidates_here", 0) + 1

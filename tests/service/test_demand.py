@@ -9,53 +9,19 @@ at most) loses features every frame and re-detects three times in 40 frames.
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
 import pytest
 
 from vistrack.common import synthetic
-from vistrack.common.bus import MemoryNode
 from vistrack.common.messages import Demand, Estimate, Frame, PreFrame
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker
-from vistrack.services import cli
 
-IDLE_S = 60.0  # a first frame may wait for numba's kernels to load
+from loops import Running
+
 FLAGS = ["--max-features", "30"]
-
-
-def parse(command: str, *argv: str):
-    return cli.build_parser(command).parse_args([command, *argv])
-
-
-class Running:
-    """A service loop on a MemoryNode in a thread, stopped on exit."""
-
-    def __init__(self, command: str, *argv: str) -> None:
-        module = cli.COMMANDS[command][0]
-        loop = __import__(f"vistrack.services.{module}", fromlist=["loop"]).loop
-        self.node = MemoryNode(command.replace("-", "_"))
-        self.thread = threading.Thread(target=loop, args=(self.node, parse(command, *argv)),
-                                       daemon=True)
-
-    def __enter__(self) -> Running:
-        self.thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.node.stop.set()
-        self.thread.join(10)
-        self.node.close()
-
-    def feed(self, key: str, payload: bytes) -> None:
-        """Deliver ``payload`` once the loop has subscribed; wait until it is handled."""
-        deadline = time.monotonic() + IDLE_S
-        while not self.node.feed(key, payload):
-            assert self.thread.is_alive() and time.monotonic() < deadline, key
-            time.sleep(0.01)
-        assert self.node.wait_idle(IDLE_S), f"{key}: not handled within {IDLE_S} s"
 
 
 def frames() -> list[np.ndarray]:

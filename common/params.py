@@ -70,14 +70,15 @@ MIN_VALID_NPI = 3
 PAPER_TRACKER: dict[str, Any] = {"levels": 1, "subpixel": False, "uniqueness": 0.0,
                                  "max_fb_error": 0.0, "consensus": 0.0,
                                  "reject_border": False,
-                                 "guided_retry": False, "refine_size": 0, "follow": False}
+                                 "guided_retry": False, "refine_size": 0, "follow": False,
+                                 "exposure": False}
 
 #: The paper's five factors, in Table 2's order (A..E of the 2^(5-1) design).
 FACTORS = ("max_features", "thres_percent", "search_size", "corr_size", "ungroup_size")
 
 _INT_FIELDS = {"max_features", "search_size", "corr_size", "ungroup_size", "grid_rows",
                "grid_cols", "cell_cap", "levels", "refine_size"}
-_BOOL_FIELDS = {"subpixel", "reject_border", "guided_retry", "follow"}
+_BOOL_FIELDS = {"subpixel", "reject_border", "guided_retry", "follow", "exposure"}
 
 
 @dataclass(frozen=True)
@@ -140,6 +141,10 @@ class TrackerParams:
         its way back returns within ``max_fb_error``; only the others are searched coarse to
         fine (needs ``subpixel`` and ``max_fb_error`` > 0). See
         :mod:`vistrack.common.vision.pyramid`.
+    exposure : compensate a change of exposure of the whole frame (auto-exposure, a light):
+        frame t's pyramid is mapped by the gain and offset that take its brightness to frame
+        t+1's before the coarse-to-fine search, when that moves its grey levels by more than
+        ``2 noise_sigma``. See :mod:`vistrack.common.vision.exposure`.
     """
 
     max_features: int = 100
@@ -167,6 +172,7 @@ class TrackerParams:
     refine_size: int = 21
     quality_level: float = 0.01
     follow: bool = True
+    exposure: bool = True
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):

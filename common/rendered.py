@@ -220,3 +220,18 @@ def middlebury_sequences(n: int = 60, *, size: tuple[int, int] = (256, 256),
             continue
         out.append(sequence(image, f"{name} rendered", n=n, size=size))
     return out
+
+
+def with_exposure(seq: RenderedSequence, *, gain: float = 0.08, offset: float = 10.0,
+                  seed: int | None = None) -> RenderedSequence:
+    """``seq`` seen by a camera whose auto-exposure hunts: every frame but the first gets its
+    own gain, uniform in 1 +- ``gain``, and offset, uniform in +- ``offset`` grey levels
+    (rounded, clipped to 0..255). The geometry, and so the ground truth, is ``seq``'s."""
+    rng = np.random.default_rng(zlib.crc32(seq.name.encode()) + 7 if seed is None else seed)
+    frames = [seq.frames[0]]
+    for f in seq.frames[1:]:
+        g = 1.0 + rng.uniform(-gain, gain)
+        b = rng.uniform(-offset, offset)
+        frames.append(np.clip(np.rint(f.astype(np.float32) * np.float32(g) + np.float32(b)),
+                              0, 255).astype(np.uint8))
+    return RenderedSequence(f"{seq.name}, exposure", frames, seq.homographies)

@@ -35,6 +35,7 @@ import numpy as np
 from numba.core import event as numba_event
 
 from ..params import MIN_VALID_NPI, TrackerParams
+from .exposure import compensate
 from .features import select_features
 from .motion import _incremental_motion, centroid_scatter
 from .preprocess import Preprocessed, preprocess
@@ -123,6 +124,8 @@ class Tracker:
         self.redetections = 0
         # matches that followed their prediction (step 0 of .pyramid) rather than a search
         self.followed = 0
+        # frames whose frame before was mapped onto their exposure (see .exposure)
+        self.exposure_steps = 0
 
     @property
     def lost_total(self) -> int:
@@ -223,6 +226,10 @@ class Tracker:
             prev = self._prev_pyr
             if prev is None or prev.levels != pyr.levels:  # the levels changed with the params
                 prev = build_pyramid(self._prev, p.levels)
+            if p.exposure:  # frame t in frame t+1's exposure, where it changed
+                mapped = compensate(prev, pyr, self._motion, p.noise_sigma)
+                self.exposure_steps += mapped is not prev
+                prev = mapped
             # what noise alone adds to S at a perfect match: both frames' noise, over the
             # window
             allowance = 2.0 * p.noise_sigma ** 2 * self._wsum

@@ -81,7 +81,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
               f"lost={tracker.lost_total} (rejected {tracker.rejected_total}: "
               + ", ".join(f"{k} {v}" for k, v in tracker.lost_by.items()
                           if v and k not in ("left", "cut"))
-              + f") redetections={tracker.redetections} followed={tracker.followed}",
+              + f") redetections={tracker.redetections} followed={tracker.followed} "
+              f"exposure_steps={tracker.exposure_steps}",
               file=out)
     return 0
 

@@ -1,0 +1,146 @@
+"""Exposure compensation (:mod:`vistrack.common.vision.exposure`): a change of brightness of
+the whole frame between two frames, as a camera's auto-exposure makes, on real frames of the
+shared data."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from vistrack.common import rendered
+from vistrack.common.params import TrackerParams
+from vistrack.common.vision import Tracker
+from vistrack.common.vision.exposure import compensate, exposure_change
+from vistrack.common.vision.pyramid import build_pyramid
+
+
+def _exposed(image: np.ndarray, gain: float, offset: float) -> np.ndarray:
+    return np.clip(np.rint(image * gain + offset), 0, 255).astype(np.uint8)
+
+
+def test_a_gain_and_offset_of_the_whole_frame_are_recovered(real_image):
+    for gain, offset in ((0.9, 6.0), (1.12, -9.0), (1.0, 12.0)):
+        g, b = exposure_change(real_image, _exposed(real_image, gain, offset))
+        assert g == pytest.approx(gain, abs=0.01) and b == pytest.approx(offset, abs=1.0)
+
+
+def test_the_overlap_of_a_moving_view_is_compared_not_the_whole_frames(real_image):
+    """The view moved 24 px right and 16 px down, the exposure unchanged: over the part both
+    frames see, no change; over the whole frames, the scene that came in reads as one."""
+    big = real_image
+    a, b = big[16:, 24:], big[:-16, :-24]  # b is a moved by (24, 16): a's (x, y) at b's +(24, 16)
+    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
+    g, o = exposure_change(a, b, (24.0, 16.0))
+    assert (g, o) == pytest.approx((1.0, 0.0), abs=1e-9)
+    g, o = exposure_change(a, b)
+    assert abs(g - 1.0) > 0.01 or abs(o) > 1.0
+
+
+@pytest.mark.parametrize("value", [0, 128, 255])
+def test_a_frame_without_contrast_has_no_exposure_to_compensate(real_image, value):
+    flat = np.full_like(real_image, value)
+    assert exposure_change(real_image, flat) is None
+    assert exposure_change(flat, real_image) is None
+    prev = build_pyramid(flat, 3)
+    assert compensate(prev, build_pyramid(real_image, 3), (0.0, 0.0), 2.0) is prev
+
+
+def test_frame_t_is_mapped_onto_frame_t1s_exposure_only_beyond_the_noise(real_image):
+    prev = build_pyramid(real_image, 3)
+    # within 2 noise_sigma of grey levels over frame t's range: left as it is
+    assert compensate(prev, build_pyramid(_exposed(real_image, 1.0, 2.0), 3), (0.0, 0.0),
+                      2.0) is prev
+    brighter = build_pyramid(_exposed(real_image, 1.1, 8.0), 3)
+    mapped = compensate(prev, brighter, (0.0, 0.0), 2.0)
+    assert mapped is not prev and mapped.shapes == prev.shapes
+    for k in range(prev.levels):  # every level now reads as frame t+1 does, to a grey level
+        diff = mapped.level(k).astype(int) - brighter.level(k).astype(int)
+        assert np.median(np.abs(diff)) <= 1, k
+        before = prev.level(k).astype(int) - brighter.level(k).astype(int)
+        assert np.median(np.abs(before)) >= 8, k
+
+
+def test_a_view_moved_further_than_predicted_is_not_read_as_a_change_of_exposure(real_image):
+    """A shift of 20 px that nothing predicted (a fast turn; a track's second frame): the
+    statistics of the overlap change with the content, but no gain and offset explain the
+    difference block by block, so frame t is left as it is. A change of exposure on top of the
+    same shift, predicted, is compensated."""
+    big = np.ascontiguousarray(cv2.resize(real_image, (512, 512), interpolation=cv2.INTER_CUBIC))
+    a = np.ascontiguousarray(big[128:384, 128:384])
+    m = np.float32([[1, 0, -20.3], [0, 1, 4.2]])
+    b = np.ascontiguousarray(cv2.warpAffine(big, m, (512, 512), flags=cv2.INTER_CUBIC)[128:384,
+                                                                                    128:384])
+    prev = build_pyramid(a, 3)
+    g, o = exposure_change(prev.level(2), build_pyramid(b, 3).level(2))
+    assert max(abs((g - 1) * v + o) for v in (0.0, 255.0)) > 4.0  # the content alone
+    assert compensate(prev, build_pyramid(b, 3), (0.0, 0.0), 2.0) is prev
+    assert compensate(prev, build_pyramid(_exposed(b, 1.15, 10.0), 3), (-20.3, 4.2),
+                      2.0) is not prev
+
+
+# -- the tracker on long sequences with a hunting auto-exposure --------------------------------
+
+def _lk(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(a, b, points.astype(np.float32).reshape(-1, 1, 2),
+                                         None)
+    return p1.reshape(-1, 2).astype(np.float64), st.ravel() == 1
+
+
+def _run(seq: rendered.RenderedSequence, params: TrackerParams) -> tuple[
+        list, np.ndarray, np.ndarray, float, int]:
+    """Every estimate, ours and LK's (from our points) end-point errors, the share of the
+    first frame's features ours still holds at the end, and the frames whose exposure was
+    compensated."""
+    tracker = Tracker(params)
+    est = tracker.process(seq.frames[0])
+    ests, ours, theirs = [est], [], []
+    first = set(est.ids.tolist())
+    for k in range(1, len(seq)):
+        before = dict(zip(est.ids.tolist(), est.points, strict=True))
+        q, ok = _lk(seq.frames[k - 1], seq.frames[k], est.points)
+        theirs.append(np.hypot(*(q[ok] - seq.map(est.points[ok], k - 1, k)).T))
+        est = tracker.process(seq.frames[k])
+        ests.append(est)
+        for i, p in zip(est.ids.tolist(), est.points, strict=True):
+            if i in before:
+                ours.append(np.hypot(*(p - seq.map(before[i][None], k - 1, k)[0])))
+    return (ests, np.array(ours), np.concatenate(theirs),
+            len(first & set(est.ids.tolist())) / len(first), tracker.exposure_steps)
+
+
+@pytest.fixture(scope="module")
+def sequences():
+    seqs = rendered.middlebury_sequences(40, names=("RubberWhale", "Urban2"))
+    if len(seqs) < 2:
+        pytest.skip("Middlebury frames not found: set VISTRACK_DATA or put the shared data at "
+                    "../shared/data")
+    return seqs
+
+
+def test_a_hunting_auto_exposure_keeps_the_features_and_the_accuracy(sequences):
+    """Gain +-8 % and offset +-10 grey levels from frame to frame: the default tracker keeps
+    what it keeps at a steady exposure and its median error stays at most LK's; without the
+    compensation it lost most of its features (measured: survival 0.17 -> 0.03 and 0.46 ->
+    0.01)."""
+    for seq in sequences:
+        _, _, _, steady, none = _run(seq, TrackerParams())
+        hunting = rendered.with_exposure(seq)
+        _, ours, theirs, kept, steps = _run(hunting, TrackerParams())
+        assert none == 0 and steps >= 0.5 * (len(seq) - 1), (seq.name, none, steps)
+        assert kept >= 0.9 * steady, (seq.name, kept, steady)
+        assert np.median(ours) <= np.median(theirs), (seq.name, np.median(ours),
+                                                      np.median(theirs))
+        assert np.mean(ours > 2.0) <= 0.02, seq.name
+        _, _, _, without, _ = _run(hunting, TrackerParams(exposure=False))
+        assert without < 0.5 * steady, (seq.name, without, steady)
+
+
+def test_a_steady_exposure_is_left_alone(sequences):
+    """The view moving up to 12 px a frame at a steady exposure: no change is read into it,
+    every estimate is the one of the tracker without the compensation."""
+    for seq in sequences:
+        on, _, _, _, _ = _run(seq, TrackerParams())
+        off, _, _, _, _ = _run(seq, TrackerParams(exposure=False))
+        for a, b in zip(on, off, strict=True):
+            assert np.array_equal(a.points, b.points) and np.array_equal(a.ids, b.ids)

@@ -14,9 +14,11 @@ ground truth:
   when it leaves the image), and the median **drift** of the survivors from their true
   position there.
 
-Sequences: the Middlebury pairs of the shared data (ground truth: the ``.flo`` flow) and the
+Sequences: the Middlebury pairs of the shared data (ground truth: the ``.flo`` flow), the
 long sequences of :mod:`vistrack.common.rendered` (real frames seen through smooth
-homographies, translation up to 12 px a frame; exact ground truth).
+homographies, translation up to 12 px a frame; exact ground truth), and the same long
+sequences seen by a camera whose auto-exposure hunts (``, exposure``: gain +-8 % and offset
++-10 grey levels from frame to frame, :func:`~vistrack.common.rendered.with_exposure`).
 """
 
 from __future__ import annotations
@@ -169,7 +171,9 @@ def scoreboard(params: TrackerParams | None = None, *, n_frames: int = 60,
         rows.append(Row(f"{name} (pair)", 2, ours, lk, rej))
         if progress:
             progress(name)
-    for seq in rendered.middlebury_sequences(n_frames):
+    longs = rendered.middlebury_sequences(n_frames)
+    # the same views through a camera whose auto-exposure hunts (see rendered.with_exposure)
+    for seq in [*longs, *(rendered.with_exposure(s) for s in longs)]:
         ours, lk, rej = run_sequence(seq.frames, _step_of(seq), params, end_truth=_end_of(seq))
         rows.append(Row(seq.name, len(seq), ours, lk, rej))
         if progress:
@@ -208,20 +212,21 @@ def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[
         print("(no Middlebury data found: set VISTRACK_DATA or put the shared data at "
               "../shared/data)", file=out)
         return {}
-    print(f"{'sequence':22s} {'frames':>6s} | {'pairs':>6s} {'median':>7s} {'>2px':>6s} "
+    print(f"{'sequence':32s} {'frames':>6s} | {'pairs':>6s} {'median':>7s} {'>2px':>6s} "
           f"{'surv':>5s} {'drift':>6s} {'rej':>5s} | {'pairs':>6s} {'median':>7s} "
           f"{'>2px':>6s} {'surv':>5s} {'drift':>6s} | {'EPE ok':>6s}", file=out)
-    print(f"{'':22s} {'':6s} | {'ours':^42s} | {'LK':^35s} |", file=out)
+    print(f"{'':32s} {'':6s} | {'ours':^42s} | {'LK':^35s} |", file=out)
     fig: dict[str, float] = {}
     for r in rows:
         o, lk = r.ours, r.lk
         ok = o.median_epe <= lk.median_epe
-        print(f"{r.sequence:22s} {r.frames:6d} | {o.pairs:6d} {o.median_epe:7.3f} "
+        print(f"{r.sequence:32s} {r.frames:6d} | {o.pairs:6d} {o.median_epe:7.3f} "
               f"{100 * o.gross:5.2f}% {_fmt(o.survival, '5.2f')} {_fmt(o.drift, '6.2f')} "
               f"{r.rejected:5d} | {lk.pairs:6d} {lk.median_epe:7.3f} {100 * lk.gross:5.2f}% "
               f"{_fmt(lk.survival, '5.2f')} {_fmt(lk.drift, '6.2f')} | {'yes' if ok else 'NO':>6s}",
               file=out)
-        key = r.sequence.split(" ")[0] + ("_pair" if r.frames == 2 else "_long")
+        key = r.sequence.split(" ")[0] + ("_pair" if r.frames == 2 else "_long") \
+            + ("_exposure" if r.sequence.endswith(", exposure") else "")
         fig.update({f"{key}_median": o.median_epe, f"{key}_lk_median": lk.median_epe,
                     f"{key}_gross": o.gross, f"{key}_lk_gross": lk.gross,
                     f"{key}_pairs": float(o.pairs), f"{key}_lk_pairs": float(lk.pairs)})

@@ -212,7 +212,8 @@ def _refinement_calls() -> list[tuple[Callable[..., object], tuple]]:
     return [(ssd._refine_with, (frame, frame, 32, 32, 32.0, 32.0, 2, scratch)),
             (ssd._parabola, (flat, flat, 64, 64, 32, 32, 32, 32, 2, wts, uniform, 0.0)),
             (pyramid._consensus, (pts, pts.copy(), np.full(1, ssd.LEFT, np.int8), 2.0)),
-            (pyramid._widen, (frame, frame, pts, 10, acc, np.zeros(1, np.bool_), pts.copy()))]
+            (pyramid._widen, (frame, frame, pts, 10, acc, np.zeros(1, np.bool_), pts.copy(),
+                              0.1))]
 
 
 #: the parameters of :func:`~vistrack.common.vision.ssd._search_level` that

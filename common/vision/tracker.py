@@ -38,9 +38,14 @@ from ..params import MIN_VALID_NPI, TrackerParams
 from .exposure import compensate
 from .features import select_features
 from .motion import _incremental_motion, centroid_scatter
+from .noise import noise_level
 from .preprocess import Preprocessed, preprocess
-from .pyramid import Pyramid, build_pyramid, track_pyramid
+from .pyramid import Pyramid, agreement, build_pyramid, track_pyramid
 from .ssd import BORDER, LEFT, OK, RESIDUAL, STATUS_NAMES, track_ssd, window_weights
+
+#: Frames between two estimates of the camera's noise (:mod:`.noise`, ~0.2 ms at 256 x 256):
+#: a camera's noise changes with its gain, not from frame to frame.
+NOISE_EVERY = 30
 
 
 @dataclass(frozen=True)
@@ -126,6 +131,10 @@ class Tracker:
         self.followed = 0
         # frames whose frame before was mapped onto their exposure (see .exposure)
         self.exposure_steps = 0
+        # the camera's noise, grey levels, estimated from the frames (see .noise), and the
+        # frame it was estimated on: the wide sub-pixel window's agreement bound scales with it
+        self.noise = 0.0
+        self._noise_at = -NOISE_EVERY
 
     @property
     def lost_total(self) -> int:
@@ -226,6 +235,9 @@ class Tracker:
             prev = self._prev_pyr
             if prev is None or prev.levels != pyr.levels:  # the levels changed with the params
                 prev = build_pyramid(self._prev, p.levels)
+            if p.subpixel and p.refine_half and self._frame - self._noise_at >= NOISE_EVERY:
+                self.noise = noise_level(frame, p.blur_sigma)
+                self._noise_at = self._frame
             if p.exposure:  # frame t in frame t+1's exposure, where it changed
                 mapped = compensate(prev, pyr, self._motion, p.noise_sigma)
                 self.exposure_steps += mapped is not prev
@@ -240,7 +252,8 @@ class Tracker:
                 search=p.search, uniqueness=p.uniqueness, allowance=allowance,
                 reject_border=p.reject_border, guided_retry=p.guided_retry,
                 max_fb_error=p.max_fb_error, consensus=p.consensus, wide_half=p.refine_half,
-                held=self._held, follow=p.follow, followed=taken)
+                agree=agreement(max(p.noise_sigma, self.noise)), held=self._held,
+                follow=p.follow, followed=taken)
             self.followed += int(np.count_nonzero(taken))
         pos, vel, ids, lost, moved, dx, dy, scale = _advance(
             self._pos, found, ssd, status, self._ids, self._wsum, float(p.max_residual))

@@ -173,7 +173,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         node.status.extra.update(
             npi=est.npi, valid=est.valid, lost=tracker.lost_total,
             rejected_features=tracker.rejected_total, redetections=tracker.redetections,
-            exposure_steps=tracker.exposure_steps,
+            exposure_steps=tracker.exposure_steps, noise=round(tracker.noise, 2),
             rejected_by={k: v for k, v in lost_by.items() if k not in ("left", "cut")})
 
     def recover() -> None:

@@ -48,6 +48,14 @@ def exposure_change(prev: np.ndarray, curr: np.ndarray,
     ``curr`` is ``prev`` moved by ``shift`` (x, y, in px of these images); None when either
     has no contrast there (:data:`MIN_SPREAD`), the overlap is empty, or the gain is outside
     :data:`GAIN_RANGE`."""
+    change = _change(prev, curr, shift)
+    return None if change is None else change[:2]
+
+
+def _change(prev: np.ndarray, curr: np.ndarray, shift: tuple[float, float]
+            ) -> tuple[float, float, float] | None:
+    """:func:`exposure_change`, and how far it moves frame t's typical grey levels (its mean
+    over the overlap, and two standard deviations either side): ``|m1 - m0| + 2 |s1 - s0|``."""
     both = _overlap(prev, curr, shift)
     if both is None:
         return None
@@ -58,7 +66,7 @@ def exposure_change(prev: np.ndarray, curr: np.ndarray,
     gain = s1 / s0
     if not GAIN_RANGE[0] <= gain <= GAIN_RANGE[1]:
         return None
-    return gain, m1 - gain * m0
+    return gain, m1 - gain * m0, abs(m1 - m0) + 2.0 * abs(s1 - s0)
 
 
 def _overlap(prev: np.ndarray, curr: np.ndarray, shift: tuple[float, float]
@@ -86,18 +94,12 @@ def compensate(prev: Pyramid, curr: Pyramid, shift: tuple[float, float],
 
     ``shift``: the image motion expected from ``prev`` to ``curr``, px of level 0."""
     k = min(prev.levels, curr.levels) - 1
-    scale = 0.5 ** k
-    change = exposure_change(prev.level(k), curr.level(k), (shift[0] * scale, shift[1] * scale))
-    if change is None:
+    at = (shift[0] * 0.5 ** k, shift[1] * 0.5 ** k)
+    change = _change(prev.level(k), curr.level(k), at)
+    if change is None or change[2] <= max(2.0 * noise_sigma, 1.0):
         return prev
-    gain, offset = change
-    m, s = _mean_std(prev.level(k))
-    lo, hi = m - 2.0 * s, m + 2.0 * s
-    moved = max(abs((gain - 1.0) * lo + offset), abs((gain - 1.0) * hi + offset))
-    if moved <= max(2.0 * noise_sigma, 1.0):
-        return prev
-    if not _explains(prev.level(k), curr.level(k), (shift[0] * scale, shift[1] * scale),
-                     gain, offset):
+    gain, offset, _ = change
+    if not _explains(prev.level(k), curr.level(k), at, gain, offset):
         return prev
     lut = np.clip(np.rint(np.arange(256) * gain + offset), 0, 255).astype(np.uint8)
     return Pyramid(cv2.LUT(prev.data, lut).reshape(-1), prev.geo, prev.shapes)

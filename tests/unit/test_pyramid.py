@@ -39,6 +39,23 @@ def test_pyramid_levels_are_opencvs_pyrdown():
         build_pyramid(frame, 0)
 
 
+@pytest.mark.parametrize("kind", ["saturated", "checkerboard", "stripes", "step"])
+def test_pyramid_levels_are_pyrdown_at_the_extremes(kind):
+    """The reduction sums in 16 bits: frames whose filtered sums reach their largest (65408
+    before the shift: all 255) or swing hardest (0/255 patterns) reduce exactly as
+    ``cv2.pyrDown`` does, odd sizes included."""
+    y, x = np.mgrid[0:61, 0:83]
+    frame = {"saturated": np.full((61, 83), 255),
+             "checkerboard": 255 * ((x + y) % 2),
+             "stripes": 255 * ((x // 2) % 2),
+             "step": 255 * (x > 40)}[kind].astype(np.uint8)
+    pyr = build_pyramid(frame, 4)
+    ref = frame
+    for k in range(1, pyr.levels):
+        ref = cv2.pyrDown(ref, borderType=cv2.BORDER_REPLICATE)
+        np.testing.assert_array_equal(pyr.level(k), ref)
+
+
 @pytest.mark.parametrize("search", ["pruned", "exhaustive"])
 @pytest.mark.parametrize("corr_size,search_size", [(9, 15), (5, 10), (15, 30)])
 def test_one_level_is_todays_single_level_search(real_image, search, corr_size, search_size):

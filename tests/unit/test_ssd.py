@@ -317,3 +317,35 @@ def test_a_few_searches_equal_the_exhaustive_one(real_image, shape):
                                        s, wts, False)
             found += int(ok.sum())
     assert found >= 10  # not all cut short: the narrowest frame holds few searches
+
+
+@pytest.mark.parametrize("corr_size", [3, 5, 9, 15, 21])
+@pytest.mark.parametrize("searches", [2, 60])
+def test_row_sums_are_the_window_rows_sums(corr_size, searches):
+    """The row sums behind the search's bounds (:func:`ssd._row_sums`), by either path (a few
+    searches: their own entries; many: blocks of whole rows) and either scheme (doubling, or
+    sums of 3 for a window of 3b px), equal a plain sum over each window row that a search
+    reads, on a random frame whose sums reach the int16 range's top (all-255 rows)."""
+    from vistrack.common.vision import ssd
+
+    rng = np.random.default_rng(corr_size)
+    frame = rng.integers(0, 256, (72, 90), dtype=np.uint8)
+    frame[30:34] = 255
+    h, w = frame.shape
+    n, s = corr_size // 2, 5
+    m = 2 * n + 1
+    centers = np.stack([rng.integers(0, w, searches), rng.integers(0, h, searches)], axis=1)
+    out = np.empty(h * w + w + ssd.VEC, np.int16)
+    bufs = np.empty((2, ssd.ROW_BLOCK + w + 2 * m), np.int16)
+    ssd._row_sums(frame, n, s, centers.astype(np.int64), out, bufs)
+    flat = frame.ravel().astype(np.int64)
+    checked = 0
+    for cx, cy in centers:
+        # the windows of the search (centres within s of (cx, cy), inside the frame)
+        for y in range(max(cy - s, n), min(cy + s, h - 1 - n) + 1):
+            for x in range(max(cx - s, n), min(cx + s, w - 1 - n) + 1):
+                for j in range(-n, n + 1):
+                    q = (y + j) * w + x - n
+                    assert out[q] == flat[q:q + m].sum()
+                    checked += 1
+    assert checked > 0

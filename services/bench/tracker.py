@@ -29,7 +29,6 @@ import numpy as np
 from ...common import groundtruth, synthetic
 from ...common.params import TrackerParams
 from ...common.vision import Tracker, preprocess, to_gray, track_ssd, warm_up, window_weights
-from ...common.vision.preprocess import gaussian_filter
 from ...common.vision.pyramid import build_pyramid, track_pyramid
 
 
@@ -202,9 +201,13 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
         for f in frames[1:]:
             preprocess(f, params)
 
+    # OpenCV's filter itself, not ours (gaussian_filter gives its output by its own kernel)
+    ksize = 2 * int(np.ceil(3 * params.blur_sigma)) + 1
+
     def blur() -> None:
         for f in frames[1:]:
-            gaussian_filter(f, params.blur_sigma)
+            cv2.GaussianBlur(f, (ksize, ksize), params.blur_sigma,
+                             borderType=cv2.BORDER_REPLICATE)
 
     k = len(jobs)
     fig = {

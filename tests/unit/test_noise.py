@@ -84,3 +84,9 @@ def test_a_noisy_camera_is_tracked_as_well_as_lk_tracks_it(noisy_sequences, monk
             m.setattr(tracker_module, "noise_level", lambda frame, blur: 0.0)
             fixed, _, _ = run(seq)
         assert ours.median_epe <= 0.85 * fixed.median_epe, (seq.name, ours, fixed)
+
+
+def test_a_camera_sized_frame_reads_its_noise_too():
+    """1280 x 720 (read in its middle, so that it costs what a small frame does)."""
+    frame = _noisy(np.full((720, 1280), 100.0), 4.0)
+    assert noise_level(gaussian_filter(frame, 0.5), 0.5) == pytest.approx(4.0, rel=0.1)

@@ -79,7 +79,14 @@ def gaussian_filter(gray: np.ndarray, sigma: float) -> np.ndarray:
         taps = _fixed_kernel(float(sigma))
         if taps is not None:
             out = np.empty(gray.shape, np.uint8)
-            _blur_fixed(np.ascontiguousarray(gray), taps, out)
+            # always a read-only view: one compiled version for the frames a service decodes
+            # (read-only views of the payload) and those made here, so that the warm-up
+            # compiles the one a service runs (a writable frame in the warm-up and a read-only
+            # one in preprocessing's first frame compiled anew there: ~2 s without estimates
+            # at the start of a first run)
+            src = np.ascontiguousarray(gray).view()
+            src.flags.writeable = False
+            _blur_fixed(src, taps, out)
             return out
     return cv2.GaussianBlur(gray, (k, k), sigma, borderType=cv2.BORDER_REPLICATE)
 
@@ -113,6 +120,7 @@ def _fixed_kernel(sigma: float) -> np.ndarray | None:
         return None
     probe = np.random.default_rng(15).integers(0, 256, (23, 2 * k + 17), dtype=np.uint8)
     probe[:, :3] = 255  # the largest sums
+    probe.flags.writeable = False  # as gaussian_filter passes frames: one compiled version
     ours = np.empty(probe.shape, np.uint8)
     _blur_fixed(probe, taps, ours)
     theirs = cv2.GaussianBlur(probe, (k, k), sigma, borderType=cv2.BORDER_REPLICATE)

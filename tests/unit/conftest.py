@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vistrack.common import groundtruth
+from vistrack.common import groundtruth, rendered
 from vistrack.common.vision import to_gray
 
 
@@ -26,3 +26,12 @@ def real_image() -> np.ndarray:
     """A real 256x256 grey image (RubberWhale frame10, cropped), or skip."""
     a, _, _ = load_pair("RubberWhale")
     return np.ascontiguousarray(a[60:316, 160:416])
+
+
+def rendered_sequences(n: int, names: tuple[str, ...]) -> list[rendered.RenderedSequence]:
+    """:func:`rendered.middlebury_sequences` of ``n`` frames from ``names``, or skip."""
+    seqs = rendered.middlebury_sequences(n, names=names)
+    if len(seqs) < len(names):
+        pytest.skip("Middlebury frames not found: set VISTRACK_DATA or put the shared data at "
+                    "../shared/data")
+    return seqs

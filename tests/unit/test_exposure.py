@@ -14,6 +14,8 @@ from vistrack.common.vision import Tracker
 from vistrack.common.vision.exposure import compensate, exposure_change
 from vistrack.common.vision.pyramid import build_pyramid
 
+from conftest import rendered_sequences
+
 
 def _exposed(image: np.ndarray, gain: float, offset: float) -> np.ndarray:
     return np.clip(np.rint(image * gain + offset), 0, 255).astype(np.uint8)
@@ -111,11 +113,7 @@ def _run(seq: rendered.RenderedSequence, params: TrackerParams) -> tuple[
 
 @pytest.fixture(scope="module")
 def sequences():
-    seqs = rendered.middlebury_sequences(40, names=("RubberWhale", "Urban2"))
-    if len(seqs) < 2:
-        pytest.skip("Middlebury frames not found: set VISTRACK_DATA or put the shared data at "
-                    "../shared/data")
-    return seqs
+    return rendered_sequences(40, ("RubberWhale", "Urban2"))
 
 
 def test_a_hunting_auto_exposure_keeps_the_features_and_the_accuracy(sequences):

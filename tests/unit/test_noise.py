@@ -14,6 +14,8 @@ from vistrack.common.vision.pyramid import agreement
 from vistrack.common.vision.ssd import AGREE_PX
 from vistrack.services.bench.accuracy import run_sequence
 
+from conftest import rendered_sequences
+
 
 def _noisy(image: np.ndarray, sigma: float, seed: int = 1) -> np.ndarray:
     noise = np.random.default_rng(seed).standard_normal(image.shape)
@@ -60,10 +62,7 @@ def test_the_agreement_bound_grows_with_the_noise_above_the_default():
 
 @pytest.fixture(scope="module")
 def noisy_sequences():
-    seqs = rendered.middlebury_sequences(30, names=("RubberWhale", "Urban2"))
-    if len(seqs) < 2:
-        pytest.skip("Middlebury frames not found: set VISTRACK_DATA or put the shared data at "
-                    "../shared/data")
+    seqs = rendered_sequences(30, ("RubberWhale", "Urban2"))
     return [rendered.RenderedSequence(s.name, [_noisy(f, 6.0, k) for k, f in enumerate(s.frames)],
                                       s.homographies) for s in seqs]
 

@@ -216,7 +216,7 @@ def loop(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray] | No
     window = 1 if args.fps > 0 else args.in_flight
     acks = _Acks(node, (node.keys.estimate,) if window == 1
                  else (node.keys.estimate, node.keys.pre_frame))
-    node.advertise(node.keys.frame, reliable=False)
+    node.advertise(node.keys.frame, reliable=_lockstep(args, window))
     ready(node)
     # a recording loses its first frames if it plays before anyone listens; a live device
     # is like any camera: its frames are for whoever is there
@@ -237,9 +237,7 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
     period = 1.0 / args.fps if args.fps > 0 else 0.0
     next_t = time.perf_counter()
     sent: collections.deque[int] = collections.deque(maxlen=window)  # stamps of the last sent
-    # in lockstep, the frame in flight, sent again should its estimate not come; a live
-    # device's next frame is worth more than the one lost
-    lockstep = not period and window == 1 and not args.source.startswith("device:")
+    lockstep = _lockstep(args, window)
     last: list[bytes] = []
     faults = Faults(node, log)
     for seq, image in enumerate(frames):
@@ -261,7 +259,7 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
                 sent.clear()  # lost downstream (a service restarted): go on
         stamp = time.time_ns()
         node.status.extra["frames"] = seq + 1
-        if not faults.call(keys.frame, seq, _publish, node, image, seq, stamp, last):
+        if not faults.call(keys.frame, seq, _publish, node, image, seq, stamp, last, lockstep):
             continue  # skipped (counted in failed): nothing to wait for
         acks.sent = stamp
         sent.append(stamp)
@@ -282,7 +280,7 @@ def _wait(node: Node, acks: _Acks, need: dict[str, int], timeout: float,
     extra = node.status.extra
     for attempt in range(RESENDS + 1):
         if attempt:
-            node.publish(node.keys.frame, last[0], reliable=False)
+            node.publish(node.keys.frame, last[0], reliable=True)  # only in lockstep
             extra["resent"] = extra.get("resent", 0) + 1
             log.info("no estimate of frame %s within %g s: sent again",
                      extra.get("frames", 0) - 1, timeout)
@@ -294,9 +292,24 @@ def _wait(node: Node, acks: _Acks, need: dict[str, int], timeout: float,
     return False
 
 
-def _publish(node: Node, image: np.ndarray, seq: int, stamp: int, last: list[bytes]) -> None:
+def _lockstep(args: argparse.Namespace, window: int) -> bool:
+    """Whether the camera runs in lockstep: ``--fps 0 --in-flight 1``, not a live device.
+
+    In lockstep the frame in flight is sent again should its estimate not come (a live
+    device's next frame is worth more than the one lost), and frames are published reliable
+    (BLOCK): with one frame in flight that never queues a backlog, and every subscriber gets
+    every frame, a recorder or a viewer too. Latest-only (BLOCK_FIRST) dropped the second
+    frame of a run at a recorder now and then: the first large messages a new subscriber
+    receives by shared memory took 4 to 10 ms here (the segment being mapped), and a frame
+    that finds its predecessor still in flight on a link for 1 ms is dropped.
+    """
+    return not args.fps and window == 1 and not args.source.startswith("device:")
+
+
+def _publish(node: Node, image: np.ndarray, seq: int, stamp: int, last: list[bytes],
+             lockstep: bool) -> None:
     last[:] = [encode_frame(image, seq=seq, stamp_ns=stamp)]
-    node.publish(node.keys.frame, last[0], reliable=False)
+    node.publish(node.keys.frame, last[0], reliable=lockstep)
 
 
 def check_args(args: argparse.Namespace) -> None:

@@ -145,8 +145,11 @@ def run(tmp_path_factory, free_port_module):
                     cam.stop()
                     est.sub.undeclare()
                     cmd.sub.undeclare()
-                client.receive(lambda c: c.received[f"/{ROOT}/motion/estimate"] >= FRAMES,
-                               20)
+                # every estimate, and the throttled frames and their overlays: the bridge
+                # sends those at its next period, maybe after the last estimate
+                client.receive(lambda c: c.received[f"/{ROOT}/motion/estimate"] >= FRAMES
+                               and c.received[f"/{ROOT}/camera/frame"] >= 1
+                               and c.received[f"/{ROOT}/camera/features"] >= 1, 20)
                 elapsed = time.monotonic() - start
                 # bad input: a payload that is no estimate, then the tools go on
                 junk_ns = time.time_ns()

@@ -101,6 +101,21 @@ def test_a_lost_message_is_sent_again_and_no_frame_is_lost(lose, resent, repeate
     assert me.status.extra.get("repeated", 0) >= repeated
     assert len(published) == N + me.status.extra.get("repeated", 0)
     assert me.status.dropped == 0  # no gap in the frames' seq either
+    # reliable (BLOCK): a subscriber outside the loop (a recorder) loses none either
+    frames = [p for p in cam.published if p.key == cam.keys.frame]
+    assert len(frames) >= N + resent and all(p.reliable for p in frames)
+
+
+def test_a_paced_camera_publishes_latest_only():
+    """At --fps F a frame is worth less than the next one: a slow link drops it (BLOCK_FIRST)
+    rather than hold the camera back."""
+    images = synthetic.builtin_sequence(N)
+    with Running("camera", "--fps", "200", "--ack-timeout", str(ACK_TIMEOUT_S),
+                 target=camera.loop, extra=(iter(images),)) as cam:
+        cam.thread.join(IDLE_S + 2 * ACK_TIMEOUT_S)  # no estimate comes: it waits, then ends
+        assert not cam.thread.is_alive()
+    frames = [p for p in cam.node.published if p.key == cam.node.keys.frame]
+    assert len(frames) == N and not any(p.reliable for p in frames)
 
 
 def test_a_frame_that_never_gets_through_is_given_up_and_the_camera_goes_on():

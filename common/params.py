@@ -120,7 +120,8 @@ class TrackerParams:
         test off.
     noise_sigma : the camera's noise, grey levels: what noise alone adds to S at a perfect
         match (the uniqueness test), and the texture floor a candidate's strength must clear
-        (what a uniform patch with this noise reaches).
+        (what a uniform patch with this noise reaches, or with the noise the frame shows
+        where that is more: :func:`vistrack.common.vision.preprocess.frame_noise`).
     max_fb_error : forward-backward bound, px: a match tracked back from frame t+1 must
         return to within this of where it started; 0 turns the check off.
     consensus : a match whose displacement departs from the median of its 6 nearest tracked

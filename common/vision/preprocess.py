@@ -26,6 +26,7 @@ import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros
 
 from ..params import TrackerParams
+from .noise import noise_level
 
 
 @dataclass(frozen=True)
@@ -538,12 +539,28 @@ def _sobel_sd(noise_sigma: float, blur_sigma: float) -> float:
     return float(np.hypot(camera, rounding))
 
 
-def texture_floor(params: TrackerParams) -> float:
+def texture_floor(params: TrackerParams, noise: float | None = None) -> float:
     """The absolute texture floor: the largest strength a uniform patch reaches with the
-    camera's noise (``noise_sigma`` grey levels) after this pre-processing (~1660 for
-    ``min_eigen`` at the defaults); a candidate must exceed it."""
-    sd = _sobel_sd(params.noise_sigma, params.blur_sigma)
+    camera's noise (``noise`` grey levels, default ``noise_sigma``) after this pre-processing
+    (~1660 for ``min_eigen`` at the defaults); a candidate must exceed it."""
+    sd = _sobel_sd(params.noise_sigma if noise is None else noise, params.blur_sigma)
     return _NOISE_PEAK[params.strength] * sd ** _NOISE_POWER[params.strength]
+
+
+def frame_noise(filtered: np.ndarray, params: TrackerParams) -> float:
+    """The noise the texture floor of ``filtered`` is set for, grey levels: ``noise_sigma``,
+    or the noise the frame itself shows (:func:`.noise.noise_level`) where that is more.
+
+    A camera's noise grows with its gain: a dark room or a covered lens read 3 to 8 grey
+    levels here, and with the floor at ``noise_sigma`` (2) a uniform frame of 5 made 100
+    features of noise every frame, re-detected as fast as they were lost, and a *valid*
+    estimate whose centroid jumped about (the controller would have moved the robot). On the
+    real frames of the shared data the estimate reads 1.1 to 3.9 (fine texture passes the
+    operator), and the floor it sets stays below the quality level's (a fraction of the
+    strongest): their candidates are the same. A scene textured at the scale of one pixel,
+    white like noise, would read as noise; a camera's optics do not pass such texture.
+    """
+    return max(float(params.noise_sigma), noise_level(filtered, params.blur_sigma))
 
 
 def candidates_of(filtered: np.ndarray, params: TrackerParams) -> tuple[np.ndarray, np.ndarray]:
@@ -556,7 +573,8 @@ def candidates_of(filtered: np.ndarray, params: TrackerParams) -> tuple[np.ndarr
     if len(strength):
         # strongest first, so the candidates that pass are a prefix; strictly above, so that
         # a frame without texture (strength 0 everywhere) has none even with both floors 0
-        floor = max(texture_floor(params), params.quality_level * float(strength[0]))
+        floor = max(texture_floor(params, frame_noise(filtered, params)),
+                    params.quality_level * float(strength[0]))
         keep = int(np.count_nonzero(strength > floor))
         cands, strength = cands[:keep], strength[:keep]
     return cands, strength

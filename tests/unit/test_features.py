@@ -7,7 +7,13 @@ import pytest
 
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import preprocess, select_features
-from vistrack.common.vision.preprocess import threshold_candidates
+from vistrack.common.vision.preprocess import (
+    STRENGTHS,
+    frame_noise,
+    gaussian_filter,
+    texture_floor,
+    threshold_candidates,
+)
 
 
 @pytest.mark.parametrize("percent", [0.1, 1.0, 2.0, 5.0])
@@ -113,12 +119,31 @@ def test_a_uniform_patch_with_the_cameras_noise_has_no_candidate(strength, blur_
         assert len(pre.candidates) == 0, (seed, pre.strength[:5])
 
 
-def test_more_noise_than_the_floor_allows_gives_candidates_of_noise():
-    """The floor is set by noise_sigma, not guessed from the frame: noise well above it makes
-    candidates (the tracker then rejects them: they match nothing in the next frame)."""
-    pre = preprocess(noisy(128, 8.0, 1), TrackerParams(noise_sigma=2.0))
-    assert len(pre.candidates) > 100
-    assert len(preprocess(noisy(128, 8.0, 1), TrackerParams(noise_sigma=8.0)).candidates) == 0
+@pytest.mark.parametrize("sigma", [3.0, 5.0, 8.0, 16.0])
+def test_more_noise_than_noise_sigma_raises_the_floor_with_it(sigma):
+    """A camera's noise grows with its gain (a dark room, a covered lens): a uniform frame
+    with more noise than noise_sigma has no candidate either, the floor set by the noise the
+    frame shows. With the floor at noise_sigma alone, noise of 8 made over 100 candidates."""
+    params = TrackerParams(noise_sigma=2.0)
+    for seed in range(3):
+        frame = noisy(60, sigma, seed, shape=(240, 320))
+        assert len(preprocess(frame, params).candidates) == 0, seed
+        assert frame_noise(gaussian_filter(frame, params.blur_sigma),
+                                      params) == pytest.approx(sigma, rel=0.15)
+        # the floor it sets is what lets none through: at noise_sigma's alone, some pass
+        grad = STRENGTHS[params.strength](gaussian_filter(frame, params.blur_sigma))
+        assert (grad > texture_floor(params)).sum() > 0
+
+
+def test_a_real_scene_with_the_cameras_noise_keeps_its_candidates(real_image):
+    """Noise added to a textured scene raises the floor, but the scene's texture clears it:
+    its candidates are those of its clean frame's quality level, nearly all of them."""
+    params = TrackerParams()
+    for sigma in (3.0, 6.0):
+        frame = np.clip(np.rint(real_image + np.random.default_rng(0).normal(
+            0, sigma, real_image.shape)), 0, 255).astype(np.uint8)
+        pre = preprocess(frame, params)
+        assert len(pre.candidates) >= 0.9 * round(frame.size * params.thres_percent / 100)
 
 
 @pytest.mark.parametrize("value", [0, 37, 255])

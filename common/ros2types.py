@@ -403,19 +403,29 @@ OVERLAYS = {"camera/features": feature_marker, "camera/centroid": centroid_marke
 # -- ROS 2 cameras -> 8-bit grey ---------------------------------------------------------------
 
 #: ``sensor_msgs/msg/Image`` encodings a ROS 2 camera source takes: bytes a pixel and the
-#: OpenCV conversion to grey (None: already one channel).
+#: OpenCV conversion to grey (None: already one channel, or one of :data:`_BYTE_OF_PIXEL`'s).
+#: Raw Bayer, as machine-vision cameras send it, is demosaiced by OpenCV, whose pattern names
+#: are those of the second row (ROS's ``bayer_rggb8`` is OpenCV's BayerBG, as ``cv_bridge``
+#: maps them). YUV 4:2:2 (USB cameras' YUYV, ``usb_cam``'s ``yuv422_yuy2``, and UYVY,
+#: ``yuv422``) is its luma byte: grey as the camera made it.
 IMAGE_ENCODINGS: dict[str, tuple[int, int | None]] = {
     "mono8": (1, None), "8UC1": (1, None), "mono16": (2, None), "16UC1": (2, None),
     "rgb8": (3, cv2.COLOR_RGB2GRAY), "bgr8": (3, cv2.COLOR_BGR2GRAY),
     "rgba8": (4, cv2.COLOR_RGBA2GRAY), "bgra8": (4, cv2.COLOR_BGRA2GRAY),
+    "bayer_rggb8": (1, cv2.COLOR_BayerBG2GRAY), "bayer_bggr8": (1, cv2.COLOR_BayerRG2GRAY),
+    "bayer_gbrg8": (1, cv2.COLOR_BayerGR2GRAY), "bayer_grbg8": (1, cv2.COLOR_BayerGB2GRAY),
+    "yuv422_yuy2": (2, None), "yuv422": (2, None),
 }
+#: The two-byte encodings that carry the grey level in one byte of each pixel's two: which.
+_BYTE_OF_PIXEL = {"yuv422_yuy2": 0, "yuv422": 1}  # Y0 U Y1 V; U Y0 V Y1
 
 
 def grey_of_image(obj: Any) -> np.ndarray:
     """The 8-bit grey image, shape (height, width) uint8, of a ``sensor_msgs/msg/Image`` in
-    one of :data:`IMAGE_ENCODINGS`: colour through OpenCV's luma weights, 16-bit by its high
-    byte (value // 256, either byte order as ``is_bigendian`` says). Row padding
-    (``step`` > width * bytes a pixel) is dropped.
+    one of :data:`IMAGE_ENCODINGS`: colour (raw Bayer demosaiced first) through OpenCV's luma
+    weights, YUV 4:2:2 by its luma byte, 16-bit by its high byte (value // 256, either byte
+    order as ``is_bigendian`` says). Row padding (``step`` > width * bytes a pixel) is
+    dropped.
 
     Raises
     ------
@@ -440,7 +450,8 @@ def grey_of_image(obj: Any) -> np.ndarray:
     rows = data.reshape(height, step)[:, :row]
     if channels == 2:
         pixels = rows.reshape(height, width, 2)
-        return np.ascontiguousarray(pixels[:, :, 0 if obj.is_bigendian else 1])
+        byte = _BYTE_OF_PIXEL.get(encoding, 0 if obj.is_bigendian else 1)
+        return np.ascontiguousarray(pixels[:, :, byte])
     if conversion is None:
         return np.ascontiguousarray(rows)
     return cv2.cvtColor(np.ascontiguousarray(rows).reshape(height, width, channels),

@@ -80,11 +80,13 @@ def _drain_commands(node: Node) -> CmdVel | None:
     return latest
 
 
-def _publish(node: Node, sim: Simulator, seq: int, stamp: int) -> None:
-    """Render the current view and publish it with the ground truth."""
+def _publish(node: Node, sim: Simulator, seq: int, stamp: int, lockstep: bool) -> None:
+    """Render the current view and publish it with the ground truth; in lockstep, the frame
+    reliable (BLOCK): with one frame in flight that queues no backlog, and a recorder gets
+    every frame too (as a file camera's in lockstep, see :mod:`.service`)."""
     frame = sim.render()
     node.publish(node.keys.frame, encode_frame(frame, seq=seq, stamp_ns=stamp),
-                 reliable=False)
+                 reliable=lockstep)
     node.publish(node.keys.pose, Pose(seq=seq, stamp_ns=stamp, **sim.pose()).encode(),
                  reliable=True)
 
@@ -96,7 +98,7 @@ def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
     node.subscribe(node.keys.cmd_vel, latest=False)
     if args.lockstep and not control:
         node.subscribe(node.keys.estimate, latest=True)
-    node.advertise(node.keys.frame, reliable=False)
+    node.advertise(node.keys.frame, reliable=args.lockstep)
     node.advertise(node.keys.pose, reliable=True)
     ready(node)
     # lockstep runs are reproducible from their first frame; in real time the simulator is a
@@ -120,7 +122,7 @@ def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
         # render (about 2 ms of warpPerspective) is the simulator's cost, not the pipeline's;
         # lockstep stamps run on the simulated clock, so they are reproducible
         stamp = t0_ns + round(seq * dt * 1e9) if args.lockstep else time.time_ns()
-        sent = faults.call(node.keys.frame, seq, _publish, node, sim, seq, stamp)
+        sent = faults.call(node.keys.frame, seq, _publish, node, sim, seq, stamp, args.lockstep)
         node.status.extra["frames"] = seq + 1
         if args.lockstep and sent:
             answered, got = _wait_answer(node, stamp, control, args.ack_timeout)

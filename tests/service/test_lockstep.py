@@ -134,6 +134,20 @@ def _estimate(seq: int, stamp_ns: int) -> bytes:
                     features=[], params_id=0).encode()
 
 
+@pytest.mark.parametrize(("argv", "reliable"), [
+    (("--lockstep", "--no-control", "--ack-timeout", "0.05"), True),  # one frame in flight
+    (("--fps", "100"), False),  # real time: the next frame is worth more
+])
+def test_the_simulator_in_lockstep_publishes_its_frames_reliable(argv, reliable):
+    with Running("camera", "--source", "sim", *argv, target=camera.loop) as cam:
+        deadline = time.monotonic() + IDLE_S
+        while len(cam.node.published_on(cam.node.keys.frame)) < 3:
+            assert cam.thread.is_alive() and time.monotonic() < deadline
+            time.sleep(0.01)
+    frames = [p for p in cam.node.published if p.key == cam.node.keys.frame]
+    assert {p.reliable for p in frames} == {reliable}
+
+
 def test_an_estimate_published_again_moves_the_robot_once():
     """The controller sends one command for an estimate that comes twice (published again
     for a frame the camera sent again), and does not count it as bad input: an older estimate

@@ -99,7 +99,7 @@ from typing import Any
 import numpy as np
 
 from vistrack.common import groundtruth
-from vistrack.common.params import TrackerParams
+from vistrack.common.params import MIN_VALID_NPI, TrackerParams
 from vistrack.common.vision import Preprocessed, Tracker, preprocess, warm_up
 from vistrack.services.auto_tuner import anova as anova_mod
 from vistrack.services.auto_tuner.design import Design, number_label
@@ -267,6 +267,16 @@ class Experiment:
         with the pruned search, which gives the same positions as the exhaustive one for less
         work (see the module notes)."""
         return self.reference_params(params).replace(search="pruned")
+
+    def textured(self, params: TrackerParams) -> float:
+        """The share of the frames on which the motion reference of ``params`` (run now, once:
+        every later point of the same other parameters scores against this run) tracks at
+        least MIN_VALID_NPI features: an estimate that is ``valid``."""
+        ref = self._motion_reference(params)
+        key = _key(ref)
+        if key not in self._runs:
+            self._run(ref, key)
+        return float(np.mean(self._runs[key].npi >= MIN_VALID_NPI))
 
     # -- running -------------------------------------------------------------------------
     def measure(self, points: Sequence[TrackerParams], *, order: Sequence[int] | None = None,

@@ -51,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from vistrack.common.params import FACTORS, TrackerParams
+from vistrack.common.params import FACTORS, MIN_VALID_NPI, TrackerParams
 from vistrack.services.auto_tuner import anova as anova_mod
 from vistrack.services.auto_tuner.design import Design, paper_design
 from vistrack.services.auto_tuner.experiment import (
@@ -384,6 +384,15 @@ def new_seed() -> int:
     return secrets.randbits(31)
 
 
+#: The share of the buffer's frames on which the reference must track enough features for a
+#: tuning cycle to mean anything (:func:`tune`).
+MIN_TEXTURED = 0.5
+
+
+class TextureError(ValueError):
+    """The frames have too little texture to tune on (:func:`tune`)."""
+
+
 def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
          tolerance: float = DEFAULT_TOLERANCE, step: int = DEFAULT_STEP,
          repeats: int | None = None, method: str = "lenth", design: Design | None = None,
@@ -417,6 +426,13 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
     max_megapixels : the work budget (:func:`frames_within`): the cycle runs on the latest
         frames whose pixels fit it, at least :data:`MIN_FRAMES`; None runs on all. Default
         :data:`DEFAULT_MEGAPIXELS` (30 frames of 640x480, 21 of 1280x720).
+
+    Raises
+    ------
+    TextureError
+        If the reference windows track fewer than MIN_VALID_NPI features on more than half
+        the frames (:data:`MIN_TEXTURED`): with no motion measured, every window size scores
+        zero error, and the "optimum" would be the fastest window for nothing.
     """
     if not np.isfinite(tolerance) or tolerance < 0:
         raise ValueError(f"tolerance={tolerance!r} must be a number >= 0 (px)")
@@ -437,6 +453,14 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
         frames = list(frames)[offered - keep:]
     exp = Experiment(frames, ground_truth=ground_truth,
                      **({} if repeats is None else {"repeats": repeats}))
+    textured = exp.textured(base if base is not None else TrackerParams())
+    if textured < MIN_TEXTURED:
+        raise TextureError(
+            f"the frames have too little texture to tune on: the reference windows "
+            f"{exp.reference} track {MIN_VALID_NPI} features or more on "
+            f"{100 * textured:.0f} % of the {len(exp.frames)} frames, at least "
+            f"{100 * MIN_TEXTURED:.0f} % needed (a covered lens, a dark or uniform scene?); "
+            "every window size would score the same zero error")
     start = time.perf_counter()  # after warm_up: a service compiles once, not every cycle
     seed = new_seed() if seed is None else int(seed)
     design = design if design is not None else paper_design()

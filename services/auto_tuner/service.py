@@ -22,7 +22,13 @@ finds a different optimum; one that arrives while a cycle runs wins over that cy
 
 The parameters in force are published again every second (same ``params_id``) for late
 joiners. ``--no-tune`` keeps only the buffer and that reminder. Status ``extra``: buffered,
-tunings, last_reason, tuning, last_cycle_s, pending, scene_distance, scale_ratio.
+tunings, last_reason, tuning, last_cycle_s, pending, scene_distance, scale_ratio, skipped.
+
+A buffer with too little texture to tune on (the reference windows track fewer than 3
+features on most frames: a covered lens, a dark room) is not tuned on: every window size would
+score zero error there, and its "optimum" would be the fastest window for nothing. The cycle
+is skipped (a warning, ``skipped`` counted, the parameters kept) and due again once the buffer
+has been refilled with new frames, ``--min-interval`` s after it at the earliest.
 """
 
 from __future__ import annotations
@@ -139,7 +145,7 @@ class AutoTuner:
         self.id_at_start = 0
         self.stamp_ns = 0
         node.status.extra.update(buffered=0, tunings=0, last_reason="", tuning=False,
-                                 last_cycle_s=None)
+                                 last_cycle_s=None, skipped=0)
 
     def announce(self, reason: str | None = None) -> bool:
         """Publish the parameters in force: a new ``params_id`` from the tuner when ``reason``
@@ -239,6 +245,11 @@ class AutoTuner:
         extra = self.node.status.extra
         cycle = now - self.started
         extra.update(tuning=False, last_cycle_s=round(cycle, 3))
+        if result[0] == "skipped":  # a covered lens, a dark room: again on new frames
+            self.triggers.finished(now, ok=False, refill=True)
+            extra["skipped"] = extra.get("skipped", 0) + 1
+            log.warning("tuning (%s) skipped: %s", self.reason, result[1])
+            return
         if result[0] != "ok":
             self.triggers.finished(now, ok=False)
             self.node.status.error(f"tuning failed: {result[1]}")

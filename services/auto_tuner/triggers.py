@@ -332,8 +332,11 @@ class Triggers:
         self._events.clear()
         self._running_reason, self.pending, self.running = self.pending, None, True
 
-    def finished(self, now: float, *, ok: bool = True) -> None:
-        """The tuning ended at ``now``; a failed one is due again after the interval."""
+    def finished(self, now: float, *, ok: bool = True, refill: bool = False) -> None:
+        """The tuning ended at ``now``; a failed one is due again after the interval, once
+        the buffer has been refilled with new frames if ``refill`` (its frames could not be
+        tuned on: a covered lens)."""
         self.running, self._last_end = False, now
         if not ok and self.pending is None:
-            self.pending, self.fresh = self._running_reason, self.config.buffer
+            self.pending = self._running_reason
+            self.fresh = 0 if refill else self.config.buffer

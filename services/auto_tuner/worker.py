@@ -61,7 +61,7 @@ def _work(conn: Any, parent_pid: int) -> None:
 
     cv2.setNumThreads(1)  # "bounded CPU": one core at most, and only when it is idle
     from ..kernels import say_on_stderr, warm_up_kernels
-    from .sensitivity import tune
+    from .sensitivity import TextureError, tune
 
     # numba's compile (said on stderr) or cache load, before the first job rather than in it
     warm_up_kernels(say_on_stderr("auto-tuner worker"))
@@ -73,6 +73,8 @@ def _work(conn: Any, parent_pid: int) -> None:
                 result = tune(job["frames"], None, tolerance=job["tolerance"], step=job["step"],
                               base=job["base"], max_megapixels=job["max_megapixels"])
                 conn.send(("ok", result.to_report(), dict(result.optimum.params)))
+            except TextureError as e:  # nothing to tune on: not a fault
+                conn.send(("skipped", str(e)))
             except Exception as e:  # noqa: BLE001 - a failed cycle is reported, the worker lives
                 conn.send(("error", f"{type(e).__name__}: {e}"))
     except (EOFError, BrokenPipeError):

@@ -152,6 +152,19 @@ def test_a_failed_tuning_is_due_again_after_the_interval(scene_a):
     assert t.due(4.9) is None and t.due(5.0) == INITIAL
 
 
+def test_a_buffer_that_could_not_be_tuned_on_waits_for_new_frames(scene_a):
+    """A covered lens: tuning again on the same frames would be skipped again."""
+    t = Triggers(TriggerConfig(buffer=3, min_interval_s=4))
+    feed(t, scene_a[:3])
+    t.started()
+    t.finished(1.0, ok=False, refill=True)
+    assert t.due(5.0) is None
+    feed(t, scene_a[:2])
+    assert t.due(5.0) is None
+    feed(t, scene_a[2:3])  # the buffer refilled
+    assert t.due(4.9) is None and t.due(5.0) == INITIAL
+
+
 def test_a_new_frame_size_is_a_scene_change(scene_a):
     t = Triggers(TriggerConfig(buffer=3, min_interval_s=0))
     feed(t, scene_a[:3])

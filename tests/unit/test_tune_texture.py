@@ -1,0 +1,32 @@
+"""Tuning on frames without texture (a covered lens, a dark room): every window size would
+score zero error there, so the cycle refuses the buffer rather than pick the fastest window for
+nothing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vistrack.common.params import TrackerParams
+from vistrack.services.auto_tuner.experiment import Experiment
+from vistrack.services.auto_tuner.sensitivity import TextureError, tune
+
+
+def _noise(n: int, sigma: float = 5.0, seed: int = 0) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return [np.clip(np.rint(40 + rng.normal(0, sigma, (120, 160))), 0, 255).astype(np.uint8)
+            for _ in range(n)]
+
+
+def test_a_buffer_without_texture_is_not_tuned_on():
+    with pytest.raises(TextureError, match=r"too little texture to tune on: the reference "
+                                           r"windows \(50, 30\) track 3 features or more on "
+                                           r"0 % of the 6 frames, at least 50 % needed"):
+        tune(_noise(6), seed=1)
+
+
+def test_the_share_of_textured_frames_counts_the_frames_with_a_valid_estimate(real_image):
+    """A real scene whose last frames go dark: the reference tracks it on the frames before."""
+    frames = [real_image] * 4 + [np.zeros_like(real_image)] * 4
+    assert Experiment(frames).textured(TrackerParams()) == pytest.approx(4 / 8)
+    assert Experiment([real_image] * 5).textured(TrackerParams()) == 1.0

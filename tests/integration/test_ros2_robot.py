@@ -210,11 +210,11 @@ def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_p
                 # second bad image would overwrite the first one still waiting there
                 wait_for(lambda: service_status(session, reader).get("rejected") == 1,
                          what="the first bad image rejected")
-            robot.publish_image(small, encoding="yuv422")
+            robot.publish_image(small, encoding="nv21")
             wait_for(lambda: service_status(session, reader).get("rejected") == 2,
                      what=f"the {reader} to count 2 rejected images")
             status = service_status(session, reader)
-            assert "yuv422" in status["last_error"]
+            assert "nv21" in status["last_error"]
             assert status["extra"]["frames"] == 8 + resent
             if path == "camera":  # preprocessing receives through a ring: no attachments
                 assert status["dropped"] == 2

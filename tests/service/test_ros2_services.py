@@ -91,7 +91,7 @@ def test_ros2_camera_publishes_frames_and_rejects_bad_images():
         frames = lambda: node.published_on(node.keys.frame)  # noqa: E731
         bad = [
             image_cdr(rgb, "rgb8", data=np.zeros(100, np.uint8)),   # data size
-            image_cdr(rgb, "yuv422"),                               # encoding
+            image_cdr(rgb, "nv21"),                                 # encoding
             image_cdr(rgb, "rgb8", step=100),                       # step * height != size
             b"\x00\x01\x00\x00" + b"\x07" * 20,                     # truncated CDR
         ]

@@ -337,7 +337,7 @@ def _add_squares(acc, total, t0, t1, t2, r0, r1, r2, w0, w1, w2,
             acc[q] += w0 * (d0 * d0) + w1 * (d1 * d1) + w2 * (d2 * d2)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound):  # pragma: no cover - numba
     """S of Eq. (1) between the window at (ax, ay) in frame t and at (qx, qy) in frame t+1,
     given as flat arrays ``pf``, ``cf`` of rows ``w`` long.
@@ -347,6 +347,10 @@ def _ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound):  # pragma: no co
 
     Indices are unsigned: numba then skips its negative-index fix-up on every load (the
     windows are inside the frames), 20 % of the time of this loop.
+
+    Inlined where it is called (numba's ``inline="always"``): LLVM left the calls of
+    :func:`_search` as calls, and the (15, 9) search took 76 us a frame instead of 73 (LK level
+    0 in the same run: 102 us).
     """
     m = 2 * n + 1
     acc = 0

@@ -1081,6 +1081,20 @@ def _subpixel(prev, curr, anchors, n, wts, uniform, acc, out_pos, out_ssd,
         out_pos[f, 1] = y
 
 
+#: the sub-pixel sums' type given to :func:`_track` without sub-pixel refinement (unused): one
+#: array for every call, not a new one (~0.2 us of the ~4 us a call costs around the search)
+_NO_REFINE = np.empty(0, np.int32)
+
+
+def _points(points: np.ndarray) -> np.ndarray:
+    """``points`` as an (N, 2) C-contiguous int64 array: the array itself when it is one
+    already (the tracker's), without the reshape's new view (~0.2 us)."""
+    points = np.ascontiguousarray(points, np.int64)
+    if points.ndim == 2 and points.shape[1] == 2:
+        return points
+    return points.reshape(-1, 2)
+
+
 def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: np.ndarray, *,
               corr_half: int, search_half: int, weights: np.ndarray,
               subpixel: bool = False, search: str = "pruned"
@@ -1122,14 +1136,14 @@ def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: 
     if weights.shape != (m, m):
         raise ValueError(f"weights of shape {weights.shape} do not match corr_half={corr_half}")
     wts = np.ascontiguousarray(weights, np.int32)
-    anchors = np.ascontiguousarray(anchors, np.int64).reshape(-1, 2)
-    centers = np.ascontiguousarray(centers, np.int64).reshape(-1, 2)
+    anchors = _points(anchors)
+    centers = _points(centers)
     n_feat = anchors.shape[0]
     pos = np.empty((n_feat, 2), np.float64)
     ssd = np.empty(n_feat, np.float64)
     ok = np.empty(n_feat, np.bool_)
     _track(prev, curr, anchors, centers, int(corr_half), int(search_half), wts, bool(subpixel),
-           search == "exhaustive", refine_acc(wts) if subpixel else np.empty(0, np.int32), pos,
+           search == "exhaustive", refine_acc(wts) if subpixel else _NO_REFINE, pos,
            ssd, ok)
     return pos, ssd, ok
 

@@ -232,7 +232,7 @@ def _row_sums(curr, n, s, centers, out, bufs):  # pragma: no cover - numba
     out[total:] = 0
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _bounds(rs, w, trs, wmin, caps, unit, lo_x, lo_y, nrow, ncol, width, n, blk,
             bnd):  # pragma: no cover - numba
     """Lower bounds (times m) of S for every displacement of one search.
@@ -253,6 +253,10 @@ def _bounds(rs, w, trs, wmin, caps, unit, lo_x, lo_y, nrow, ncol, width, n, blk,
     capped term is smaller, so the sum is still a lower bound (a weaker one only for windows
     so unlike the template that no best match comes near). With ``unit`` (uniform weights, no
     term able to reach its cap) the terms are summed as they are.
+
+    Inlined into :func:`_search_level`, which allocates ``blk`` and ``bnd``: the (15, 9)
+    search took ~1 us a frame more with it called (67.5 against 66.5 us, LK level 0 in the
+    same runs ~103 us).
     """
     m = 2 * n + 1
     # width is a multiple of LANES: the rows are copied LANES entries at a time, each a

@@ -379,7 +379,7 @@ def _add_squares(acc, total, t0, t1, t2, r0, r1, r2, w0, w1, w2,
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound):  # pragma: no cover - numba
+def _ssd_inline(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound):  # pragma: no cover - numba
     """S of Eq. (1) between the window at (ax, ay) in frame t and at (qx, qy) in frame t+1,
     given as flat arrays ``pf``, ``cf`` of rows ``w`` long.
 
@@ -389,9 +389,10 @@ def _ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound):  # pragma: no co
     Indices are unsigned: numba then skips its negative-index fix-up on every load (the
     windows are inside the frames), 20 % of the time of this loop.
 
-    Inlined where it is called (numba's ``inline="always"``): LLVM left the calls of
-    :func:`_search` as calls, and the (15, 9) search took 76 us a frame instead of 73 (LK level
-    0 in the same run: 102 us).
+    Inlined where it is called (numba's ``inline="always"``): in :func:`_search`, whose calls
+    LLVM left as calls, the (15, 9) search took 76 us a frame instead of 73 (LK level 0 in the
+    same run: 102 us). The other callers call :func:`_ssd_at`: inlined everywhere, it made the
+    cold compile of the kernels 5 s longer (42.5 -> 47.9 s).
     """
     m = 2 * n + 1
     acc = 0
@@ -413,6 +414,12 @@ def _ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound):  # pragma: no co
         t0 += step
         c0 += step
     return acc
+
+
+@nb.njit(cache=True, nogil=True)
+def _ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound):  # pragma: no cover - numba
+    """:func:`_ssd_inline`, called."""
+    return _ssd_inline(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -456,14 +463,14 @@ def _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol, width, total, n, 
     """
     px = min(max(cx, lo_x), lo_x + ncol - 1) - lo_x
     py = min(max(cy, lo_y), lo_y + nrow - 1) - lo_y
-    best = _ssd_at(pf, cf, w, ax, ay, lo_x + px, lo_y + py, n, wts, uniform, BIG)
+    best = _ssd_inline(pf, cf, w, ax, ay, lo_x + px, lo_y + py, n, wts, uniform, BIG)
     best_k = py * ncol + px
     for r in range(max(py - 1, 0), min(py + 2, nrow)):
         for k in range(max(px - 1, 0), min(px + 2, ncol)):
             rank = r * ncol + k
             if rank == py * ncol + px or bnd[r * width + k] > best * mscale:
                 continue
-            v = _ssd_at(pf, cf, w, ax, ay, lo_x + k, lo_y + r, n, wts, uniform, best)
+            v = _ssd_inline(pf, cf, w, ax, ay, lo_x + k, lo_y + r, n, wts, uniform, best)
             if v < best or (v == best and rank < best_k):
                 best = v
                 best_k = rank
@@ -493,7 +500,7 @@ def _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol, width, total, n, 
             if bnd[q] > lim:
                 continue  # passed the bound of an earlier best, not of this one
             rank = r * ncol + k
-            v = _ssd_at(pf, cf, w, ax, ay, lo_x + k, lo_y + r, n, wts, uniform, best)
+            v = _ssd_inline(pf, cf, w, ax, ay, lo_x + k, lo_y + r, n, wts, uniform, best)
             if v < best or (v == best and rank < best_k):
                 best = v
                 best_k = rank

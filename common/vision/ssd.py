@@ -28,7 +28,7 @@ Two searches return the same argmin (ties going to the first in row-major order,
     * a displacement's sum is abandoned as soon as its partial sum exceeds the best so far (the
       terms are non-negative, so it can no longer win); all arithmetic is in integers.
 
-On ~100 features of a 256x256 real frame (one core): (15, 9) ~80 us pruned, ~150 us
+On ~100 features of a 256x256 real frame (one core): (15, 9) ~67 us pruned, ~150 us
 exhaustive; the reference windows (50, 30) ~0.6 ms pruned, ~10 ms exhaustive.
 
 Performance notes (numba compiles with LLVM's loop vectoriser only, no SLP vectoriser): the hot

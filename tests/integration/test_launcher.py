@@ -310,8 +310,13 @@ def test_killed_service_is_restarted_alone_and_estimates_again(procs, tmp_path, 
                          "a status reply from every service")
     for service in set(SERVICES) - {"motion_estimation"}:
         assert after[service] == before[service], f"{service} was restarted"
-    new_spare = services_and_spare(up.proc.pid, 5) - set(after.values())
-    assert len(new_spare) == 1 and is_spare(*new_spare)  # and another spare for the next one
+    # and another spare for the next one: a child between its fork and the spare's exec (or
+    # the exec under way) is neither yet; seen once in CI, the new child not yet a spare
+    def new_spare() -> set[int] | None:
+        extra = services_and_spare(up.proc.pid, 5) - set(after.values())
+        return extra if len(extra) == 1 and is_spare(*extra) else None
+
+    wait_for(new_spare, 30, "a new spare besides the five services")
     assert up.output.count("restarting in") == 1
 
 

@@ -11,11 +11,10 @@ Images in ``mono8``, ``mono16``, ``rgb8``, ``bgr8``, ``rgba8``, ``bgra8``, raw B
 (``bayer_rggb8`` and the other three patterns) or YUV 4:2:2 (``yuv422_yuy2``, ``yuv422``)
 become 8-bit grey (:func:`~vistrack.common.ros2types.frame_of_camera`), resized by ``--size``
 if given, and keep the header's stamp (an unstamped image, stamp 0, is stamped on arrival).
-An image whose CDR,
-encoding or data size is wrong is rejected, counted and logged; the camera goes on. Any type
-hash is accepted: the type name already fixes the layout, and a Humble publisher sends none.
-Frames go out as the ROS 2 camera sends them: ``--fps``, ``--loop`` and ``--in-flight`` do not
-apply.
+An image whose CDR, encoding or data size is wrong is rejected, counted and logged; the camera
+goes on. Any type hash is accepted: the type name already fixes the layout, and a Humble
+publisher sends none. Frames go out as the ROS 2 camera sends them: ``--fps``, ``--loop`` and
+``--in-flight`` do not apply.
 """
 
 from __future__ import annotations

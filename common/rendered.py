@@ -192,17 +192,19 @@ def render(source: np.ndarray, hs: np.ndarray, size: tuple[int, int], *, noise: 
 
 
 def sequence(source: np.ndarray, name: str, *, n: int = 60, size: tuple[int, int] = (256, 256),
-             max_step: float = 12.0, noise: float = 1.0, seed: int | None = None
+             max_step: float = 12.0, noise: float = 1.0, seed: int | None = None,
+             rotation_deg: float = 3.0, zoom: float = 0.04, tilt: float = 0.02
              ) -> RenderedSequence:
     """A long sequence of ``n`` frames rendered from one grey ``source`` image.
 
     ``seed`` defaults to one derived from ``name``, so a sequence is the same on every run.
-    See :func:`homographies` for the path (``max_step`` px a frame at the fastest).
+    See :func:`homographies` for the path (``max_step`` px a frame at the fastest, and the
+    largest ``rotation_deg``, ``zoom`` and ``tilt``).
     """
     if seed is None:
         seed = zlib.crc32(name.encode())
     hs = homographies((source.shape[1], source.shape[0]), size, n, max_step=max_step,
-                      seed=seed)
+                      rotation_deg=rotation_deg, zoom=zoom, tilt=tilt, seed=seed)
     return RenderedSequence(name, render(source, hs, size, noise=noise, seed=seed + 1), hs)
 
 

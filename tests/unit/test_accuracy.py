@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from vistrack.common import rendered
+from vistrack.common import groundtruth, rendered
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker
-from vistrack.services.bench.accuracy import PAIRS, one_motion, scoreboard
+from vistrack.services.bench.accuracy import PAIRS, one_motion, run_sequence, scoreboard
 
 
 @pytest.fixture(scope="module")
@@ -83,6 +83,40 @@ def test_rendered_first_frame_features_survive(scores):
     (which never rejects a match; most losses are features leaving the view)."""
     for name, (_, _, survival, lk_survival) in scores.items():
         assert survival >= 0.5 * lk_survival, (name, survival, lk_survival)
+
+
+#: Harder than the scoreboard's paths, as a robot sees them: twice its fastest motion; and a
+#: turn while approaching (rotation up to 10 degrees, the view scaled within 1 -/+ 25 %, more
+#: perspective), which bends every template.
+HARDER = {"fast, 24 px a frame": {"max_step": 24.0},
+          "turning and approaching": {"max_step": 8.0, "rotation_deg": 10.0, "zoom": 0.25,
+                                      "tilt": 0.05}}
+
+
+@pytest.mark.parametrize("path", list(HARDER))
+def test_harder_paths_hold_the_same_targets(sequences, path):
+    """On 40-frame paths harder than the scoreboard's, from every source: median error at most
+    LK's, at most 2 % of pairs off by more than 2 px, survival at least half LK's."""
+    for seq in sequences:
+        source = seq.name.removesuffix(" rendered")
+        hard = rendered.sequence(seq_source(source), f"{source} {path}", n=40,
+                                 **HARDER[path])
+        ours, theirs, _ = run_sequence(hard.frames, lambda p, k, s=hard: s.map(p, k, k + 1),
+                                       TrackerParams(),
+                                       end_truth=lambda p, s=hard: s.map(p, 0, len(s) - 1))
+        what = (source, ours, theirs)
+        assert ours.pairs > 1500, what
+        assert ours.median_epe <= theirs.median_epe, what
+        assert ours.gross <= 0.02, what
+        assert ours.survival is not None and theirs.survival is not None
+        assert ours.survival >= 0.5 * theirs.survival, what
+
+
+def seq_source(name):
+    """The grey frame10 of the Middlebury sequence ``name``, as the rendered ones start from."""
+    image = cv2.imread(str(groundtruth.middlebury(name) / "frame10.png"), cv2.IMREAD_GRAYSCALE)
+    assert image is not None, name
+    return image
 
 
 def test_the_paper_tracker_cannot_follow_the_large_motion(sequences):

@@ -32,25 +32,35 @@ from ...common.vision import Tracker, preprocess, to_gray, track_ssd, warm_up, w
 from ...common.vision.pyramid import build_pyramid, track_pyramid
 
 
-def _best_of(fn: Callable[[], object], *, repeats: int = 7, min_time: float = 0.05) -> float:
-    """Seconds per call: the best of ``repeats`` batches (each >= min_time), as timeit does,
-    because on a shared 2-core machine the minimum is the least disturbed figure."""
+def _batch(fn: Callable[[], object], min_time: float) -> int:
+    """Calls of ``fn`` (warmed up once) that take at least ``min_time`` s together."""
     fn()
     n = 1
     while True:
         t0 = time.perf_counter()
         for _ in range(n):
             fn()
-        dt = time.perf_counter() - t0
-        if dt >= min_time:
-            break
+        if time.perf_counter() - t0 >= min_time:
+            return n
         n *= 2
-    best = dt / n
-    for _ in range(repeats - 1):
-        t0 = time.perf_counter()
-        for _ in range(n):
-            fn()
-        best = min(best, (time.perf_counter() - t0) / n)
+
+
+def _interleaved(fns: dict[str, Callable[[], object]], *, rounds: int = 7,
+                 min_time: float = 0.05) -> dict[str, float]:
+    """Seconds per call of each of ``fns``: the best of ``rounds`` batches (each >= min_time),
+    as timeit does, because on a shared 2-core machine the minimum is the least disturbed
+    figure. Each round times every function once, one after the other, so that all of them
+    see the machine in the same states: timed one function after another instead, a step's
+    cost read off two rows (the tracker with and without it) came out negative in some runs."""
+    sizes = {name: _batch(fn, min_time) for name, fn in fns.items()}
+    best = dict.fromkeys(fns, float("inf"))
+    for _ in range(rounds):
+        for name, fn in fns.items():
+            n = sizes[name]
+            t0 = time.perf_counter()
+            for _ in range(n):
+                fn()
+            best[name] = min(best[name], (time.perf_counter() - t0) / n)
     return best
 
 
@@ -210,34 +220,37 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
                              borderType=cv2.BORDER_REPLICATE)
 
     k = len(jobs)
-    fig = {
-        "ssd_15_9": _best_of(ssd_at(15, 9)) / k * 1e6,
-        "ssd_15_9_subpixel": _best_of(ssd_at(15, 9, True)) / k * 1e6,
-        "matchtemplate_15_9": _best_of(mt) / k * 1e6,
-        "lk_level0": _best_of(lk(0)) / k * 1e6,
-        "lk_level2": _best_of(lk(2)) / k * 1e6,
-        "lk_default": _best_of(lk(3, 21)) / k * 1e6,
-        "default_ssd": _best_of(default_tracker()) / k * 1e6,
-        "default_ssd_no_checks": _best_of(default_tracker(False)) / k * 1e6,
+    n_frames = len(frames) - 1
+    # name -> (what is timed, calls it stands for: frame pairs or frames)
+    timed: dict[str, tuple[Callable[[], None], int]] = {
+        "ssd_15_9": (ssd_at(15, 9), k),
+        "ssd_15_9_subpixel": (ssd_at(15, 9, True), k),
+        "matchtemplate_15_9": (mt, k),
+        "lk_level0": (lk(0), k),
+        "lk_level2": (lk(2), k),
+        "lk_default": (lk(3, 21), k),
+        "default_ssd": (default_tracker(), k),
+        "default_ssd_no_checks": (default_tracker(False), k),
         # the frame pairs after the first, whose features were tracked into frame t
-        "default_ssd_steady": _best_of(default_tracker(pairs=slice(1, None))) / (k - 1) * 1e6,
-        "default_ssd_no_follow": _best_of(default_tracker(follow=False)) / k * 1e6,
+        "default_ssd_steady": (default_tracker(pairs=slice(1, None)), k - 1),
+        "default_ssd_no_follow": (default_tracker(follow=False), k),
         # what each step of the default tracker costs: the tracker without it
-        "default_ssd_no_fb": _best_of(default_tracker(max_fb_error=0.0)) / k * 1e6,
-        "default_ssd_no_wide": _best_of(default_tracker(refine_size=0)) / k * 1e6,
-        "default_ssd_no_consensus": _best_of(default_tracker(consensus=0.0)) / k * 1e6,
-        "default_ssd_no_uniqueness": _best_of(default_tracker(uniqueness=0.0)) / k * 1e6,
-        "pyramid_build": _best_of(pyramid) / k * 1e6,
-        "ssd_50_30": _best_of(ssd_at(50, 30), repeats=3) / k * 1e6,
-        "ssd_15_9_exhaustive": _best_of(ssd_at(15, 9, kind="exhaustive")) / k * 1e6,
-        "ssd_50_30_exhaustive": _best_of(ssd_at(50, 30, kind="exhaustive"), repeats=3) / k * 1e6,
+        "default_ssd_no_fb": (default_tracker(max_fb_error=0.0), k),
+        "default_ssd_no_wide": (default_tracker(refine_size=0), k),
+        "default_ssd_no_consensus": (default_tracker(consensus=0.0), k),
+        "default_ssd_no_uniqueness": (default_tracker(uniqueness=0.0), k),
+        "pyramid_build": (pyramid, k),
+        "ssd_50_30": (ssd_at(50, 30), k),
+        "ssd_15_9_exhaustive": (ssd_at(15, 9, kind="exhaustive"), k),
+        "ssd_50_30_exhaustive": (ssd_at(50, 30, kind="exhaustive"), k),
         # the first frame of each run selects features; the rest track: t_ms of tf frames
-        "whole_frame": _best_of(whole(), repeats=5) / (len(frames) - 1) * 1e6,
-        "whole_frame_paper": _best_of(whole(TrackerParams.paper()), repeats=5)
-        / (len(frames) - 1) * 1e6,
-        "preprocess": _best_of(pre_only) / (len(frames) - 1) * 1e6,
-        "gaussian_blur": _best_of(blur) / (len(frames) - 1) * 1e6,
+        "whole_frame": (whole(), n_frames),
+        "whole_frame_paper": (whole(TrackerParams.paper()), n_frames),
+        "preprocess": (pre_only, n_frames),
+        "gaussian_blur": (blur, n_frames),
     }
+    seconds = _interleaved({name: fn for name, (fn, _) in timed.items()})
+    fig = {name: seconds[name] / calls * 1e6 for name, (_, calls) in timed.items()}
     print(f"# vistrack bench tracker: {what}; {n_feat} features per frame (mean); one core",
           file=out)
     print(f"{'method':44s} {'us/frame':>10s} {'vs ours (15,9)':>15s}", file=out)

@@ -144,6 +144,7 @@ class AutoTuner:
         self.reason = ""
         self.id_at_start = 0
         self.stamp_ns = 0
+        self._said: set[str] = set()  # the changes logged at INFO since the last start
         node.status.extra.update(buffered=0, tunings=0, last_reason="", tuning=False,
                                  last_cycle_s=None, skipped=0)
 
@@ -206,10 +207,16 @@ class AutoTuner:
         self.node.status.extra["scale_ratio"] = round(self.triggers.ratio, 4)
 
     def _changed(self, reason: str | None) -> None:
+        """Log a change the triggers saw (``reason``), with what it was seen in: at INFO the
+        first time that kind of change is seen since the last tuning started, else at DEBUG
+        (a storm of lost features goes on for seconds, one change every few estimates)."""
+        pending = self.triggers.pending
         if reason is not None:
-            log.info("%s seen (scene distance %.2f, scale ratio %.3f); tuning pending: %s",
-                     reason, self.triggers.distance, self.triggers.ratio, self.triggers.pending)
-        self.node.status.extra["pending"] = self.triggers.pending
+            level = logging.DEBUG if reason in self._said else logging.INFO
+            self._said.add(reason)
+            log.log(level, "%s seen: %s; tuning pending: %s", reason, self.triggers.why,
+                    pending)
+        self.node.status.extra["pending"] = pending
 
     def tick(self, now: float) -> None:
         """Collect a finished cycle, start one when due (only between messages: cheap)."""
@@ -232,6 +239,7 @@ class AutoTuner:
         reason = self.triggers.due(now)
         if reason is not None and self.worker.ready and len(self.frames) >= 2:
             self.triggers.started()
+            self._said.clear()
             self.started, self.reason, self.id_at_start = now, reason, self.state.params_id
             self.stamp_ns = self.frames[-1][1]
             self.worker.submit({"frames": [f for f, _ in self.frames], "base": self.state.params,

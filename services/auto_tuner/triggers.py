@@ -228,6 +228,8 @@ class Triggers:
         reaches ``config.buffer``).
     running : a tuning is running.
     distance, ratio : the last scene distance (0 before the first tuning) and scale ratio.
+    why : what the last change returned was seen in, for a reader (e.g. "a feature storm:
+        3 turnovers in the last 30 estimates").
     """
 
     config: TriggerConfig = field(default_factory=TriggerConfig)
@@ -236,6 +238,7 @@ class Triggers:
     running: bool = False
     distance: float = 0.0
     ratio: float = 1.0
+    why: str = ""
 
     def __post_init__(self) -> None:
         c = self.config
@@ -261,6 +264,7 @@ class Triggers:
             self._thumbs.clear()
             self._thumbs.append(thumb)
             if changed:
+                self.why = f"another frame size: {image.shape[1]}x{image.shape[0]}"
                 return self._change(SCENE, fresh=1)  # this frame is the first of the new scene
             return None
         self._thumbs.append(thumb)
@@ -268,6 +272,8 @@ class Triggers:
             return None
         self.distance = scene_distance(thumb, self._refs)
         if self._scene.update(self.distance / self.config.scene_threshold):
+            self.why = (f"scene distance {self.distance:.2f} (threshold "
+                        f"{self.config.scene_threshold:g})")
             # the frames since the signal rose show the new scene already
             return self._change(SCENE, fresh=self._scene.count)
         return None
@@ -290,10 +296,17 @@ class Triggers:
         self._events.append(event)
         self._scale = scale
         self.ratio = scale / self._scale_ref
-        storm = sum(self._events) >= c.storm_events
+        turnovers = sum(self._events)
+        storm = turnovers >= c.storm_events
         if storm:
             self._events.clear()
         moved = self._distance.update(band_level(self.ratio, c.scale_band))
+        if moved:
+            lo, hi = c.scale_band
+            self.why = f"scale ratio {self.ratio:.3f} (band {lo:g}..{hi:g})"
+        elif storm:
+            self.why = (f"a feature storm: {turnovers} turnovers ({c.turnover:.0%} of the "
+                        f"features lost or new) in the last {c.storm_window} estimates")
         if storm or moved:
             # a change in a scene already awaiting its tuning does not restart the wait
             return self._change(DISTANCE if moved else SCENE,

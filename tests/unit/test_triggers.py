@@ -122,6 +122,7 @@ def test_scene_change_waits_for_a_refilled_buffer_and_the_interval(scene_a, scen
     assert feed(t, scene_a[5:25]) == [] and t.pending is None  # the same scene panning
     assert feed(t, scene_b[:2]) == [SCENE]
     assert t.pending == SCENE and t.distance > 0.5
+    assert t.why == f"scene distance {t.distance:.2f} (threshold 0.4)"
     assert t.fresh == 2  # counted from the frame where the distance rose
     assert t.due(100.0) is None  # the buffer still holds frames of the old scene
     feed(t, scene_b[2:4])
@@ -172,6 +173,7 @@ def test_a_new_frame_size_is_a_scene_change(scene_a):
     t.finished(1.0)
     other = sequence(4, size=(96, 64), seed=3)
     assert feed(t, other[:1]) == [SCENE]
+    assert t.why == "another frame size: 96x64"
     assert t.fresh == 1 and t.due(2.0) is None
     feed(t, other[1:3])
     assert t.due(2.0) == SCENE
@@ -200,6 +202,7 @@ def test_distance_change_when_the_scale_leaves_the_band(scene_a):
     # 1.1 * 1.25 = 1.375 is the edge: raised at 1.38, confirmed at the next estimate
     assert reasons == [None, None, None, None, DISTANCE]
     assert t.pending == DISTANCE and t.ratio == pytest.approx(1.39 / 1.1)
+    assert t.why == "scale ratio 1.264 (band 0.8..1.25)"
     assert t.due(1.0) is None
     feed(t, scene_a[3:6])
     assert t.due(1.0) == DISTANCE
@@ -229,6 +232,8 @@ def test_a_storm_of_re_detections_is_a_scene_change(scene_a):
     assert estimate(t, list(range(20, 25))) is None  # NPI 20 -> 5: event 2
     assert estimate(t, list(range(40, 60))) == SCENE  # event 3
     assert t.pending == SCENE and t.fresh == 0
+    assert t.why == ("a feature storm: 3 turnovers (50% of the features lost or new) in the "
+                     "last 10 estimates")
 
 
 def test_turnover_events_spread_out_are_no_storm(scene_a):

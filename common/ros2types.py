@@ -31,6 +31,7 @@ import dataclasses
 import functools
 import importlib.util
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -420,12 +421,14 @@ IMAGE_ENCODINGS: dict[str, tuple[int, int | None]] = {
 _BYTE_OF_PIXEL = {"yuv422_yuy2": 0, "yuv422": 1}  # Y0 U Y1 V; U Y0 V Y1
 
 
-def grey_of_image(obj: Any) -> np.ndarray:
+def grey_of_image(obj: Any, grey: Callable[[np.ndarray], np.ndarray] | None = None
+                  ) -> np.ndarray:
     """The 8-bit grey image, shape (height, width) uint8, of a ``sensor_msgs/msg/Image`` in
     one of :data:`IMAGE_ENCODINGS`: colour (raw Bayer demosaiced first) through OpenCV's luma
-    weights, YUV 4:2:2 by its luma byte, 16-bit by its high byte (value // 256, either byte
-    order as ``is_bigendian`` says). Row padding (``step`` > width * bytes a pixel) is
-    dropped.
+    weights, YUV 4:2:2 by its luma byte, 16-bit (either byte order as ``is_bigendian`` says)
+    by ``grey`` (a stream's :class:`~vistrack.common.vision.preprocess.Grey`, which scales
+    by the depth of the camera's samples), else by its high byte (value // 256). Row padding
+    (``step`` > width * bytes a pixel) is dropped.
 
     Raises
     ------
@@ -450,18 +453,23 @@ def grey_of_image(obj: Any) -> np.ndarray:
     rows = data.reshape(height, step)[:, :row]
     if channels == 2:
         pixels = rows.reshape(height, width, 2)
-        byte = _BYTE_OF_PIXEL.get(encoding, 0 if obj.is_bigendian else 1)
-        return np.ascontiguousarray(pixels[:, :, byte])
+        if encoding in _BYTE_OF_PIXEL or grey is None:
+            byte = _BYTE_OF_PIXEL.get(encoding, 0 if obj.is_bigendian else 1)
+            return np.ascontiguousarray(pixels[:, :, byte])
+        samples = np.ascontiguousarray(pixels).view(">u2" if obj.is_bigendian else "<u2")
+        return grey(samples.reshape(height, width).astype(np.uint16))
     if conversion is None:
         return np.ascontiguousarray(rows)
     return cv2.cvtColor(np.ascontiguousarray(rows).reshape(height, width, channels),
                         conversion)
 
 
-def grey_of_compressed(obj: Any) -> np.ndarray:
+def grey_of_compressed(obj: Any, grey: Callable[[np.ndarray], np.ndarray] | None = None
+                       ) -> np.ndarray:
     """The 8-bit grey image of a ``sensor_msgs/msg/CompressedImage`` (JPEG, PNG, any format
     OpenCV's ``imdecode`` reads), made grey exactly as the file camera makes an image file
-    grey (``vision.preprocess.to_gray``). ValueError if it does not decode."""
+    grey (``grey``, a stream's ``vision.preprocess.Grey``; else ``to_gray``). ValueError if it
+    does not decode."""
     # here, not at the top: the vision package loads numba, which MCAP tools need not pay for
     from .vision.preprocess import to_gray
 
@@ -470,21 +478,23 @@ def grey_of_compressed(obj: Any) -> np.ndarray:
     if image is None:
         raise ValueError(f"compressed image ({obj.format or 'no format'}, {data.size} bytes) "
                          "does not decode")
-    return to_gray(image)
+    return (grey or to_gray)(image)
 
 
-def frame_of_camera(obj: Any, *, seq: int) -> Frame:
+def frame_of_camera(obj: Any, *, seq: int,
+                    grey: Callable[[np.ndarray], np.ndarray] | None = None) -> Frame:
     """The ``camera/frame`` of an ``Image`` or ``CompressedImage`` from a ROS 2 camera (see
-    :func:`grey_of_image`, :func:`grey_of_compressed`), stamped with the header's stamp.
+    :func:`grey_of_image`, :func:`grey_of_compressed`; ``grey``: the camera's
+    ``vision.preprocess.Grey``), stamped with the header's stamp.
 
     Raises
     ------
     ValueError
         For an image that cannot be converted, or one larger than a ``camera/frame`` carries.
     """
-    grey = (grey_of_compressed(obj) if obj.__msgtype__ == COMPRESSED_IMAGE
-            else grey_of_image(obj))
+    image = (grey_of_compressed(obj, grey) if obj.__msgtype__ == COMPRESSED_IMAGE
+             else grey_of_image(obj, grey))
     try:
-        return Frame.from_image(grey, seq=seq, stamp_ns=stamp_ns(obj.header))
+        return Frame.from_image(image, seq=seq, stamp_ns=stamp_ns(obj.header))
     except MessageError as e:
         raise ValueError(str(e)) from None

@@ -2,7 +2,8 @@
 
 Pure OpenCV, no Zenoh: the camera service and the offline ``vistrack track`` / ``tune`` read
 frames through exactly this code. Every frame comes out 8-bit grey, converted the way
-:func:`vistrack.common.vision.to_gray` does it.
+:func:`vistrack.common.vision.to_gray` does it; 16-bit frames (machine-vision cameras, 16-bit
+PNG or TIFF) scaled by the depth of the stream's samples (:class:`.vision.preprocess.Grey`).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import cv2
 import numpy as np
 
 from . import synthetic
-from .vision import to_gray
+from .vision.preprocess import Grey
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
 VIDEO_EXTS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
@@ -55,8 +56,9 @@ def parse_size(text: str, flag: str = "size", *,
     return w, h
 
 
-def read_image(path: str) -> np.ndarray:
-    """One image file as (H, W) uint8 grey."""
+def read_image(path: str, grey: Grey | None = None) -> np.ndarray:
+    """One image file as (H, W) uint8 grey (16-bit images scaled by ``grey``, the stream's,
+    else by the depth of this image's own samples: see :class:`Grey`)."""
     if not os.path.exists(path):
         raise SourceError(f"{path}: no such file")
     if os.path.isdir(path):
@@ -70,7 +72,7 @@ def read_image(path: str) -> np.ndarray:
         img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
     if img is None:
         raise SourceError(f"{path}: not a readable image")
-    return to_gray(img)
+    return (grey or Grey())(img)
 
 
 def _imread_jpeg(path: str) -> tuple[np.ndarray | None, str]:
@@ -131,6 +133,7 @@ class FileFrames:
             yield np.ascontiguousarray(frame)
 
     def _raw(self) -> Iterator[tuple[str, np.ndarray]]:
+        grey = Grey()  # one stream: 16-bit frames scaled by the depth of its samples
         if self.video:
             path = self.paths[0]
             cap = cv2.VideoCapture(path)
@@ -146,13 +149,13 @@ class FileFrames:
                             raise SourceError(f"{path}: video has no readable frame")
                         _check_complete(path, k, announced)
                         return
-                    yield f"{path}#{k}", to_gray(img)
+                    yield f"{path}#{k}", grey(img)
                     k += 1
             finally:
                 cap.release()
         else:
             for p in self.paths:
-                yield p, read_image(p)
+                yield p, read_image(p, grey)
 
 
 def _check_complete(path: str, read: int, announced: float) -> None:
@@ -259,12 +262,13 @@ def open_device(index: int, size: tuple[int, int] | None = None
     cap = cv2.VideoCapture(index)
     if not cap.isOpened():
         raise SourceError(f"device:{index}: cannot open the camera device")
+    grey = Grey()
     try:
         while True:
             ok, img = cap.read()
             if not ok:
                 raise SourceError(f"device:{index}: the camera stopped delivering frames")
-            frame = to_gray(img)
+            frame = grey(img)
             if size is not None and frame.shape[::-1] != size:
                 frame = cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
             yield frame

@@ -18,6 +18,7 @@ Two strengths (``TrackerParams.strength``):
 from __future__ import annotations
 
 import functools
+import logging
 from dataclasses import dataclass
 
 import cv2
@@ -27,6 +28,8 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 
 from ..params import TrackerParams
 from .noise import noise_level
+
+log = logging.getLogger("vistrack.frames")
 
 
 @dataclass(frozen=True)
@@ -45,24 +48,77 @@ class Preprocessed:
     strength: np.ndarray
 
 
-def to_gray(image: np.ndarray) -> np.ndarray:
-    """8-bit grey from a grey, BGR or BGRA image (as the camera service converts frames)."""
-    if image.ndim == 2:
-        gray = image
-    elif image.ndim == 3 and image.shape[2] == 3:
-        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    elif image.ndim == 3 and image.shape[2] == 4:
-        gray = cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
-    elif image.ndim == 3 and image.shape[2] == 1:
-        gray = image[:, :, 0]
-    else:
-        raise ValueError(f"image of shape {image.shape} is not grey, BGR or BGRA")
+#: Bit depths of sensors' samples in 16-bit containers (Mono10, Mono12, Mono14 and 16-bit),
+#: after 8: what :func:`sample_bits` rounds a frame's brightest value up to.
+SENSOR_BITS = (8, 10, 12, 14, 16)
+
+
+def sample_bits(image: np.ndarray) -> int:
+    """The sensor depth a 16-bit grey frame's samples need: the least of :data:`SENSOR_BITS`
+    that holds its brightest value (a 12-bit camera's frame, values 0 to 4095, needs 12)."""
+    top = int(image.max(initial=0))
+    return next(b for b in SENSOR_BITS if top < 1 << b)
+
+
+def to_gray(image: np.ndarray, *, bits: int = 16) -> np.ndarray:
+    """8-bit grey from a grey, BGR or BGRA image (as the camera service converts frames).
+
+    A 16-bit image's samples hold ``bits`` significant bits (8..16, the lowest ones: a
+    12-bit sensor's values run 0 to 4095 in a 16-bit container): grey = value >> (bits - 8),
+    capped at 255. The default, 16, keeps the top byte; for the samples of a stream
+    :class:`Grey` finds the depth."""
+    gray = _one_channel(image)
     if gray.dtype != np.uint8:
         if np.issubdtype(gray.dtype, np.integer) and gray.dtype.itemsize == 2:
-            gray = (gray >> 8).astype(np.uint8)  # 16-bit sensors: keep the top byte
+            if not 8 <= bits <= 16:
+                raise ValueError(f"bits={bits} is out of range: allowed 8..16")
+            gray = np.minimum(gray >> (bits - 8), 255).astype(np.uint8)
         else:
             gray = np.clip(gray, 0, 255).astype(np.uint8)
     return np.ascontiguousarray(gray)
+
+
+class Grey:
+    """:func:`to_gray` for the frames of one stream (a camera, a video, a folder of images).
+
+    16-bit frames are scaled by the depth of the stream's samples: the largest
+    :func:`sample_bits` of its frames so far (``bits`` gives it instead). Keeping the top byte
+    of a 12-bit camera's samples, as OpenCV converts 16-bit images to 8-bit, left grey levels
+    0 to 15: a real 12-bit sequence gave 4 features where its 8-bit version gave 100. The
+    depth only grows, so a stream that starts dark steps once, when its first bright frame
+    comes, rather than changing scale with every frame. 8-bit frames pass as they are.
+    """
+
+    def __init__(self, bits: int | None = None) -> None:
+        if bits is not None and not 8 <= bits <= 16:
+            raise ValueError(f"bits={bits} is out of range: allowed 8..16")
+        self.fixed = bits
+        self.bits = 0  # the depth in use (0: no 16-bit frame yet)
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        if image.dtype.itemsize != 2 or not np.issubdtype(image.dtype, np.integer):
+            return to_gray(image)
+        grey16 = _one_channel(image)
+        bits = self.fixed or max(self.bits, sample_bits(grey16))
+        if bits != self.bits:
+            log.info("16-bit frames with %d significant bits: grey = value >> %d", bits,
+                     bits - 8)
+            self.bits = bits
+        return to_gray(grey16, bits=bits)
+
+
+def _one_channel(image: np.ndarray) -> np.ndarray:
+    """The grey of a grey, BGR or BGRA image, of the image's own depth (OpenCV's luma
+    weights)."""
+    if image.ndim == 2:
+        return image
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim == 3 and image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
+    if image.ndim == 3 and image.shape[2] == 1:
+        return image[:, :, 0]
+    raise ValueError(f"image of shape {image.shape} is not grey, BGR or BGRA")
 
 
 def gaussian_filter(gray: np.ndarray, sigma: float) -> np.ndarray:

@@ -32,6 +32,7 @@ from ...common import rmw_zenoh as rmw
 from ...common import ros2types as r2
 from ...common.bus import Node
 from ...common.messages import Frame
+from ...common.vision.preprocess import Grey
 from ..runtime import ready, wait_for_consumers
 
 log = logging.getLogger("vistrack.camera")
@@ -106,12 +107,13 @@ def run_ros2(node: Node, args: argparse.Namespace, size: tuple[int, int] | None)
 
 
 def frame_of_payload(payload: bytes, typename: str, seq: int,
-                     size: tuple[int, int] | None = None) -> Frame:
+                     size: tuple[int, int] | None = None, grey: Grey | None = None) -> Frame:
     """The ``camera/frame`` number ``seq`` of one CDR ``Image`` or ``CompressedImage``:
-    8-bit grey, resized to ``size`` (width, height) if given, stamped with the header's stamp
-    (an unstamped image, stamp 0, with the time of arrival). ValueError naming what was wrong
-    for an image that cannot be converted."""
-    frame = r2.frame_of_camera(r2.deserialize(payload, typename), seq=seq)
+    8-bit grey (16-bit images scaled by ``grey``, the camera's: see :class:`Grey`), resized
+    to ``size`` (width, height) if given, stamped with the header's stamp (an unstamped image,
+    stamp 0, with the time of arrival). ValueError naming what was wrong for an image that
+    cannot be converted."""
+    frame = r2.frame_of_camera(r2.deserialize(payload, typename), seq=seq, grey=grey)
     if (size is not None and (frame.width, frame.height) != size) \
             or not frame.stamp_ns:  # resized, or from a driver that does not stamp
         image = frame.data if size is None else cv2.resize(
@@ -127,6 +129,7 @@ class _Converter:
     def __init__(self, node: Node, typename: str, size: tuple[int, int] | None) -> None:
         self.node, self.typename, self.size = node, typename, size
         self.seq = 0
+        self.grey = Grey()  # 16-bit images: scaled by the depth of the camera's samples
         self._last: dict[bytes, int] = {}  # publisher GID -> its last sequence number
         self._lock = threading.Lock()
         node.status.extra["frames"] = 0
@@ -149,7 +152,8 @@ class _Converter:
         node = self.node
         with self._lock, node.status.timed():
             try:
-                frame = frame_of_payload(payload, self.typename, self.seq, self.size)
+                frame = frame_of_payload(payload, self.typename, self.seq, self.size,
+                                         self.grey)
             except ValueError as e:
                 node.status.reject(e)
                 log.error("rejected %s: %s", self.typename, e)

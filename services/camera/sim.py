@@ -70,7 +70,7 @@ import cv2
 import numpy as np
 
 from ...common.synthetic import texture as synthetic_texture
-from ...common.vision import to_gray
+from ...common.vision.preprocess import Grey
 from .scenarios import Scenario, load_scenario
 
 #: Width (and height) of the built-in background plane, m; it is mirrored beyond its edges.
@@ -380,7 +380,7 @@ def _as_texture(img: Any, what: str) -> np.ndarray:
     if not isinstance(img, np.ndarray):
         raise TextureError(f"texture {what}: {type(img).__name__} is not an image array")
     try:
-        grey = to_gray(img)
+        grey = Grey()(img)  # a 16-bit image: scaled by the depth of its samples
     except ValueError as exc:
         raise TextureError(f"texture {what}: {exc}") from None
     if min(grey.shape) < 8:

@@ -38,6 +38,7 @@ from ...common import ros2types as r2
 from ...common.bus import Node
 from ...common.messages import Demand, Frame, encode_pre_frame
 from ...common.vision import preprocess
+from ...common.vision.preprocess import Grey
 from ..camera import ros2cam
 from ..kernels import warm_up_kernels
 from ..runtime import (
@@ -144,12 +145,13 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     node.advertise(node.keys.frame, reliable=False)
     seq = 0
     node.status.extra["frames"] = 0
+    grey = Grey()  # 16-bit images: scaled by the depth of the camera's samples
 
     def on_image(payload: bytes) -> None:
         nonlocal seq
         t0 = time.perf_counter()
         try:
-            frame = ros2cam.frame_of_payload(payload, typename, seq)
+            frame = ros2cam.frame_of_payload(payload, typename, seq, grey=grey)
         except ValueError as e:
             reject(node, log, typename, e)
             return

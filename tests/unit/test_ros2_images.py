@@ -17,6 +17,7 @@ from rosbags.typesys import Stores, get_typestore
 from vistrack.common import groundtruth
 from vistrack.common import ros2types as r2
 from vistrack.common.synthetic import texture
+from vistrack.common.vision.preprocess import Grey
 
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
 Image = JAZZY.types[r2.IMAGE]
@@ -170,3 +171,21 @@ def test_a_compressed_image_that_does_not_decode_is_refused():
                 r2.COMPRESSED_IMAGE)
     with pytest.raises(ValueError, match="compressed image \\(jpeg, 12 bytes\\) does not decode"):
         r2.frame_of_camera(msg, seq=0)
+
+
+@pytest.mark.parametrize("bigendian", [0, 1])
+@pytest.mark.parametrize("bits", [10, 12, 16])
+def test_a_camera_s_16_bit_images_are_scaled_by_the_depth_of_its_samples(bgr, bits, bigendian):
+    """A machine-vision camera's mono16 images hold 10 or 12 significant bits (values up to
+    1023 or 4095): through the camera's Grey they come back as the 8-bit picture, not as the
+    high byte's 0 to 3 or 0 to 15."""
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    wide = grey.astype(np.uint16) << (bits - 8)
+    raw = wide.astype(">u2" if bigendian else "<u2").view(np.uint8).reshape(grey.shape[0], -1)
+    msg = _image(raw, "mono16", bigendian=bigendian, width=grey.shape[1])
+    stream = Grey()
+    for _ in range(2):
+        frame = r2.frame_of_camera(msg, seq=0, grey=stream)
+        np.testing.assert_array_equal(frame.data, grey)
+    assert stream.bits == bits
+    assert r2.grey_of_image(msg).max() < 256 >> (16 - bits) or bits == 16  # the high byte

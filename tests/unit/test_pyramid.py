@@ -438,3 +438,30 @@ def test_an_occluded_held_feature_is_rejected_not_followed(real_image, occluder)
     # and as many of the others as the search keeps
     searched, _ = _steady_run(real_image, step, 4, follow=False, occlude=occlude)
     assert len(err) >= len(searched[3].ids) - 2 and len(err) > 50
+
+
+def test_ring_fit_finds_a_second_motion_on_one_side_and_blur_all_round(real_image):
+    """_ring_fit's residuals, by hand: the same texture moved by (2, 1) px is a perfect fit
+    (0 everywhere); a second motion in the wide window's right side shows on that side, far
+    above the centre's; blur leaves residuals like the centre's on every side. The side test
+    (STRADDLE times the centre's, plus 2 sigma^2 at the default noise of 2 grey levels) takes
+    the wide estimate under the blur, not across the second motion."""
+    from vistrack.common.vision.pyramid import BILINEAR_ONE, STRADDLE, _ring_fit
+    floor = 2.0 * TrackerParams().noise_sigma ** 2
+    n, wide = 4, 10
+    sq = np.empty(2 * wide + 1, np.int32)
+    cols = np.empty((3, 2 * wide + 1), np.int64)
+    prev = np.ascontiguousarray(real_image[40:120, 40:120])
+    curr = np.ascontiguousarray(np.roll(prev, (1, 2), axis=(0, 1)))
+    ax = ay = 40
+    assert _ring_fit(prev, curr, ax, ay, ax + 2.0, ay + 1.0, n, wide, sq, cols) == (0.0, 0.0)
+    # the same half a pixel off: bilinear samples, weights in 1/BILINEAR_ONE
+    inner, ring = _ring_fit(prev, curr, ax, ay, ax + 2.5, ay + 1.0, n, wide, sq, cols)
+    assert 0 < inner and 0 < ring and BILINEAR_ONE == 128
+    split = curr.copy()
+    split[:, ax + 2 + n + 3:] = np.roll(curr, 5, axis=0)[:, ax + 2 + n + 3:]  # right: 5 px down
+    inner, ring = _ring_fit(prev, split, ax, ay, ax + 2.0, ay + 1.0, n, wide, sq, cols)
+    assert inner == 0.0 and ring > 100.0 and ring > STRADDLE * inner + floor
+    blurred = cv2.blur(curr, (5, 1))
+    inner, ring = _ring_fit(prev, blurred, ax, ay, ax + 2.0, ay + 1.0, n, wide, sq, cols)
+    assert inner > 0.0 and ring <= STRADDLE * inner + floor

@@ -246,20 +246,26 @@ def motion_blurred(source: np.ndarray, name: str, *, exposure: float, n: int = 4
     return RenderedSequence(f"{name}, blur {exposure:g}", frames, sharp.homographies)
 
 
-def middlebury_sequences(n: int = 60, *, size: tuple[int, int] = (256, 256),
-                         names: tuple[str, ...] = SOURCES) -> list[RenderedSequence]:
-    """A long sequence from frame10 of each Middlebury sequence found (:data:`SOURCES`);
-    empty when the shared data is absent."""
+def middlebury_sources(names: tuple[str, ...] = SOURCES) -> list[tuple[str, np.ndarray]]:
+    """(name, grey frame10) of each Middlebury sequence found (:data:`SOURCES`); empty when
+    the shared data is absent."""
     out = []
     for name in names:
         folder = groundtruth.middlebury(name)
         if folder is None:
             continue
         image = cv2.imread(str(folder / "frame10.png"), cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            continue
-        out.append(sequence(image, f"{name} rendered", n=n, size=size))
+        if image is not None:
+            out.append((name, image))
     return out
+
+
+def middlebury_sequences(n: int = 60, *, size: tuple[int, int] = (256, 256),
+                         names: tuple[str, ...] = SOURCES) -> list[RenderedSequence]:
+    """A long sequence from frame10 of each Middlebury sequence found (:data:`SOURCES`);
+    empty when the shared data is absent."""
+    return [sequence(image, f"{name} rendered", n=n, size=size)
+            for name, image in middlebury_sources(names)]
 
 
 def with_exposure(seq: RenderedSequence, *, gain: float = 0.08, offset: float = 10.0,

@@ -18,7 +18,9 @@ Sequences: the Middlebury pairs of the shared data (ground truth: the ``.flo`` f
 long sequences of :mod:`vistrack.common.rendered` (real frames seen through smooth
 homographies, translation up to 12 px a frame; exact ground truth), and the same long
 sequences seen by a camera whose auto-exposure hunts (``, exposure``: gain +-8 % and offset
-+-10 grey levels from frame to frame, :func:`~vistrack.common.rendered.with_exposure`).
++-10 grey levels from frame to frame, :func:`~vistrack.common.rendered.with_exposure`), and
+the same paths through a shutter open half the frame interval (``, blur 0.5``: motion blur of
+up to 6 px that changes with the speed, :func:`~vistrack.common.rendered.motion_blurred`).
 """
 
 from __future__ import annotations
@@ -209,7 +211,10 @@ def scoreboard(params: TrackerParams | None = None, *, n_frames: int = 60,
             progress(name)
     longs = rendered.middlebury_sequences(n_frames)
     # the same views through a camera whose auto-exposure hunts (see rendered.with_exposure)
-    for seq in [*longs, *(rendered.with_exposure(s) for s in longs)]:
+    # and through a shutter open half the frame interval (see rendered.motion_blurred)
+    blurred = [rendered.motion_blurred(image, f"{name} rendered", exposure=0.5, n=n_frames)
+               for name, image in rendered.middlebury_sources()]
+    for seq in [*longs, *(rendered.with_exposure(s) for s in longs), *blurred]:
         ours, lk, rej = run_sequence(seq.frames, _step_of(seq), params, end_truth=_end_of(seq))
         rows.append(Row(seq.name, len(seq), ours, lk, rej))
         if progress:
@@ -262,7 +267,8 @@ def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[
               f"{_fmt(lk.survival, '5.2f')} {_fmt(lk.drift, '6.2f')} | {'yes' if ok else 'NO':>6s}",
               file=out)
         key = r.sequence.split(" ")[0] + ("_pair" if r.frames == 2 else "_long") \
-            + ("_exposure" if r.sequence.endswith(", exposure") else "")
+            + ("_exposure" if r.sequence.endswith(", exposure") else "") \
+            + ("_blur" if ", blur" in r.sequence else "")
         fig.update({f"{key}_median": o.median_epe, f"{key}_lk_median": lk.median_epe,
                     f"{key}_gross": o.gross, f"{key}_lk_gross": lk.gross,
                     f"{key}_pairs": float(o.pairs), f"{key}_lk_pairs": float(lk.pairs)})

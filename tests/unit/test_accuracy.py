@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vistrack.common import groundtruth, rendered
+from vistrack.common import rendered
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker
 from vistrack.services.bench.accuracy import PAIRS, one_motion, run_sequence, scoreboard
@@ -154,9 +154,7 @@ def test_motion_blur_of_the_whole_frame_interval_stays_near_lk(blurred):
 
 def seq_source(name):
     """The grey frame10 of the Middlebury sequence ``name``, as the rendered ones start from."""
-    image = cv2.imread(str(groundtruth.middlebury(name) / "frame10.png"), cv2.IMREAD_GRAYSCALE)
-    assert image is not None, name
-    return image
+    return dict(rendered.middlebury_sources((name,)))[name]
 
 
 def test_the_paper_tracker_cannot_follow_the_large_motion(sequences):

@@ -38,6 +38,29 @@ def middlebury(sequence: str) -> Path | None:
     return p if p.is_dir() else None
 
 
+class DataError(ValueError):
+    """A data file that does not read, or files that do not fit together; the text names the
+    file and what was wrong."""
+
+
+#: What makes a folder under ``<data>/middlebury`` a scored pair: Middlebury's file names.
+PAIR_FILES = ("frame10.png", "frame11.png", "flow10.flo")
+
+
+def middlebury_pairs(first: tuple[str, ...] = ()) -> list[str]:
+    """The Middlebury-format pairs in the data folder: every folder under ``middlebury/``
+    holding :data:`PAIR_FILES` (the shared data's five, or a user's own sequences put beside
+    them), those named in ``first`` first, in that order, then the others by name; empty
+    when there is no data folder."""
+    root = data_dir()
+    top = root / "middlebury" if root is not None else None
+    if top is None or not top.is_dir():
+        return []
+    found = sorted(p.name for p in top.iterdir()
+                   if p.is_dir() and all((p / f).is_file() for f in PAIR_FILES))
+    return [n for n in first if n in found] + [n for n in found if n not in first]
+
+
 def read_flo(path: str | os.PathLike[str]) -> np.ndarray:
     """Read a Middlebury ``.flo`` file.
 
@@ -48,14 +71,14 @@ def read_flo(path: str | os.PathLike[str]) -> np.ndarray:
     with open(path, "rb") as f:
         magic = np.fromfile(f, np.float32, 1)
         if magic.size != 1 or magic[0] != FLO_MAGIC:
-            raise ValueError(f"{path}: not a .flo file (bad magic number)")
+            raise DataError(f"{path}: not a .flo file (bad magic number)")
         dims = np.fromfile(f, np.int32, 2)
         if dims.size != 2 or dims.min() <= 0 or dims.max() > 100_000:
-            raise ValueError(f"{path}: bad .flo dimensions {dims.tolist()}")
+            raise DataError(f"{path}: bad .flo dimensions {dims.tolist()}")
         w, h = int(dims[0]), int(dims[1])
         data = np.fromfile(f, np.float32, w * h * 2)
     if data.size != w * h * 2:
-        raise ValueError(f"{path}: truncated .flo file ({data.size} of {w * h * 2} values)")
+        raise DataError(f"{path}: truncated .flo file ({data.size} of {w * h * 2} values)")
     flow = data.reshape(h, w, 2).copy()
     flow[np.abs(flow).max(axis=2) >= UNKNOWN] = np.nan
     return flow

@@ -28,6 +28,8 @@ import argparse
 import sys
 from collections.abc import Callable
 
+from ...common.groundtruth import DataError
+
 
 def _tracker(out=sys.stdout) -> dict[str, float]:
     from .tracker import bench_tracker
@@ -124,5 +126,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    BENCHES[args.which]()
+    try:
+        BENCHES[args.which]()
+    except DataError as e:  # the data given to score on (a user's own sequence)
+        print(f"vistrack bench {args.which}: {e}", file=sys.stderr)
+        return 2
     return 0

@@ -14,7 +14,9 @@ ground truth:
   when it leaves the image), and the median **drift** of the survivors from their true
   position there.
 
-Sequences: the Middlebury pairs of the shared data (ground truth: the ``.flo`` flow), the
+Sequences: the Middlebury pairs of the shared data (ground truth: the ``.flo`` flow; any other
+folder of ``frame10.png``, ``frame11.png`` and ``flow10.flo`` put beside them under
+``$VISTRACK_DATA/middlebury/`` is scored too: your own sequences), the
 long sequences of :mod:`vistrack.common.rendered` (real frames seen through smooth
 homographies, translation up to 12 px a frame; exact ground truth), and the same long
 sequences seen by a camera whose auto-exposure hunts (``, exposure``: gain +-8 % and offset
@@ -182,21 +184,34 @@ def _with_survival(score: Score, alive: np.ndarray, end: np.ndarray,
 def _gray(path) -> np.ndarray:
     image = cv2.imread(str(path))
     if image is None:
-        raise ValueError(f"{path}: cannot read the image")
+        raise groundtruth.DataError(f"{path}: cannot read the image")
     return to_gray(image)
 
 
 def scoreboard(params: TrackerParams | None = None, *, n_frames: int = 60,
                progress: Callable[[str], None] | None = None) -> list[Row]:
-    """Every sequence found: the Middlebury pairs, then the long rendered sequences."""
+    """Every sequence found: the Middlebury pairs (the shared data's, then any other folder of
+    Middlebury's files, :func:`.groundtruth.middlebury_pairs`), then the long rendered
+    sequences.
+
+    Raises
+    ------
+    groundtruth.DataError
+        For a pair whose files do not read or do not fit together; the text names the file.
+    """
     params = params if params is not None else TrackerParams()
     rows = []
-    for name in PAIRS:
+    for name in groundtruth.middlebury_pairs(PAIRS):
         folder = groundtruth.middlebury(name)
         if folder is None:
             continue
         frames = [_gray(folder / "frame10.png"), _gray(folder / "frame11.png")]
         flow = groundtruth.read_flo(folder / "flow10.flo")
+        if frames[1].shape != frames[0].shape or flow.shape[:2] != frames[0].shape:
+            h, w = frames[0].shape
+            raise groundtruth.DataError(f"{folder}: frame11.png is {frames[1].shape[1]}x"
+                             f"{frames[1].shape[0]} and flow10.flo {flow.shape[1]}x"
+                             f"{flow.shape[0]}: expected frame10.png's {w}x{h}")
 
         def step(points: np.ndarray, k: int, flow: np.ndarray = flow) -> np.ndarray:
             h, w = flow.shape[:2]

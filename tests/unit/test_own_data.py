@@ -1,0 +1,72 @@
+"""A user's own sequences on the scoreboard: any folder of Middlebury's files (frame10.png,
+frame11.png, flow10.flo) under ``$VISTRACK_DATA/middlebury/`` is scored beside the shared
+data's pairs; files that do not fit together give a one-line error naming them."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from vistrack.common import groundtruth
+from vistrack.services.bench.accuracy import PAIRS, scoreboard
+
+
+def _write_flo(path, flow: np.ndarray) -> None:
+    h, w = flow.shape[:2]
+    with open(path, "wb") as f:
+        np.array([groundtruth.FLO_MAGIC], np.float32).tofile(f)
+        np.array([w, h], np.int32).tofile(f)
+        flow.astype(np.float32).tofile(f)
+
+
+def _own_pair(folder, image: np.ndarray, shift: tuple[int, int]) -> None:
+    """frame11 = frame10 moved by ``shift`` (x, y) px; the flow says so (unknown where the
+    moved frame has no source: the border)."""
+    folder.mkdir(parents=True)
+    dx, dy = shift
+    moved = np.roll(image, (dy, dx), axis=(0, 1))
+    cv2.imwrite(str(folder / "frame10.png"), image)
+    cv2.imwrite(str(folder / "frame11.png"), moved)
+    flow = np.empty(image.shape + (2,), np.float32)
+    flow[..., 0], flow[..., 1] = dx, dy
+    flow[-dy:, :] = flow[:, -dx:] = 1e10  # rolled round from the other side: unknown
+    _write_flo(folder / "flow10.flo", flow)
+
+
+@pytest.fixture
+def own_data(tmp_path, monkeypatch, real_image):
+    monkeypatch.setenv("VISTRACK_DATA", str(tmp_path))
+    _own_pair(tmp_path / "middlebury" / "MyCorridor", real_image, (3, 2))
+    (tmp_path / "middlebury" / "notes").mkdir()  # not a pair: skipped
+    return tmp_path
+
+
+def test_a_users_own_pair_is_found_and_scored(own_data):
+    assert groundtruth.middlebury_pairs(PAIRS) == ["MyCorridor"]
+    rows = scoreboard(n_frames=4)
+    assert [r.sequence for r in rows] == ["MyCorridor (pair)"]
+    ours, lk = rows[0].ours, rows[0].lk
+    assert ours.pairs >= 50 and lk.pairs >= 50
+    assert ours.median_epe < 0.05 and ours.gross == 0.0  # a whole-pixel shift, found
+
+
+def test_shared_pairs_come_first_then_the_others_by_name(tmp_path, monkeypatch, real_image):
+    monkeypatch.setenv("VISTRACK_DATA", str(tmp_path))
+    for name in ("Zed", "Venus", "Alpha", "Dimetrodon"):
+        _own_pair(tmp_path / "middlebury" / name, real_image[:64, :64], (1, 1))
+    assert groundtruth.middlebury_pairs(PAIRS) == ["Dimetrodon", "Venus", "Alpha", "Zed"]
+
+
+def test_a_flow_of_another_size_is_a_one_line_error(own_data):
+    folder = own_data / "middlebury" / "MyCorridor"
+    _write_flo(folder / "flow10.flo", np.zeros((10, 12, 2), np.float32))
+    out = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "bench", "accuracy"],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2, out.stderr
+    assert out.stderr.strip().splitlines() == [
+        f"vistrack bench accuracy: {folder}: frame11.png is 256x256 and flow10.flo 12x10: "
+        "expected frame10.png's 256x256"]

@@ -72,7 +72,7 @@ def to_gray(image: np.ndarray, *, bits: int = 16) -> np.ndarray:
         if np.issubdtype(gray.dtype, np.integer) and gray.dtype.itemsize == 2:
             if not 8 <= bits <= 16:
                 raise ValueError(f"bits={bits} is out of range: allowed 8..16")
-            gray = np.minimum(gray >> (bits - 8), 255).astype(np.uint8)
+            gray = np.clip(gray >> (bits - 8), 0, 255).astype(np.uint8)  # int16: no wrap
         else:
             gray = np.clip(gray, 0, 255).astype(np.uint8)
     return np.ascontiguousarray(gray)

@@ -67,6 +67,12 @@ def test_the_depth_only_grows_so_a_dark_start_steps_once(picture):
     assert grey.bits == 12
 
 
+def test_signed_16_bit_samples_below_zero_are_black_not_white():
+    a = np.array([[-300, -1, 0, 4095]], np.int16)
+    assert Grey()(a).tolist() == [[0, 0, 0, 255]]
+    assert to_gray(a).tolist() == [[0, 0, 0, 15]]
+
+
 def test_colour_16_bit_is_converted_to_grey_first(picture):
     bgr = np.dstack([picture, picture, picture]).astype(np.uint16) << 4
     np.testing.assert_array_equal(Grey()(bgr), picture)

@@ -5,9 +5,11 @@ Foxglove, PlotJuggler and ``ros2 bag`` open (:mod:`.mcapio` describes it); any o
 ``--format vtr``) writes vistrack's own ``.vtr`` format, below.
 
 Without KEY, records every key of the robot (``vistrack/<robot>/**``; status replies and
-liveliness tokens are not samples and are not recorded). Runs until Ctrl-C/SIGTERM,
-``--duration`` or ``--count``, then flushes and closes the file (it is also flushed every
-second, so a killed recorder loses at most the last second).
+liveliness tokens are not samples and are not recorded). A sample whose bytes equal the last
+one written of its key (a frame a camera in lockstep sent again when its estimate did not come
+back in time: the same seq and stamp) is written once, and counted in the closing line. Runs
+until Ctrl-C/SIGTERM, ``--duration`` or ``--count``, then flushes and closes the file (it is
+also flushed every second, so a killed recorder loses at most the last second).
 
 The ``.vtr`` format (version 1): a stream of msgpack maps, nothing else, so it can be read with any
 msgpack library and written without knowing its length in advance:
@@ -313,12 +315,23 @@ def record(session: zenoh.Session, writer: Writer, exprs: list[str],
     start = time.monotonic()
     next_flush = start + FLUSH_S
 
+    last: dict[str, bytes] = {}  # the last payload written of each key
+    repeats = 0
+
     def write(items: list[Received]) -> None:
+        nonlocal repeats
         for item in items:
             if args.count is not None and writer.count >= args.count:
                 return
-            if _recorded(item.key):
-                writer.write(item.key, item.payload, item.mono_ns)
+            if not _recorded(item.key):
+                continue
+            if last.get(item.key) == item.payload:
+                # the same bytes again: a sample its publisher sent again (a camera in
+                # lockstep whose estimate did not come back in time), written once
+                repeats += 1
+                continue
+            last[item.key] = item.payload
+            writer.write(item.key, item.payload, item.mono_ns)
 
     with stop_on_signals() as stop:
         subs = [session.declare_subscriber(expr, inbox) for expr in exprs]
@@ -349,7 +362,9 @@ def record(session: zenoh.Session, writer: Writer, exprs: list[str],
               "slow)", file=sys.stderr)
     for line in not_written(writer):
         warn("record", line)
+    again = (f"; {plural(repeats, 'sample')} sent again by its publisher (the same bytes) "
+             "written once" if repeats else "")
     print(f"vistrack record: {plural(writer.count, 'sample')} of "
           f"{plural(len(writer.keys_seen), 'key')} in {time.monotonic() - start:.2f} s written "
-          f"to {writer.path}", file=sys.stderr)
+          f"to {writer.path}{again}", file=sys.stderr)
     return 0

@@ -640,3 +640,28 @@ def test_record_stops_and_flushes_on_ctrl_c(pipeline, endpoint, tmp_path):
     keys = {r["key"] for r in records}
     assert {f"{ROOT}/camera/frame", f"{ROOT}/motion/estimate"} <= keys
     assert f"{len(records)} samples" in err
+
+
+def test_record_writes_a_sample_sent_again_once(pipeline, endpoint, session, tmp_path):
+    """A sample whose bytes equal the last one of its key (a frame a camera in lockstep sent
+    again when its estimate did not come back in time) is written once, and said so; the same
+    bytes after another sample are a new sample, written."""
+    path = tmp_path / "again.vtr"
+    key = f"{ROOT}/test/again"
+    with subprocess.Popen([sys.executable, "-m", "vistrack.services.cli", "record", str(path),
+                           "test/again", "-e", endpoint, "--no-multicast-scouting"],
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as rec:
+        try:
+            wait_for_subscribers(session, [key], 30)
+            for payload in (b"frame 7", b"frame 7", b"frame 8", b"frame 7"):
+                session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+                time.sleep(0.05)
+            time.sleep(0.5)
+        finally:
+            rec.send_signal(signal.SIGINT)
+            _, err = rec.communicate(timeout=10)
+    assert rec.returncode == 0, err
+    _, records = read_recording(path)
+    assert [r["payload"] for r in records] == [b"frame 7", b"frame 8", b"frame 7"]
+    assert "3 samples of 1 key in" in err
+    assert "; 1 sample sent again by its publisher (the same bytes) written once" in err

@@ -453,11 +453,10 @@ def grey_of_image(obj: Any, grey: Callable[[np.ndarray], np.ndarray] | None = No
     rows = data.reshape(height, step)[:, :row]
     if channels == 2:
         pixels = rows.reshape(height, width, 2)
-        if encoding in _BYTE_OF_PIXEL or grey is None:
-            byte = _BYTE_OF_PIXEL.get(encoding, 0 if obj.is_bigendian else 1)
-            return np.ascontiguousarray(pixels[:, :, byte])
+        if encoding in _BYTE_OF_PIXEL:
+            return np.ascontiguousarray(pixels[:, :, _BYTE_OF_PIXEL[encoding]])
         samples = np.ascontiguousarray(pixels).view(">u2" if obj.is_bigendian else "<u2")
-        return grey(samples.reshape(height, width).astype(np.uint16))
+        return _grey_of(samples.reshape(height, width).astype(np.uint16), grey)
     if conversion is None:
         return np.ascontiguousarray(rows)
     return cv2.cvtColor(np.ascontiguousarray(rows).reshape(height, width, channels),
@@ -470,15 +469,21 @@ def grey_of_compressed(obj: Any, grey: Callable[[np.ndarray], np.ndarray] | None
     OpenCV's ``imdecode`` reads), made grey exactly as the file camera makes an image file
     grey (``grey``, a stream's ``vision.preprocess.Grey``; else ``to_gray``). ValueError if it
     does not decode."""
-    # here, not at the top: the vision package loads numba, which MCAP tools need not pay for
-    from .vision.preprocess import to_gray
-
     data = np.asarray(obj.data, np.uint8).reshape(-1)
     image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
         raise ValueError(f"compressed image ({obj.format or 'no format'}, {data.size} bytes) "
                          "does not decode")
-    return (grey or to_gray)(image)
+    return _grey_of(image, grey)
+
+
+def _grey_of(image: np.ndarray, grey: Callable[[np.ndarray], np.ndarray] | None) -> np.ndarray:
+    """``grey(image)``, else ``vision.preprocess.to_gray(image)`` (16-bit: the high byte)."""
+    if grey is not None:
+        return grey(image)
+    # here, not at the top: the vision package loads numba, which MCAP tools need not pay for
+    from .vision.preprocess import to_gray
+    return to_gray(image)
 
 
 def frame_of_camera(obj: Any, *, seq: int,

@@ -163,8 +163,8 @@ NEIGHBOURS = 6
 #: back 0.95 px away, inside the bound, 1.2 px off the truth. Those are left to the search.
 FOLLOW_FB = 0.25
 #: the wide window's estimate is taken where it disagrees with the correlation window's when
-#: its ring's mean squared residual is at most this many times its centre's (plus noise's;
-#: :func:`_widen`)
+#: each side of its ring has a mean squared residual at most this many times its centre's
+#: (plus noise's; :func:`_widen`)
 STRADDLE = 2.0
 #: :func:`_ring_fit`'s bilinear weights are in 1/BILINEAR_ONE (a residual of 255 grey
 #: levels, squared, still fits int32: (128 * 255)^2 < 2^31)
@@ -1091,6 +1091,12 @@ def agreement(noise: float) -> float:
     0.1 px left the median error at up to 1.1 and 1.4 times LK's; 0.2 px at every noise level
     took Urban2's boundaries for noise (its pair's median error above LK's)."""
     return AGREE_PX * max(1.0, noise / AGREE_NOISE)
+
+
+def wide_tests(noise: float) -> dict[str, float]:
+    """:func:`track_pyramid`'s ``agree``, ``straddle`` and ``floor`` (the wide window's tests,
+    step 6 of the module notes) for a camera noise of ``noise`` grey levels."""
+    return {"agree": agreement(noise), "straddle": STRADDLE, "floor": 2.0 * noise * noise}
 
 
 @functools.lru_cache(maxsize=16)

@@ -40,7 +40,7 @@ from .features import select_features
 from .motion import _incremental_motion, centroid_scatter
 from .noise import noise_level
 from .preprocess import Preprocessed, preprocess
-from .pyramid import STRADDLE, Pyramid, agreement, build_pyramid, track_pyramid
+from .pyramid import Pyramid, build_pyramid, track_pyramid, wide_tests
 from .ssd import BORDER, LEFT, OK, RESIDUAL, STATUS_NAMES, track_ssd, window_weights
 
 #: Frames between two estimates of the camera's noise (:mod:`.noise`, ~0.2 ms at 256 x 256):
@@ -252,8 +252,7 @@ class Tracker:
                 search=p.search, uniqueness=p.uniqueness, allowance=allowance,
                 reject_border=p.reject_border, guided_retry=p.guided_retry,
                 max_fb_error=p.max_fb_error, consensus=p.consensus, wide_half=p.refine_half,
-                agree=agreement(max(p.noise_sigma, self.noise)), straddle=STRADDLE,
-                floor=2.0 * max(p.noise_sigma, self.noise) ** 2, held=self._held,
+                **wide_tests(max(p.noise_sigma, self.noise)), held=self._held,
                 follow=p.follow, followed=taken)
             self.followed += int(np.count_nonzero(taken))
         pos, vel, ids, lost, moved, dx, dy, scale = _advance(

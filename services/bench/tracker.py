@@ -29,7 +29,7 @@ import numpy as np
 from ...common import groundtruth, synthetic
 from ...common.params import TrackerParams
 from ...common.vision import Tracker, preprocess, to_gray, track_ssd, warm_up, window_weights
-from ...common.vision.pyramid import STRADDLE, agreement, build_pyramid, track_pyramid
+from ...common.vision.pyramid import build_pyramid, track_pyramid, wide_tests
 
 
 def _batch(fn: Callable[[], object], min_time: float) -> int:
@@ -180,9 +180,8 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
                               uniqueness=p.uniqueness, allowance=allowance,
                               reject_border=p.reject_border, guided_retry=p.guided_retry,
                               max_fb_error=p.max_fb_error, consensus=p.consensus,
-                              wide_half=p.refine_half, agree=agreement(p.noise_sigma),
-                              straddle=STRADDLE, floor=2.0 * p.noise_sigma ** 2, held=hd,
-                              follow=p.follow)
+                              wide_half=p.refine_half, **wide_tests(p.noise_sigma),
+                              held=hd, follow=p.follow)
         return run
 
     def pyramid() -> None:

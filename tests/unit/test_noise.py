@@ -7,6 +7,7 @@ import pytest
 
 from vistrack.common import rendered
 from vistrack.common.params import TrackerParams
+from vistrack.common.vision import pyramid as pyramid_module
 from vistrack.common.vision import tracker as tracker_module
 from vistrack.common.vision.noise import noise_level
 from vistrack.common.vision.preprocess import gaussian_filter
@@ -89,7 +90,7 @@ def test_a_noisy_camera_is_tracked_as_well_as_lk_tracks_it(noisy_sequences, monk
             unmeasured, lk_again, _ = run(seq)
         assert unmeasured.median_epe <= 1.05 * lk_again.median_epe, (seq.name, unmeasured)
         with monkeypatch.context() as m:
-            m.setattr(tracker_module, "STRADDLE", 0.0)
+            m.setattr(pyramid_module, "STRADDLE", 0.0)
             bound, _, _ = run(seq)
             m.setattr(tracker_module, "noise_level", lambda frame, blur: 0.0)
             fixed, _, _ = run(seq)

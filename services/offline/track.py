@@ -77,10 +77,11 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     if args.format == "table":
         t1, tf = timing(estimates)
         tf_text = f"{tf:.3f} ms" if len(estimates) > 1 else "- (one frame)"
+        reasons = ", ".join(f"{k} {v}" for k, v in tracker.lost_by.items()
+                            if v and k not in ("left", "cut"))
         print(f"# frames={len(estimates)} t1={t1:.3f} ms tf={tf_text} "
-              f"lost={tracker.lost_total} (rejected {tracker.rejected_total}: "
-              + ", ".join(f"{k} {v}" for k, v in tracker.lost_by.items()
-                          if v and k not in ("left", "cut"))
+              f"lost={tracker.lost_total} (rejected {tracker.rejected_total}"
+              + (f": {reasons}" if reasons else "")
               + f") redetections={tracker.redetections} followed={tracker.followed} "
               f"exposure_steps={tracker.exposure_steps}",
               file=out)

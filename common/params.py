@@ -131,7 +131,8 @@ class TrackerParams:
         true minimum may lie outside it).
     guided_retry : a feature that found no trustworthy minimum around its own prediction is
         searched again around the frame's dominant motion (the median displacement of the
-        features found).
+        features found); a frame in which fewer than half were found is tracked again around
+        the frame-wide shift (phase correlation, :func:`.vision.pyramid.frame_shift`).
     refine_size : width of the wide sub-pixel window, px: its estimate is taken where it
         agrees with the correlation window's; 0 (or not wider than CORR_SIZE) refines over the
         correlation window only.

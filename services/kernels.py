@@ -40,7 +40,10 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
+
+if TYPE_CHECKING:
+    from ..common.params import TrackerParams
 
 #: How long a cold compile takes on the reference machine (2 cores: 42 s measured for the
 #: default coarse-to-fine tracker on a quiet machine, 80 s with other work taking the cores),
@@ -54,7 +57,8 @@ _HELPER = "from vistrack.services.kernels import compile_search; compile_search(
 
 
 def warm_up_kernels(say: Callable[[str], None], *, helper: bool = True,
-                    on_turn: Callable[[], None] | None = None) -> bool:
+                    on_turn: Callable[[], None] | None = None,
+                    params: TrackerParams | None = None) -> bool:
     """:func:`~vistrack.common.vision.warm_up`, calling ``say`` with a line when the kernels
     start compiling and another when they are done; silent when they come from the cache.
 
@@ -64,6 +68,8 @@ def warm_up_kernels(say: Callable[[str], None], *, helper: bool = True,
     helper : compile the SSD search in a second process when the cache is cold.
     on_turn : called once this process holds the warm-up turn, before it compiles or loads
         anything: what it starts then (the services) waits for the kernels, not with them.
+    params : the tracker parameters in force, whose kernels are warmed too (``--paper``'s
+        single-level search; see :func:`~vistrack.common.vision.warm_up`).
 
     Returns
     -------
@@ -75,7 +81,7 @@ def warm_up_kernels(say: Callable[[str], None], *, helper: bool = True,
         early = _start_helper() if helper and not cached else None
         if on_turn is not None:
             on_turn()
-        return _warm_up(say, helper, early)
+        return _warm_up(say, helper, early, params)
 
 
 def _search_cached() -> bool:
@@ -130,7 +136,8 @@ def _turn() -> Iterator[bool]:
 
 
 def _warm_up(say: Callable[[str], None], helper: bool,
-             early: subprocess.Popen[bytes] | None = None) -> bool:
+             early: subprocess.Popen[bytes] | None = None,
+             params: TrackerParams | None = None) -> bool:
     from ..common.vision import kernel_cache_dir, warm_up
     from ..common.vision.tracker import compile_watch
 
@@ -152,7 +159,7 @@ def _warm_up(say: Callable[[str], None], helper: bool,
                     proc.wait(HELPER_TIMEOUT_S)
                 except subprocess.TimeoutExpired:
                     pass  # warm_up compiles what it did not
-            warm_up()
+            warm_up(params=params)
     finally:
         for proc in helpers:
             if proc.poll() is None:
@@ -212,8 +219,8 @@ def _refinement_calls() -> list[tuple[Callable[..., object], tuple]]:
     return [(ssd._refine_with, (frame, frame, 32, 32, 32.0, 32.0, 2, scratch)),
             (ssd._parabola, (flat, flat, 64, 64, 32, 32, 32, 32, 2, wts, uniform, 0.0)),
             (pyramid._consensus, (pts, pts.copy(), np.full(1, ssd.LEFT, np.int8), 2.0)),
-            (pyramid._widen, (frame, frame, pts, 10, acc, np.zeros(1, np.bool_), pts.copy(),
-                              0.1))]
+            (pyramid._widen, (frame, frame, pts, 2, 10, acc, np.zeros(1, np.bool_),
+                              pts.copy(), 0.1, 2.0, 8.0))]
 
 
 #: the parameters of :func:`~vistrack.common.vision.ssd._search_level` that

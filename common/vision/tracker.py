@@ -369,15 +369,21 @@ def timing(estimates: list[Estimate]) -> tuple[float, float]:
     return t1, float(np.mean(rest)) if rest else float("nan")
 
 
-def warm_up(on_compile: Callable[[], None] | None = None) -> bool:
+def warm_up(on_compile: Callable[[], None] | None = None,
+            params: TrackerParams | None = None) -> bool:
     """Compile (or load from numba's cache) every kernel the tracker uses, so that the first
-    real frame, the paper's t1, measures the tracker and not the JIT.
+    real frame, the paper's t1, measures the tracker and not the JIT: those of the default
+    tracker, of its exhaustive search and of integer positions, and those of ``params`` (the
+    paper's single-level search, ``--paper``: ~4 s more of a first run's compile, paid only
+    by who uses it). Each set is warmed once a process; a later call for sets already warm
+    returns at once.
 
     Parameters
     ----------
     on_compile : called once, as soon as a kernel is found missing from numba's on-disk cache
         and starts compiling (a first run, or edited kernels): the moment to say that the
         next half minute goes to the compiler. Not called when everything is cached.
+    params : the parameters about to be used, if they may need kernels of their own.
 
     Returns
     -------
@@ -385,12 +391,25 @@ def warm_up(on_compile: Callable[[], None] | None = None) -> bool:
     """
     from ..synthetic import sequence
 
+    sets = [TrackerParams(), TrackerParams(weights="gaussian", subpixel=False),
+            TrackerParams(search="exhaustive"), *([params] if params is not None else [])]
+    todo = {_kernel_set(p): p for p in sets if _kernel_set(p) not in _WARM}
     with compile_watch(on_compile) as watch:
-        frames = sequence(3, size=(64, 64), seed=1)
-        for p in (TrackerParams(), TrackerParams(weights="gaussian", subpixel=False),
-                  TrackerParams(search="exhaustive")):
+        if todo:
+            frames = sequence(3, size=(64, 64), seed=1)
+        for key, p in todo.items():
             track_frames(frames, p.replace(max_features=20, search_size=5, corr_size=5))
+            _WARM.add(key)
     return watch.compiled
+
+
+def _kernel_set(p: TrackerParams) -> tuple[bool, str, bool]:
+    """What decides which kernels ``p`` runs (their types do not depend on the values)."""
+    return _single_level(p), p.search, p.subpixel
+
+
+#: the kernel sets (:func:`_kernel_set`) this process has warmed up
+_WARM: set[tuple[bool, str, bool]] = set()
 
 
 @contextlib.contextmanager

@@ -33,7 +33,7 @@ import numpy as np
 from ...common.bus import Node
 from ...common.messages import Demand, Estimate, PreFrame, encode_estimate
 from ...common.params import TrackerParams
-from ...common.vision import Preprocessed, Tracker
+from ...common.vision import Preprocessed, Tracker, warm_up
 from ...common.vision.preprocess import DeferredPreprocessed
 from ..kernels import warm_up_kernels
 from ..runtime import (
@@ -116,7 +116,8 @@ class DemandSignal:
 def loop(node: Node, args: argparse.Namespace) -> None:
     state = ParamsInForce.from_args(args)
     state.publish_status(node)
-    warm_up_kernels(log.info)  # a first run's compile is logged, a cache load is not
+    # a first run's compile is logged, a cache load is not
+    warm_up_kernels(log.info, params=state.params)
     tracker = Tracker(state.params)
     node.subscribe(node.keys.params, latest=False)
     node.subscribe(node.keys.pre_frame, latest=True)
@@ -129,6 +130,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
 
     def on_params(payload: bytes) -> None:
         if state.apply(payload, node, log):
+            warm_up(params=state.params)  # kernels of their own (--paper's): here, not mid-frame
             tracker.set_params(state.params)
 
     def on_frame(payload: bytes) -> None:

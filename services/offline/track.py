@@ -47,7 +47,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     size = parse_size(args.resize, "--resize") if args.resize else None
     source = open_files(args.frames, size)
     # numba compile (said on stderr) or cache load, so t1 measures the tracker, not the JIT
-    warm_up_kernels(say_on_stderr("track"))
+    warm_up_kernels(say_on_stderr("track"), params=params)
     tracker = Tracker(params)
     estimates: list[Estimate] = []
     writer = None

@@ -261,7 +261,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
     base = params_from_args(args)  # the search every timed run uses
     frames, what = read_buffer(args)
     seed = new_seed() if args.seed is None else args.seed
-    warm_up_kernels(say_on_stderr("tune", err))  # a first run compiles: said, not silent
+    # a first run compiles: said, not silent
+    warm_up_kernels(say_on_stderr("tune", err), params=base)
     show = err.isatty() if args.progress is None else args.progress
     progress = ProgressLine(err) if show else None
     start = time.perf_counter()

@@ -87,6 +87,8 @@ def test_the_compile_split_compiles_only_what_the_tracker_calls():
     before = [kernels.cached_signatures(k) for k in split]
     assert all(before)
     assert kernels._single_level_call() is not None  # else its parameters changed: see there
+    for kernel, args in kernels._refinement_calls():  # each runs: else its parameters changed
+        kernel(*args)  # (and _compile_refinement would skip it in silence)
     kernels._compile_ahead(ahead)
     kernels._compile_refinement()
     kernels.compile_search()
@@ -113,3 +115,29 @@ def test_a_decoded_frame_runs_the_filter_the_warm_up_compiled():
     pre.preprocess(frame, TrackerParams())
     pre.preprocess(frozen, TrackerParams())
     assert len(pre._blur_fixed.signatures) == 1, pre._blur_fixed.signatures
+
+
+PAPER_KERNELS = """
+import sys
+from vistrack.common.params import TrackerParams
+from vistrack.common.vision import ssd, tracker, warm_up
+warm_up(params=TrackerParams.paper() if sys.argv[1] == "paper" else None)
+print(len(tracker._predict.signatures), len(ssd._track.signatures))
+"""
+
+
+def test_the_paper_trackers_kernels_are_warmed_for_whom_uses_it():
+    """``--paper``'s single-level search has kernels of its own: warmed up with its
+    parameters they are ready before the first frame (on a cold cache they compiled inside
+    it: ~4 s in the first design run's t1); without, they are not loaded at all (a fresh
+    process, whose kernels come from the cache the session filled)."""
+    tracker.warm_up(params=tracker.TrackerParams.paper())  # fill the cache
+    env = {**os.environ}
+
+    def loaded(which: str) -> list[int]:
+        out = subprocess.run([sys.executable, "-c", PAPER_KERNELS, which], env=env,
+                             capture_output=True, text=True, check=True, timeout=120)
+        return [int(v) for v in out.stdout.split()]
+
+    assert all(loaded("paper"))
+    assert not any(loaded("default"))

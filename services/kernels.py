@@ -34,9 +34,11 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import inspect
+import logging
 import os
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -357,6 +359,45 @@ def compile_search() -> None:
                   subpixel=p.subpixel, search=p.search, uniqueness=p.uniqueness,
                   allowance=1.0, reject_border=p.reject_border, guided_retry=p.guided_retry,
                   max_fb_error=p.max_fb_error, consensus=p.consensus, wide_half=p.refine_half)
+
+
+@contextlib.contextmanager
+def late_compiles_logged(log: logging.Logger) -> Iterator[None]:
+    """Within the block (a service's loop), log a WARNING for each of the tracker's kernels
+    numba compiles in this process: after the warm-up, a compile is a frame that waited for
+    the compiler, up to seconds on a cold cache, and a lockstep camera that sent it again.
+    Such a kernel belongs in :func:`~vistrack.common.vision.warm_up`. (Numba's own helpers,
+    compiled on the way, at DEBUG.)"""
+    from numba.core import event as numba_event
+
+    from ..common.vision.tracker import warming_up
+
+    started: dict[int, list[float]] = {}  # a thread's compiles under way (a kernel's
+    # callees compile inside it)
+
+    class LateCompiles(numba_event.Listener):
+        def on_start(self, event: numba_event.Event) -> None:
+            started.setdefault(threading.get_ident(), []).append(time.perf_counter())
+
+        def on_end(self, event: numba_event.Event) -> None:
+            now = time.perf_counter()
+            under_way = started.get(threading.get_ident())
+            took = now - (under_way.pop() if under_way else now)
+            if warming_up():  # a warm-up for new parameters: expected, and said by it
+                return
+            data = event.data or {}
+            func = getattr(data.get("dispatcher"), "py_func", None)
+            name = f"{getattr(func, '__module__', '?')}.{getattr(func, '__qualname__', '?')}"
+            level = logging.WARNING if name.startswith("vistrack.") else logging.DEBUG
+            log.log(level, "numba compiled %s for %s in %.2f s after the warm-up: the work "
+                    "that called it waited", name, data.get("args"), took)
+
+    listener = LateCompiles()
+    numba_event.register("numba:compile", listener)
+    try:
+        yield
+    finally:
+        numba_event.unregister("numba:compile", listener)
 
 
 def say_on_stderr(command: str, stream: TextIO | None = None) -> Callable[[str], None]:

@@ -26,6 +26,7 @@ Per frame t -> t+1:
 from __future__ import annotations
 
 import contextlib
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -398,9 +399,18 @@ def warm_up(on_compile: Callable[[], None] | None = None,
         if todo:
             frames = sequence(3, size=(64, 64), seed=1)
         for key, p in todo.items():
-            track_frames(frames, p.replace(max_features=20, search_size=5, corr_size=5))
+            _WARMING.add(threading.get_ident())
+            try:
+                track_frames(frames, p.replace(max_features=20, search_size=5, corr_size=5))
+            finally:
+                _WARMING.discard(threading.get_ident())
             _WARM.add(key)
     return watch.compiled
+
+
+def warming_up() -> bool:
+    """Whether this thread is in :func:`warm_up` (whose compiles are expected)."""
+    return threading.get_ident() in _WARMING
 
 
 def _kernel_set(p: TrackerParams) -> tuple[bool, str, bool]:
@@ -410,6 +420,8 @@ def _kernel_set(p: TrackerParams) -> tuple[bool, str, bool]:
 
 #: the kernel sets (:func:`_kernel_set`) this process has warmed up
 _WARM: set[tuple[bool, str, bool]] = set()
+#: the threads in :func:`warm_up`'s tracking
+_WARMING: set[int] = set()
 
 
 @contextlib.contextmanager

@@ -35,7 +35,7 @@ from ...common.messages import Demand, Estimate, PreFrame, encode_estimate
 from ...common.params import TrackerParams
 from ...common.vision import Preprocessed, Tracker, warm_up
 from ...common.vision.preprocess import DeferredPreprocessed
-from ..kernels import warm_up_kernels
+from ..kernels import late_compiles_logged, warm_up_kernels
 from ..runtime import (
     ParamsInForce,
     add_service_args,
@@ -184,8 +184,9 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         demand.reset()
 
     ready(node)
-    dispatch(node, {node.keys.params: on_params, node.keys.pre_frame: on_frame}, log,
-             recover=recover)
+    with late_compiles_logged(log):
+        dispatch(node, {node.keys.params: on_params, node.keys.pre_frame: on_frame}, log,
+                 recover=recover)
 
 
 def main(args: argparse.Namespace) -> int:

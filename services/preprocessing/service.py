@@ -40,7 +40,7 @@ from ...common.messages import Demand, Frame, encode_pre_frame
 from ...common.vision import preprocess
 from ...common.vision.preprocess import Grey
 from ..camera import ros2cam
-from ..kernels import warm_up_kernels
+from ..kernels import late_compiles_logged, warm_up_kernels
 from ..runtime import (
     ParamsInForce,
     add_service_args,
@@ -136,7 +136,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         node.subscribe(node.keys.frame, latest=True)
         handlers[node.keys.frame] = on_frame
         ready(node)
-        dispatch(node, handlers, log)
+        with late_compiles_logged(log):
+            dispatch(node, handlers, log)
         return
     topic = ros2cam.topic_of(args.source)
     typename = ros2cam.type_of(topic)
@@ -170,7 +171,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         log.info("ROS 2 camera read directly: %s (%s) on domain %d", topic, typename,
                  args.domain)
         ready(node)
-        dispatch(node, handlers, log)
+        with late_compiles_logged(log):
+            dispatch(node, handlers, log)
 
 
 class _AndTopic(dict[str, Callable[[bytes], object]]):

@@ -141,3 +141,30 @@ def test_the_paper_trackers_kernels_are_warmed_for_whom_uses_it():
 
     assert all(loaded("paper"))
     assert not any(loaded("default"))
+
+
+def test_a_kernel_compiled_after_the_warm_up_is_a_warning(caplog):
+    """A kernel of ours compiled once the service runs (types the warm-up did not cover) is
+    logged as a WARNING with its name; the warm-up's own compiles are not, nor numba's own
+    helpers (DEBUG). The late kernel is one of the test's, in a module named as ours (not
+    cached: a kernel of ours would come from numba's cache on the next run, no compile)."""
+    import logging
+
+    def late(x):
+        return x + 1
+
+    def other(x):
+        return x * 2
+
+    late.__module__ = "vistrack.common.vision.late"
+
+    log = logging.getLogger("vistrack.test-late")
+    with kernels.late_compiles_logged(log), caplog.at_level(logging.DEBUG, logger=log.name):
+        tracker.warm_up(params=tracker.TrackerParams.paper())  # warm: nothing to say
+        assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+        assert nb.njit(late)(1) == 2 and nb.njit(other)(2) == 4
+    assert nb.njit(late)(2.0) == 3.0  # after the block: not watched
+    said = [(r.levelno, r.getMessage()) for r in caplog.records if r.name == log.name]
+    warned = [m for level, m in said if level == logging.WARNING]
+    assert len(warned) == 1 and "vistrack.common.vision.late" in warned[0], said
+    assert any("other" in m for level, m in said if level == logging.DEBUG), said

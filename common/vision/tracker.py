@@ -7,7 +7,8 @@ Per frame t -> t+1:
 
 1. prediction (Section 4): constant velocity from finite differences,
    ``x_pred = x_t + (x_t - x_{t-1})``; a feature's first step is predicted by the image motion
-   of the frame before (zero on a track's second frame, and always with the paper's tracker,
+   of the frame before, its scale step about the tracked features' centroid included (zero
+   on a track's second frame, and always with the paper's tracker,
    :meth:`TrackerParams.paper`);
 2. coarse-to-fine SSD search of Eq. (1) around the prediction, refined to sub-pixel
    (:mod:`.pyramid`, :mod:`.ssd`);
@@ -125,6 +126,7 @@ class Tracker:
         self._acc_dy = 0.0
         self._acc_scale = 1.0
         self._motion = (0.0, 0.0)  # the image motion of the last frame, px
+        self._zoom = 1.0  # its scale step, about the features' centroid in frame t+1
         self._frame = 0
         self._lost = np.zeros(len(STATUS_NAMES), np.int64)
         self.redetections = 0
@@ -221,6 +223,7 @@ class Tracker:
         assert self._prev is not None
         if len(self._pos) == 0:
             self._motion = (0.0, 0.0)
+            self._zoom = 1.0
             return
         if pyr is None:
             # the paper's tracker: its single-level search straight from track_ssd, no pyramid
@@ -263,6 +266,7 @@ class Tracker:
             self._acc_dy += dy
             self._acc_scale *= scale
         self._motion = (dx, dy) if moved else (0.0, 0.0)
+        self._zoom = scale if moved else 1.0
         self._lost += lost
         self._pos = pos
         self._vel = vel
@@ -278,11 +282,18 @@ class Tracker:
         if len(chosen) == 0:
             return
         new = pre.candidates[chosen].astype(np.float64)
+        # a new feature's first step is predicted by the image motion of the frame before,
+        # its scale step included (about the tracked features' centroid: an approach moves
+        # the features near the frame's edges fastest); the paper's tracker has no finite
+        # difference for it yet, so zero velocity
+        if _single_level(p):
+            vel = np.zeros_like(new)
+        else:
+            vel = np.tile(np.array(self._motion), (len(new), 1))
+            if self._zoom != 1.0 and len(self._pos):
+                vel += (self._zoom - 1.0) * (new - self._pos.mean(axis=0))
         self._pos = np.concatenate([self._pos, new])
-        # a new feature's first step is predicted by the image motion of the frame before;
-        # the paper's tracker has no finite difference for it yet, so zero velocity
-        motion = (0.0, 0.0) if _single_level(p) else self._motion
-        self._vel = np.concatenate([self._vel, np.tile(np.array(motion), (len(new), 1))])
+        self._vel = np.concatenate([self._vel, vel])
         self._ids = np.concatenate([self._ids, np.arange(self._next_id,
                                                          self._next_id + len(new))])
         self._held = np.concatenate([self._held, np.zeros(len(new), np.bool_)])

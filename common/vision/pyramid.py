@@ -53,17 +53,21 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
    neighbours' by more than ``consensus`` px (and more than their own spread) is rejected: a
    lookalike taken for the feature, which the other tests miss when the two match each other
    both ways (a feature occluded next to a repetition of itself; :func:`_consensus`);
-5b. **the dominant motion as a second minimum** (with the uniqueness test): a match whose
-   displacement departs from the frame's dominant motion (the median of the matches') by
-   more than DOMINANT_PX is rejected as ambiguous when that motion's displacement (or a
-   neighbour of it outside the match's own 3x3) fits its template about as well, by the
-   uniqueness test's bound (:func:`_dominant_alternative`). A coarse level can alias a
-   repetitive texture: crops of RubberWhale moved (10, 3) px between a first pair put 7 of
-   84 features on its knit one period (~11 px) off, all agreeing with each other and with
-   themselves both ways; now none, on the five sources. The scoreboard's rendered sequences
-   are unchanged; its pairs with motion boundaries: Grove2 94 pairs at 0.105 px -> 93 at
-   0.102, Urban2 82 at 0.086 -> 77 at 0.085 (the same 4 off by more than 2 px). It costs a
-   median of the matches' displacements and a few sums a frame (~3 us at 256 x 256);
+5b. **the dominant motion as a second minimum** (with the uniqueness test): a searched match
+   (not followed: following cannot jump a period) whose displacement departs from the frame's
+   dominant motion (the median of the matches') by more than DOMINANT_PX is rejected as
+   ambiguous when that motion's displacement (or a neighbour of it outside the match's own 3x3)
+   fits its template about as well, by the uniqueness test's bound
+   (:func:`_dominant_alternative`). A coarse level can alias a repetitive texture: crops of
+   RubberWhale moved (10, 3) px between a first pair put 7 of 84 features on its knit one
+   period (~11 px) off, all agreeing with each other and with themselves both ways; now none,
+   on the five sources. The scoreboard's rendered sequences are unchanged; its pairs with
+   motion boundaries: Grove2 94 pairs at 0.105 px -> 93 at 0.102, Urban2 82 at 0.086 -> 77 at
+   0.085 (the same 4 off by more than 2 px). Tested on every match it cost the bench's frames
+   11 to 14 us (4 to 5 %: a quarter of them depart from the median by 2 px, and their
+   alternatives are summed); on the searched ones only, +4 us on frames whose features were
+   held (old and new side by side in one process, 60 interleaved rounds, best of them), within
+   the rounds' spread;
 6. **wide sub-pixel window**: Gauss-Newton again over a wider window (21 px by default), whose
    estimate is taken where it agrees with the correlation window's (:func:`_widen`) to within
    a bound that grows with the camera's noise (:func:`agreement`), or where each side of its
@@ -607,8 +611,8 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
         _consensus(pts, out_pos, out_status, consensus)
     # 5b. the frame's dominant motion as a second minimum
     if ratio > 0.0:
-        _dominant_alternative(prev, curr, pts, out_pos, out_ssd, out_status, n, wts, uniform,
-                              ratio, allowance, dominant)
+        _dominant_alternative(prev, curr, pts, out_pos, out_ssd, out_status, active, n, wts,
+                              uniform, ratio, allowance, dominant)
     # 6. the wide window's sub-pixel estimate, where it agrees
     ok = np.empty(n_feat, np.bool_)
     for f in range(n_feat):
@@ -828,10 +832,12 @@ def _dominant(pts, pos, status, found):  # pragma: no cover - numba
 
 
 @nb.njit(cache=True, nogil=True)
-def _dominant_alternative(prev, curr, pts, pos, ssd, status, n, wts, uniform, ratio,
+def _dominant_alternative(prev, curr, pts, pos, ssd, status, searched, n, wts, uniform, ratio,
                           allowance, bound):  # pragma: no cover - numba
-    """Step 5b: a match whose displacement departs from the frame's dominant motion (the
-    median of the matches') by more than ``bound`` px is AMBIGUOUS when the displacement of
+    """Step 5b: a ``searched`` match (not followed: a feature that follows its prediction by
+    Gauss-Newton cannot jump a period; its track was tested when it started) whose
+    displacement departs from the frame's dominant motion (the median of all the matches')
+    by more than ``bound`` px is AMBIGUOUS when the displacement of
     the dominant motion, or one of its 8 neighbours outside the match's own 3x3
     neighbourhood, fits its template about as well: S at most ``ratio`` times the match's
     plus ``allowance``, the uniqueness test's bound. The uniqueness test sees the search
@@ -850,7 +856,7 @@ def _dominant_alternative(prev, curr, pts, pos, ssd, status, n, wts, uniform, ra
     pf = prev.ravel()
     cf = curr.ravel()
     for f in range(n_feat):
-        if status[f] != OK:
+        if status[f] != OK or not searched[f]:
             continue
         ex = pos[f, 0] - pts[f, 0] - gx
         ey = pos[f, 1] - pts[f, 1] - gy

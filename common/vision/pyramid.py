@@ -515,7 +515,8 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
                  ratio, allowance, reject_border, guided_retry, fb_bound, consensus, dominant,
                  subpixel, wide, acc, agree, straddle, floor, out_pos, out_ssd,
                  out_status):  # pragma: no cover - numba
-    """The whole of :func:`track_pyramid` (steps 1 to 6 of the module notes); ``acc``: the
+    """The whole of :func:`track_pyramid` (steps 1 to 6 of the module notes), returning how
+    many were found; ``acc``: the
     integer type of the sub-pixel sums (:func:`.ssd.refine_acc`); ``dominant``: DOMINANT_PX
     (read where it is called, so that a test can turn step 5b off)."""
     n_feat = pts.shape[0]
@@ -525,7 +526,7 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
         out_ssd[f] = np.inf
         out_status[f] = LEFT
     if n_feat == 0:
-        return
+        return 0
     uniform, _, _ = _weights_info(wts)
     scratch = _refine_scratch(wts, acc)
     seen = np.empty((2 * DESCENT_STEPS + 3, 2 * DESCENT_STEPS + 3), np.int64)
@@ -615,14 +616,17 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
                               uniform, ratio, allowance, dominant)
     # 6. the wide window's sub-pixel estimate, where it agrees
     ok = np.empty(n_feat, np.bool_)
+    found = 0
     for f in range(n_feat):
         ok[f] = out_status[f] == OK
+        found += ok[f]
         if not ok[f]:
             out_pos[f, 0] = np.nan
             out_pos[f, 1] = np.nan
             out_ssd[f] = np.inf
     if subpixel and wide > n:
         _widen(prev, curr, pts, n, wide, acc, ok, out_pos, agree, straddle, floor)
+    return found
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1286,13 +1290,13 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
         raise ValueError(f"followed must be a ({n_feat},) bool array")
     def run(preds: np.ndarray, hold: np.ndarray, follow: bool, pos: np.ndarray,
             ssd: np.ndarray, status: np.ndarray, taken: np.ndarray) -> int:
-        _track_frame(prev.data, curr.data, prev.geo, pts, preds, hold, follow, taken,
-                     int(corr_half), int(search_half), wts, search == "exhaustive",
-                     float(uniqueness), float(allowance), bool(reject_border),
-                     bool(guided_retry), float(max_fb_error), float(consensus),
-                     float(DOMINANT_PX), bool(subpixel), int(wide_half), acc, float(agree),
-                     float(straddle), float(floor), pos, ssd, status)
-        return int(np.count_nonzero(status == OK))
+        return int(_track_frame(prev.data, curr.data, prev.geo, pts, preds, hold, follow,
+                                taken, int(corr_half), int(search_half), wts,
+                                search == "exhaustive", float(uniqueness), float(allowance),
+                                bool(reject_border), bool(guided_retry), float(max_fb_error),
+                                float(consensus), float(DOMINANT_PX), bool(subpixel),
+                                int(wide_half), acc, float(agree), float(straddle),
+                                float(floor), pos, ssd, status))
 
     found = run(preds, hold, bool(follow), pos, ssd, status, taken)
     if guided_retry and n_feat >= MIN_GUIDES and found < BROKEN * n_feat:

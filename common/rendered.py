@@ -208,6 +208,58 @@ def sequence(source: np.ndarray, name: str, *, n: int = 60, size: tuple[int, int
     return RenderedSequence(name, render(source, hs, size, noise=noise, seed=seed + 1), hs)
 
 
+def jerk(source: np.ndarray, name: str, *, steady: tuple[float, float] = (3.3, 1.2),
+         jump: tuple[float, float] = (44.6, -15.3), before: int = 8, after: int = 8,
+         size: tuple[int, int] = (256, 256), noise: float = 1.0, seed: int | None = None
+         ) -> RenderedSequence:
+    """A view that moves by ``steady`` px a frame for ``before`` frames, by ``jump`` px in
+    one frame (a bump, a frame dropped at speed), then by ``steady`` again for ``after``
+    frames: every feature's constant-velocity prediction breaks twice, at the jump and at the
+    step back. Translations only, the path centred in the source.
+
+    Raises
+    ------
+    ValueError
+        If the source has no room for the path.
+    """
+    steps = [np.array(steady, np.float64)] * before + [np.array(jump, np.float64)] \
+        + [np.array(steady, np.float64)] * after
+    scene = np.cumsum([np.zeros(2), *steps], axis=0)  # where the scene has moved to
+    view = -scene  # the view's top-left corner in the source, before centring
+    sw, sh = source.shape[1], source.shape[0]
+    span = view.max(axis=0) - view.min(axis=0) + np.array(size, np.float64)
+    if span[0] > sw - 4 or span[1] > sh - 4:
+        raise ValueError(f"{name}: a {sw}x{sh} source has no room for a {size[0]}x{size[1]} "
+                         f"view travelling {span[0] - size[0]:.0f}x{span[1] - size[1]:.0f} px")
+    view += (np.array([sw, sh], np.float64) - span) / 2.0 - view.min(axis=0)
+    hs = np.array([[[1.0, 0.0, -x], [0.0, 1.0, -y], [0.0, 0.0, 1.0]] for x, y in view])
+    if seed is None:
+        seed = zlib.crc32(name.encode()) + 21
+    return RenderedSequence(f"{name}, jerk", render(source, hs, size, noise=noise, seed=seed),
+                            hs)
+
+
+def approach(source: np.ndarray, name: str, *, rate: float = 1.1, n: int = 12,
+             size: tuple[int, int] = (256, 256), noise: float = 1.0, seed: int | None = None
+             ) -> RenderedSequence:
+    """A view zooming in by ``rate`` a frame about the source's centre: the camera moving
+    towards the scene (forward driving at a low frame rate), the features near the frame's
+    edges moving fastest. The first frame's view is the largest the source holds."""
+    sw, sh = source.shape[1], source.shape[0]
+    w, h = size
+    s0 = max(w / (sw - 4.0), h / (sh - 4.0))  # frame px per source px at frame 0
+    cs = ((sw - 1) / 2.0, (sh - 1) / 2.0)
+    cv = ((w - 1) / 2.0, (h - 1) / 2.0)
+    hs = []
+    for k in range(n):
+        s = s0 * rate ** k
+        hs.append([[s, 0.0, cv[0] - s * cs[0]], [0.0, s, cv[1] - s * cs[1]], [0.0, 0.0, 1.0]])
+    if seed is None:
+        seed = zlib.crc32(name.encode()) + 31
+    return RenderedSequence(f"{name}, approach", render(source, np.array(hs), size,
+                                                        noise=noise, seed=seed), np.array(hs))
+
+
 def _line_kernel(dx: float, dy: float) -> np.ndarray:
     """The normalised kernel of a straight motion (dx, dy) px during an exposure, centred:
     the mean of the image shifted along the motion, sampled every quarter pixel."""

@@ -22,7 +22,9 @@ homographies, translation up to 12 px a frame; exact ground truth), and the same
 sequences seen by a camera whose auto-exposure hunts (``, exposure``: gain +-8 % and offset
 +-10 grey levels from frame to frame, :func:`~vistrack.common.rendered.with_exposure`), and
 the same paths through a shutter open half the frame interval (``, blur 0.5``: motion blur of
-up to 6 px that changes with the speed, :func:`~vistrack.common.rendered.motion_blurred`).
+up to 6 px that changes with the speed, :func:`~vistrack.common.rendered.motion_blurred`), a
+bump in a steady run (``, jerk``, :func:`~vistrack.common.rendered.jerk`) and an approach
+(``, approach``, :func:`~vistrack.common.rendered.approach`).
 """
 
 from __future__ import annotations
@@ -227,9 +229,14 @@ def scoreboard(params: TrackerParams | None = None, *, n_frames: int = 60,
     longs = rendered.middlebury_sequences(n_frames)
     # the same views through a camera whose auto-exposure hunts (see rendered.with_exposure)
     # and through a shutter open half the frame interval (see rendered.motion_blurred)
+    sources = rendered.middlebury_sources()
     blurred = [rendered.motion_blurred(image, f"{name} rendered", exposure=0.5, n=n_frames)
-               for name, image in rendered.middlebury_sources()]
-    for seq in [*longs, *(rendered.with_exposure(s) for s in longs), *blurred]:
+               for name, image in sources]
+    # a bump in a steady run, and an approach (see rendered.jerk, rendered.approach)
+    jerks = [rendered.jerk(image, f"{name} rendered") for name, image in sources]
+    approaches = [rendered.approach(image, f"{name} rendered") for name, image in sources]
+    for seq in [*longs, *(rendered.with_exposure(s) for s in longs), *blurred, *jerks,
+                *approaches]:
         ours, lk, rej = run_sequence(seq.frames, _step_of(seq), params, end_truth=_end_of(seq))
         rows.append(Row(seq.name, len(seq), ours, lk, rej))
         if progress:
@@ -283,7 +290,9 @@ def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[
               file=out)
         key = r.sequence.split(" ")[0] + ("_pair" if r.frames == 2 else "_long") \
             + ("_exposure" if r.sequence.endswith(", exposure") else "") \
-            + ("_blur" if ", blur" in r.sequence else "")
+            + ("_blur" if ", blur" in r.sequence else "") \
+            + ("_jerk" if r.sequence.endswith(", jerk") else "") \
+            + ("_approach" if r.sequence.endswith(", approach") else "")
         fig.update({f"{key}_median": o.median_epe, f"{key}_lk_median": lk.median_epe,
                     f"{key}_gross": o.gross, f"{key}_lk_gross": lk.gross,
                     f"{key}_pairs": float(o.pairs), f"{key}_lk_pairs": float(lk.pairs)})

@@ -26,7 +26,8 @@ def test_bench_accuracy(capsys):
     with capsys.disabled():
         print("\n" + buf.getvalue())
     for name in PAIRS:
-        for kind in ("pair", "long"):
+        for kind in ("pair", "long", "long_exposure", "long_blur", "long_jerk",
+                     "long_approach"):
             for what in ("median", "lk_median", "gross"):
                 assert math.isfinite(fig[f"{name}_{kind}_{what}"]), (name, kind, what)
         assert 0 <= fig[f"{name}_long_survival"] <= 1

@@ -49,3 +49,49 @@ def test_rendered_sequences_are_deterministic():
     for fa, fb in zip(a.frames, b.frames, strict=True):
         np.testing.assert_array_equal(fa, fb)
     np.testing.assert_array_equal(a.homographies, b.homographies)
+
+
+def _dot_source(size=(400, 300), at=(200.0, 150.0)):
+    source = np.zeros((size[1], size[0]), np.uint8)
+    cv2.circle(source, (int(at[0]), int(at[1])), 6, 255, -1, lineType=cv2.LINE_AA)
+    return source
+
+
+def _centre_of_mass(frame):
+    m = cv2.moments(frame.astype(np.float32))
+    return np.array([m["m10"] / m["m00"], m["m01"] / m["m00"]])
+
+
+def test_a_jerk_moves_steadily_jumps_once_and_shows_its_dot_where_it_says():
+    seq = rendered.jerk(_dot_source(), "dot", steady=(2.5, 1.0), jump=(30.0, -10.0), before=3,
+                        after=2, size=(200, 160), noise=0.0)
+    assert len(seq) == 7 and seq.name == "dot, jerk"
+    p = np.array([[100.0, 80.0]])
+    steps = [seq.map(p, k, k + 1)[0] - p[0] for k in range(len(seq) - 1)]
+    np.testing.assert_allclose(steps, [[2.5, 1.0]] * 3 + [[30.0, -10.0]] + [[2.5, 1.0]] * 2,
+                               atol=1e-9)
+    start = seq.map(np.array([[0.0, 0.0]]), 0, 0)  # identity
+    assert np.allclose(start, 0.0)
+    for k, f in enumerate(seq.frames):  # the source's dot lands where the homography says
+        h = seq.homographies[k] @ [200.0, 150.0, 1.0]
+        assert np.hypot(*(_centre_of_mass(f) - h[:2] / h[2])) < 0.05, k
+    with pytest.raises(ValueError, match="no room"):
+        rendered.jerk(_dot_source((220, 300)), "small", size=(200, 160))
+
+
+def test_an_approach_zooms_about_the_centre_and_shows_its_dot_where_it_says():
+    seq = rendered.approach(_dot_source(at=(230.0, 170.0)), "dot", rate=1.2, n=4,
+                            size=(200, 160), noise=0.0)
+    assert len(seq) == 4 and seq.name == "dot, approach"
+    centre = np.array([[99.5, 79.5]])
+    p = centre + [[40.0, -20.0]]
+    for k in range(3):  # the view's centre stays; a point 40 px right moves out by 20 %
+        np.testing.assert_allclose(seq.map(centre, k, k + 1), centre, atol=1e-9)
+        np.testing.assert_allclose(seq.map(p, k, k + 1), centre + 1.2 * (p - centre),
+                                   atol=1e-9)
+    for k, f in enumerate(seq.frames):
+        h = seq.homographies[k] @ [230.0, 170.0, 1.0]
+        assert np.hypot(*(_centre_of_mass(f) - h[:2] / h[2])) < 0.05, k
+    corners = np.array([[0.0, 0.0, 1.0], [199.0, 159.0, 1.0]])
+    q = corners @ np.linalg.inv(seq.homographies[0]).T  # the first view inside the source
+    assert q[:, :2].min() >= 1.0 and q[1, 0] <= 399.0 and q[1, 1] <= 299.0

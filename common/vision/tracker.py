@@ -45,6 +45,10 @@ from .preprocess import Preprocessed, preprocess
 from .pyramid import Pyramid, build_pyramid, track_pyramid, wide_tests
 from .ssd import BORDER, LEFT, OK, RESIDUAL, STATUS_NAMES, track_ssd, window_weights
 
+#: The scale steps a new feature's prediction extrapolates (:meth:`Tracker._add_features`):
+#: an approach of up to 25 % a frame either way (the tests run 15 %); beyond, the frame's
+#: incremental motion is more likely wrong than the camera that fast.
+ZOOM_RANGE = (0.8, 1.25)
 #: Frames between two estimates of the camera's noise (:mod:`.noise`, ~0.2 ms at 256 x 256):
 #: a camera's noise changes with its gain, not from frame to frame.
 NOISE_EVERY = 30
@@ -266,7 +270,8 @@ class Tracker:
             self._acc_dy += dy
             self._acc_scale *= scale
         self._motion = (dx, dy) if moved else (0.0, 0.0)
-        self._zoom = scale if moved else 1.0
+        # a scale step beyond ZOOM_RANGE is a frame's error, not an approach: not extrapolated
+        self._zoom = scale if moved and ZOOM_RANGE[0] <= scale <= ZOOM_RANGE[1] else 1.0
         self._lost += lost
         self._pos = pos
         self._vel = vel

@@ -11,6 +11,7 @@ from test_ssd import border_features, random_pair
 from vistrack.common import synthetic
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker, preprocess, track_ssd, window_weights
+from vistrack.common.vision import tracker as tracker_module
 from vistrack.common.vision.pyramid import NEIGHBOURS, _consensus, build_pyramid, track_pyramid
 from vistrack.common.vision.ssd import AMBIGUOUS, BORDER, DISAGREES, FB, OK, STATUS_NAMES
 
@@ -386,12 +387,22 @@ def test_held_features_follow_to_the_matches_of_the_search(real_image, step):
     assert len(err) > 60 and np.median(err) < 0.1 and err.max() < 1.0
 
 
-def test_a_wrong_prediction_is_searched_for_not_followed(real_image):
+def test_a_wrong_prediction_is_searched_for_not_followed(real_image, monkeypatch):
     """After three steady frames the scene jumps 9 px the other way: hardly a feature can
     follow its prediction (11.5 px off), and those that seem to are not trusted: every
     feature is searched, and the coarse-to-fine search finds them all the same; a jump of
-    2.5 px is followed coarse to fine by Gauss-Newton alone."""
+    2.5 px is followed coarse to fine by Gauss-Newton alone: by most features, and by every
+    one whose coarsest level holds its window (30 px from the frame's edges; nearer, some
+    follow, the others are searched)."""
     step = np.array([2.5, 0.0])
+    seen = {}
+
+    def spy(*args, **kwargs):  # the real track_pyramid; what step 0 took, feature by feature
+        out = track_pyramid(*args, **kwargs)
+        seen["points"], seen["followed"] = args[2].copy(), kwargs["followed"].copy()
+        return out
+
+    monkeypatch.setattr(tracker_module, "track_pyramid", spy)
     for jump, followed in ((np.array([-9.0, 0.0]), False), (np.array([2.0, -1.5]), True)):
         tracker = Tracker(TrackerParams(redetect_fraction=0.0))
         ests = [tracker.process(shifted(real_image, *(step * k))) for k in range(3)]
@@ -400,7 +411,10 @@ def test_a_wrong_prediction_is_searched_for_not_followed(real_image):
         ests.append(tracker.process(shifted(real_image, *last)))
         taken = tracker.followed - before
         n = len(ests[2].ids)
+        inner = np.all((seen["points"] > 30) & (seen["points"] < 226), axis=1)
         assert (taken == 0) if not followed else (taken >= 0.8 * n), (jump, taken, n)
+        if followed:
+            assert inner.sum() >= 0.3 * n and seen["followed"][inner].all(), (jump, n)
         err = _truth_errors(ests[0], ests[3], last)
         assert len(err) >= 0.8 * n and np.median(err) < 0.1 and err.max() < 1.0, jump
 

@@ -35,3 +35,14 @@ def rendered_sequences(n: int, names: tuple[str, ...]) -> list[rendered.Rendered
         pytest.skip("Middlebury frames not found: set VISTRACK_DATA or put the shared data at "
                     "../shared/data")
     return seqs
+
+
+@pytest.fixture(scope="session")
+def sources() -> list[tuple[str, np.ndarray]]:
+    """(name, grey frame10) of every Middlebury sequence the rendered ones start from
+    (:data:`rendered.SOURCES`), or skip."""
+    found = rendered.middlebury_sources()
+    if len(found) < len(rendered.SOURCES):
+        pytest.skip("Middlebury frames not found: set VISTRACK_DATA or put the shared data at "
+                    "../shared/data")
+    return found

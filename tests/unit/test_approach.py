@@ -8,24 +8,13 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import pytest
 
-from vistrack.common import rendered
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker
 
 RATE = 1.15  # scale a frame
 FRAMES = 12
 MARGIN = 10  # px: a feature nearer the next frame's edge may be lost with its window
-
-
-@pytest.fixture(scope="module")
-def sources():
-    found = rendered.middlebury_sources()
-    if len(found) < len(rendered.SOURCES):
-        pytest.skip("Middlebury frames not found: set VISTRACK_DATA or put the shared data at "
-                    "../shared/data")
-    return found
 
 
 def approach(image):

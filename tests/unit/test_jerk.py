@@ -10,22 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-from vistrack.common import rendered
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker, pyramid
 from vistrack.common.vision.pyramid import build_pyramid, frame_shift
 
 SIZE = (320, 240)  # width, height of the crops
 MARGIN = 10  # px: a feature nearer the edge of the next crop may be lost with its window
-
-
-@pytest.fixture(scope="module")
-def sources():
-    found = rendered.middlebury_sources()
-    if len(found) < len(rendered.SOURCES):
-        pytest.skip("Middlebury frames not found: set VISTRACK_DATA or put the shared data at "
-                    "../shared/data")
-    return found
 
 
 def crop(image, x, y):

@@ -441,7 +441,8 @@ def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, 
             dy = 2.0 * disp[f, 1]
             done = False
             if subpixel:
-                good, x, y = _refine_with(prev, curr, ax, ay, ax + dx, ay + dy, n, scratch)
+                good, x, y = _refine_with(prev, curr, ax, ay, ax + dx, ay + dy, n, scratch,
+                                          k == 0)
                 if good:
                     disp[f, 0] = x - ax
                     disp[f, 1] = y - ay
@@ -680,7 +681,7 @@ def _follow(pdata, cdata, geo, pts, preds, held, n, wts, fb_bound, scratch, acti
                 dx = ox / scale
                 dy = oy / scale
             have, xk, yk = _refine_with(_level(pdata, geo, k), _level(cdata, geo, k), kx, ky,
-                                        kx + dx, ky + dy, n, scratch)
+                                        kx + dx, ky + dy, n, scratch, k == 0)
             if have:
                 dx = xk - kx
                 dy = yk - ky
@@ -702,7 +703,7 @@ def _follow(pdata, cdata, geo, pts, preds, held, n, wts, fb_bound, scratch, acti
         bx = int(np.rint(px))
         by = int(np.rint(py))
         good, xb, yb = _refine_with(curr, prev, bx, by, bx + (pts[f, 0] - px),
-                                    by + (pts[f, 1] - py), n, scratch)
+                                    by + (pts[f, 1] - py), n, scratch, False)
         if not good:
             continue
         ex = px + (xb - bx) - pts[f, 0]
@@ -795,7 +796,7 @@ def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaus
         ax = int(np.rint(back[f, 0]))
         ay = int(np.rint(back[f, 1]))
         good, x, y = _refine_with(prev, curr, ax, ay, ax + (pts[f, 0] - back[f, 0]),
-                                  ay + (pts[f, 1] - back[f, 1]), n, scratch)
+                                  ay + (pts[f, 1] - back[f, 1]), n, scratch, False)
         if not good:
             full += 1
             continue
@@ -812,7 +813,7 @@ def _from_integer(prev, curr, ax, ay, qx, qy, n, wts, uniform, ssd,
                   scratch):  # pragma: no cover - numba
     """The sub-pixel position of the template at (ax, ay) from its integer minimum (qx, qy)
     (S there ``ssd``): Gauss-Newton, or where it cannot run a parabola per axis."""
-    good, x, y = _refine_with(prev, curr, ax, ay, float(qx), float(qy), n, scratch)
+    good, x, y = _refine_with(prev, curr, ax, ay, float(qx), float(qy), n, scratch, True)
     if good:
         return x, y
     h, w = prev.shape
@@ -1111,7 +1112,7 @@ def _widen(prev, curr, pts, n, wide, acc, ok, out_pos, agree, straddle,
         ay = int(np.rint(pts[f, 1]))
         x = ax + (out_pos[f, 0] - pts[f, 0])
         y = ay + (out_pos[f, 1] - pts[f, 1])
-        good, xw, yw = _refine_with(prev, curr, ax, ay, x, y, wide, scratch)
+        good, xw, yw = _refine_with(prev, curr, ax, ay, x, y, wide, scratch, True)
         if not good:
             continue
         take = (xw - x) * (xw - x) + (yw - y) * (yw - y) <= agree * agree

@@ -222,7 +222,10 @@ def _refinement_calls() -> list[tuple[Callable[..., object], tuple]]:
             (ssd._parabola, (flat, flat, 64, 64, 32, 32, 32, 32, 2, wts, uniform, 0.0)),
             (pyramid._consensus, (pts, pts.copy(), np.full(1, ssd.LEFT, np.int8), 2.0)),
             (pyramid._widen, (frame, frame, pts, 2, 10, acc, np.zeros(1, np.bool_),
-                              pts.copy(), 0.1, 2.0, 8.0))]
+                              pts.copy(), 0.1, 2.0, 8.0, np.zeros(1, np.bool_), pts.copy())),
+            (pyramid._affine_correction, (frame, pts, pts.copy(),
+                                          np.full(1, ssd.LEFT, np.int8), np.zeros(1, np.bool_),
+                                          pts.copy(), 2, wts, uniform, 0.2))]
 
 
 #: the parameters of :func:`~vistrack.common.vision.ssd._search_level` that
@@ -291,9 +294,10 @@ def _match_signatures() -> list[tuple[Any, tuple]]:
 
     u8_2, i64, i32_1 = t.Array(t.uint8, 2, "C"), t.int64, t.Array(t.int32, 1, "C")
     wts = t.Array(t.int32, 2, "C")
-    scratch = t.Tuple((i32_1, i32_1, i32_1, wts))
     u8_1, f64_1, f64_2 = t.Array(t.uint8, 1, "C"), t.Array(t.float64, 1, "C"), t.Array(
         t.float64, 2, "C")
+    # .ssd._refine_scratch's (wpad, tp, cp, g, q, cen), g and q in int32 (the default windows)
+    scratch = t.Tuple((i32_1, i32_1, i32_1, wts, wts, f64_1))
     b_1 = t.Array(t.boolean, 1, "C")
     return [(pyramid._descend, (u8_2, u8_2, *[i64] * 5, wts, t.boolean, t.literal(3),
                                 t.Array(t.int64, 2, "C"))),

@@ -842,8 +842,12 @@ AGREE_NOISE = 2.0
 GN_STEP_PX = 1e-3
 GN_ITERATIONS = 10
 #: the largest |W (2 gradient)| * |second difference| term of the sums of :func:`_refine`, per
-#: unit of weight (2 * 255 * 4 * 255): what decides whether they fit int32
+#: unit of weight (2 * 255 * 4 * 255): with the centroid's sums (below), what decides whether
+#: they fit int32
 _REFINE_TERM = 520200.0
+#: the centroid's sums, sum W (2 gradient) (2 gradient . q): at most this per unit of weight
+#: and of sum |qx| + |qy| over the window (2 * 255 * 2 * 255)
+_CENTROID_TERM = 260100.0
 
 
 @nb.njit(cache=True, nogil=True)
@@ -893,20 +897,26 @@ def _corners(gx, gy, cp, off, stride, acc):  # pragma: no cover - numba
 @nb.njit(cache=True, nogil=True)
 def _refine_scratch(wts, acc):  # pragma: no cover - numba
     """The weights of a (2h+1)^2 window in :func:`_refine`'s layout (rows R = m + 4 apart,
-    zero beyond the window, the length a multiple of VEC) and its scratch: (wpad, tp, cp, g),
-    ``g`` the two gradients in the integer type of ``acc`` (an empty array from
-    :func:`refine_acc`), in which :func:`_refine` sums."""
+    zero beyond the window, the length a multiple of VEC) and its scratch: (wpad, tp, cp, g,
+    q, cen), ``g`` the two gradients in the integer type of ``acc`` (an empty array from
+    :func:`refine_acc`), in which :func:`_refine` sums; ``q`` each pixel's (i, j) from the
+    window's centre in the same layout; ``cen`` (2,) where :func:`_refine` puts the window's
+    centroid."""
     m = wts.shape[0]
+    half = m // 2
     stride = m + 4
     rsize = (m * stride + VEC - 1) // VEC * VEC
     wpad = np.zeros(rsize, np.int32)
+    q = np.zeros((2, rsize), acc.dtype)
     for j in range(m):
         for i in range(m):
             wpad[j * stride + i] = wts[j, i]
+            q[0, j * stride + i] = i - half
+            q[1, j * stride + i] = j - half
     tp = np.zeros(rsize + 4 * stride + 4, np.int32)
     cp = np.zeros(rsize + 3 * stride + 3, np.int32)
     g = np.empty((2, rsize), acc.dtype)
-    return wpad, tp, cp, g
+    return wpad, tp, cp, g, q, np.zeros(2, np.float64)
 
 
 def refine_acc(*windows: np.ndarray) -> np.ndarray:
@@ -915,13 +925,16 @@ def refine_acc(*windows: np.ndarray) -> np.ndarray:
     int64. Chosen here, before the kernels, so that they compile for that one type only."""
     for wts in windows:
         m = wts.shape[0]
-        if float(np.abs(wts).max(initial=0)) * _REFINE_TERM * m * m >= 2.0**31:
+        h = m // 2
+        term = max(_REFINE_TERM * m * m, _CENTROID_TERM * 2 * m * h * (h + 1))
+        if float(np.abs(wts).max(initial=0)) * term >= 2.0**31:
             return np.empty(0, np.int64)
     return np.empty(0, np.int32)
 
 
 @nb.njit(cache=True, nogil=True)
-def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third):  # pragma: no cover
+def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
+            cen):  # pragma: no cover
     """Minimise Eq. (1) over a continuous position of the window of the template centred at
     the pixel (ax, ay) of frame t, by Gauss-Newton from (x0, y0) in frame t+1.
 
@@ -943,6 +956,10 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third):  # prag
     steady sub-pixel speed that term's error is the same every frame and adds up: real frames
     shifted by exact band-limited shifts of (3.3, 1.2) px a frame, 16 frames, on Venus: +0.43
     / +0.44 px without it, +0.23 / +0.20 with it (RubberWhale +0.19 / +0.21 -> +0.07 / +0.07).
+    That pass also puts into ``cen`` the window's texture-weighted centroid relative to its
+    centre, (sum W H)^-1 sum W H q (H the gradient's outer product at pixel q; ``qs`` the
+    pixels' (i, j)): the point whose motion the estimate measures where the neighbourhood
+    also scales or turns (:func:`.pyramid._affine_correction`).
 
     The gradient-weighted sum of the bilinear samples splits into four integer correlations of
     the gradient with frame t+1 at the corners of the pixel holding the estimate, so an
@@ -1003,10 +1020,13 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third):  # prag
         axy = acc(axy + gxq * dyy)
         ayx = acc(ayx + gyq * dxx)
         ayy = acc(ayy + gyq * dyy)
+    vx = vy = acc(0)
     if third:
         # twice the third differences are right2 - left2 - 2 (right - left) and their y twin:
         # the gradients' products with the differences 4 px wide, less twice the normal
-        # matrix's sums (below)
+        # matrix's sums (below); and the centroid's sums, of W (2 g) (2 g . q)
+        qx = qs[0]
+        qy = qs[1]
         for q in range(size):
             wide_x = right2[q] - left2[q]
             wide_y = down2[q] - up2[q]
@@ -1014,6 +1034,9 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third):  # prag
             bxy = acc(bxy + gx[q] * wide_y)
             byx = acc(byx + gy[q] * wide_x)
             byy = acc(byy + gy[q] * wide_y)
+            along = (right[q] - left[q]) * qx[q] + (down[q] - up[q]) * qy[q]
+            vx = acc(vx + gx[q] * along)
+            vy = acc(vy + gy[q] * along)
     # the sums of the gradients' products with twice the third differences
     gxx3 = float(bxx) - 2.0 * h11 if third else 0.0
     gxy3 = float(bxy) - 2.0 * h12 if third else 0.0
@@ -1026,6 +1049,9 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third):  # prag
     det = f11 * f22 - f12 * f12
     if det <= 1e-6 * (f11 + f22) * (f11 + f22) or det <= 0.0:
         return False, x0, y0
+    if third:
+        cen[0] = 0.25 * (f22 * vx - f12 * vy) / det
+        cen[1] = 0.25 * (f11 * vy - f12 * vx) / det
     x = x0
     y = y0
     cbx = cby = -(1 << 30)  # the pixel whose corner correlations are in sx.., sy..
@@ -1072,8 +1098,8 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third):  # prag
 @nb.njit(cache=True, nogil=True)
 def _refine_with(prev, curr, ax, ay, x0, y0, n, scratch, third):  # pragma: no cover - numba
     """:func:`_refine` with the scratch of :func:`_refine_scratch`."""
-    wpad, tp, cp, g = scratch
-    return _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g[0], g[1], third)
+    wpad, tp, cp, g, qs, cen = scratch
+    return _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g[0], g[1], third, qs, cen)
 
 
 @nb.njit(cache=True, nogil=True)

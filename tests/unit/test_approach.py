@@ -9,8 +9,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from vistrack.common import rendered
 from vistrack.common.params import TrackerParams
-from vistrack.common.vision import Tracker
+from vistrack.common.vision import Tracker, pyramid
 
 RATE = 1.15  # scale a frame
 FRAMES = 12
@@ -55,3 +56,31 @@ def test_a_fast_approach_keeps_its_features_without_gross_errors(sources):
             inside += stay
     assert off <= 0.01 * pairs, (off, pairs)
     assert pairs >= 0.9 * inside, (pairs, inside)
+
+
+def test_an_approach_is_measured_at_each_feature_not_at_its_windows_centroid(sources,
+                                                                              monkeypatch):
+    """The scoreboard's approach (10 % a frame, 12 frames, exact ground truth): each source's
+    median error at most 0.1 px (0.047 to 0.074; LK from the same points 0.27 to 0.33). With
+    step 7 off (``AFFINE_FIT_PX`` 0), the estimates are of the motion at each window's
+    texture-weighted centroid, a few pixels from the feature in a 21 px window: 0.16 to 0.24
+    px, which this test fails."""
+    def median(name, image):
+        seq = rendered.approach(image, name)
+        tracker = Tracker(TrackerParams())
+        est = tracker.process(seq.frames[0])
+        errors = []
+        for k in range(1, len(seq)):
+            before = dict(zip(est.ids.tolist(), est.points, strict=True))
+            est = tracker.process(seq.frames[k])
+            starts = [before[i] for i in est.ids.tolist() if i in before]
+            ends = [p for i, p in zip(est.ids.tolist(), est.points, strict=True) if i in before]
+            truth = seq.map(np.array(starts), k - 1, k)
+            errors.extend(np.hypot(*(np.array(ends) - truth).T))
+        return float(np.median(errors))
+
+    medians = {name: median(name, image) for name, image in sources}
+    assert max(medians.values()) <= 0.1, medians
+    monkeypatch.setattr(pyramid, "AFFINE_FIT_PX", 0.0)
+    off = {name: median(name, image) for name, image in sources}
+    assert min(off.values()) > 0.1, off  # the test can tell

@@ -200,6 +200,9 @@ NEIGHBOURS = 6
 #: nearest matches' displacements fit a similarity to within this, px rms (several times a
 #: match's own error): one surface, moving as one (:func:`_affine_correction`)
 AFFINE_FIT_PX = 0.2
+#: nor where the fitted scale and rotation, |a + b i|, exceed this: a scale step beyond 0.8 ..
+#: 1.25 (the tracker's ZOOM_RANGE) is a frame's error, not an approach
+AFFINE_MAX = 0.25
 #: and only where that correction can reach this, px (the window's half-width times the
 #: first fit's scale and rotation): below it the window's centroid is not worth computing
 AFFINE_RELEVANT_PX = 0.02
@@ -1232,7 +1235,7 @@ def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform,
         if cx[a] == 0.0 and cy[a] == 0.0:
             continue
         ka, kb, rms = _similarity(xs, ys, ex, ey, near[a])
-        if rms <= bound:
+        if rms <= bound and ka * ka + kb * kb <= AFFINE_MAX * AFFINE_MAX:
             f = idx[a]
             out_pos[f, 0] -= ka * cx[a] - kb * cy[a]
             out_pos[f, 1] -= kb * cx[a] + ka * cy[a]

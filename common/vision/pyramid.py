@@ -573,7 +573,7 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
         retry[f] = st == CUT or st == BORDER or st == AMBIGUOUS or st == RUNAWAY
         retries += retry[f]
     if guided_retry and found >= MIN_GUIDES and retries > 0:
-        gx, gy = _dominant(pts, out_pos, out_status, found)
+        gx, gy = _dominant(pts, out_pos, out_status)
         guided = np.empty((n_feat, 2), np.float64)
         for f in range(n_feat):
             guided[f, 0] = pts[f, 0] + gx
@@ -847,17 +847,10 @@ def _from_integer(prev, curr, ax, ay, qx, qy, n, wts, uniform, ssd,
 
 
 @nb.njit(cache=True, nogil=True)
-def _dominant(pts, pos, status, found):  # pragma: no cover - numba
-    """The frame's dominant motion: the median displacement (dx, dy) of the ``found`` (> 0)
-    matches whose status is OK."""
-    dx = np.empty(found, np.float64)
-    dy = np.empty(found, np.float64)
-    c = 0
-    for f in range(pts.shape[0]):
-        if status[f] == OK:
-            dx[c] = pos[f, 0] - pts[f, 0]
-            dy[c] = pos[f, 1] - pts[f, 1]
-            c += 1
+def _dominant(pts, pos, status):  # pragma: no cover - numba
+    """The frame's dominant motion: the median displacement (dx, dy) of the matches (status
+    OK; at least one)."""
+    _, _, _, dx, dy = _matches(pts, pos, status)
     return _median_small(dx), _median_small(dy)
 
 
@@ -881,7 +874,7 @@ def _dominant_alternative(prev, curr, pts, pos, ssd, status, searched, n, wts, u
         found += status[f] == OK
     if found < MIN_GUIDES:
         return
-    gx, gy = _dominant(pts, pos, status, found)
+    gx, gy = _dominant(pts, pos, status)
     h, w = prev.shape
     pf = prev.ravel()
     cf = curr.ravel()
@@ -936,7 +929,7 @@ def _consensus(pts, pos, status, bound):  # pragma: no cover - numba
     compiled side by side in one process, on the bench's 7 frame pairs, best of 200 rounds
     of each in turn: 38.5 -> 11.4 us a frame (3.4x); each frame run once in turn with the
     other kernel's (branch predictors untrained on it): 43.0 -> 18.9 us (2.3x)."""
-    idx, xs, ys, dxs, dys, near = _matches(pts, pos, status)
+    idx, xs, ys, dxs, dys, near = _neighbourhoods(pts, pos, status)
     c = idx.shape[0]
     if c <= NEIGHBOURS:
         return
@@ -964,8 +957,7 @@ def _consensus(pts, pos, status, bound):  # pragma: no cover - numba
 @nb.njit(cache=True, nogil=True)
 def _matches(pts, pos, status):  # pragma: no cover - numba
     """The matches (``status`` OK) of the features at ``pts`` found at ``pos``: their indices,
-    their x, y and displacements dx, dy, as (c,) arrays, and each one's NEIGHBOURS nearest
-    (:func:`_nearest`; none where c <= NEIGHBOURS)."""
+    and their x, y and displacements dx, dy, as (c,) arrays."""
     n_feat = pts.shape[0]
     idx = np.empty(n_feat, np.int64)
     c = 0
@@ -984,7 +976,16 @@ def _matches(pts, pos, status):  # pragma: no cover - numba
         ys[a] = pts[f, 1]
         dxs[a] = pos[f, 0] - pts[f, 0]
         dys[a] = pos[f, 1] - pts[f, 1]
-    near = _nearest(xs, ys) if c > NEIGHBOURS else np.empty((0, NEIGHBOURS), np.int64)
+    return idx, xs, ys, dxs, dys
+
+
+@nb.njit(cache=True, nogil=True)
+def _neighbourhoods(pts, pos, status):  # pragma: no cover - numba
+    """:func:`_matches`, and each match's NEIGHBOURS nearest (:func:`_nearest`; none where
+    there are NEIGHBOURS matches or fewer)."""
+    idx, xs, ys, dxs, dys = _matches(pts, pos, status)
+    near = (_nearest(xs, ys) if idx.shape[0] > NEIGHBOURS
+            else np.empty((0, NEIGHBOURS), np.int64))
     return idx, xs, ys, dxs, dys, near
 
 
@@ -1208,7 +1209,7 @@ def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform,
     made the pairs worse (Urban2's 0.084 -> 0.129: parallax is not a similarity), and so did
     the local fits taken everywhere (0.120); the second fit's residual is the test that tells
     them apart."""
-    idx, xs, ys, dxs, dys, near = _matches(pts, out_pos, status)
+    idx, xs, ys, dxs, dys, near = _neighbourhoods(pts, out_pos, status)
     c = idx.shape[0]
     if c <= NEIGHBOURS:
         return

@@ -972,7 +972,7 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
     around the window with a 2 px margin, the image's edge repeated beyond it; ``cp``: frame
     t+1 around (x0, y0) with the margin the estimate can use, within 1 px). The sums are in
     the integer type of ``gx``: int32 where they cannot overflow (twice the vector width), else
-    int64 (:func:`refine_acc`; the third-order sums' terms are smaller than the second's).
+    int64 (:func:`refine_acc`, which counts the centroid's sums too).
     """
     acc = gx.dtype.type
     h, w = prev.shape

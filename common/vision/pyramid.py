@@ -144,7 +144,10 @@ sums ~0.05, the iterations the rest; 21 x 21: 0.21, 0.35, 0.10 of ~1.0. Its int3
 the one-vector-multiply-a-cycle rate: 16-bit data would halve them only with pmaddwd, which LLVM
 does not emit for these loops (tried: int16 patches and gradients made the 21 x 21 gradient
 loop 1.85x slower), and patch rows copied in constant 16-pixel chunks were slower too (1.15x at
-9 x 9, 1.3x at 21 x 21).
+9 x 9, 1.3x at 21 x 21). Checked again on this machine's AVX-512 core: even the plainest
+16-bit loop, ``h11 += int32(ddx) * int32(ddx)`` and two more sums over int16 differences, came
+out as 32-bit multiplies (vpmulld), no vpmaddwd, and the 9-sum gradient loop of the 21 x 21
+window in int16 ran as fast as in int32 (1.07 against 1.08 us a call, call included).
 """
 
 from __future__ import annotations

@@ -464,6 +464,16 @@ def _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol, width, total, n, 
     tie) and one vectorised count shows it, without visiting them. Otherwise every displacement
     that passes its bound is scored, its sum abandoned once it exceeds the best so far. Ties go
     to the lower rank, so the result does not depend on the order of visits.
+
+    Tried and not kept (issue 15): the nine first scores as nine contiguous loops of m^2
+    terms (the template's rows and frame t+1's copied back to back, 16-bit differences). Alone
+    on the bench's frames it took the nine full sums from ~23 to ~6 us a frame pair, but in
+    the search it gained nothing (47.5 against 47.7 us, old and new side by side): here most
+    neighbours are ruled out by their bound, and the rest abandoned after a few rows. Where a
+    frame pair's (15, 9) search goes (~45 us, 83 features, timed apart): ~3 us of fixed cost
+    (the wrapper 1.8, the kernel's call 1.1), ~6 us of row sums, ~0.43 us a search, of which
+    ~0.2 us at a search of one displacement (the template's row sums, the bounds' passes over
+    a VEC of lanes, one S).
     """
     px = min(max(cx, lo_x), lo_x + ncol - 1) - lo_x
     py = min(max(cy, lo_y), lo_y + nrow - 1) - lo_y

@@ -856,11 +856,11 @@ AGREE_NOISE = 2.0
 GN_STEP_PX = 1e-3
 GN_ITERATIONS = 10
 #: the largest |W (2 gradient)| * |second difference| term of the sums of :func:`_refine`, per
-#: unit of weight (2 * 255 * 4 * 255): with the centroid's sums (below), what decides whether
-#: they fit int32
+#: unit of weight (2 * 255 * 4 * 255): with a term of the centroid's sums (below), what
+#: decides whether they fit int32
 _REFINE_TERM = 520200.0
-#: the centroid's sums, sum W (2 gradient) (2 gradient . q): at most this per unit of weight
-#: and of sum |qx| + |qy| over the window (2 * 255 * 2 * 255)
+#: the terms of the centroid's sums, W (2 gradient) (2 gradient . q): at most this per unit
+#: of weight and of |qx| + |qy| (2 * 255 * 2 * 255); summed in int64 (:func:`_refine`)
 _CENTROID_TERM = 260100.0
 
 
@@ -940,7 +940,8 @@ def refine_acc(*windows: np.ndarray) -> np.ndarray:
     for wts in windows:
         m = wts.shape[0]
         h = m // 2
-        term = max(_REFINE_TERM * m * m, _CENTROID_TERM * 2 * m * h * (h + 1))
+        # the sums of the normal matrix and corrections, and a single term of the centroid's
+        term = max(_REFINE_TERM * m * m, _CENTROID_TERM * 2 * h)
         if float(np.abs(wts).max(initial=0)) * term >= 2.0**31:
             return np.empty(0, np.int64)
     return np.empty(0, np.int32)
@@ -986,7 +987,8 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
     around the window with a 2 px margin, the image's edge repeated beyond it; ``cp``: frame
     t+1 around (x0, y0) with the margin the estimate can use, within 1 px). The sums are in
     the integer type of ``gx``: int32 where they cannot overflow (twice the vector width), else
-    int64 (:func:`refine_acc`, which counts the centroid's sums too).
+    int64 (:func:`refine_acc`); the centroid's, which outgrow int32 from 27 px windows on, in
+    int64, each term in the type of ``gx``.
     """
     acc = gx.dtype.type
     h, w = prev.shape
@@ -1034,7 +1036,11 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
         axy = acc(axy + gxq * dyy)
         ayx = acc(ayx + gyq * dxx)
         ayy = acc(ayy + gyq * dyy)
-    vx = vy = acc(0)
+    # the centroid's sums in int64 whatever ``acc`` (each term fits ``acc``, see refine_acc):
+    # in ``acc`` they made the windows of 27 px or more (the auto-tuner's reference and sweep)
+    # sum everything in int64, kernels of their own that no start-up warm-up compiled (a cold
+    # first tuning cycle took 28 s, 25 of them compiling)
+    vx = vy = np.int64(0)
     if third:
         # twice the third differences are right2 - left2 - 2 (right - left) and their y twin:
         # the gradients' products with the differences 4 px wide, less twice the normal
@@ -1049,8 +1055,8 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
             byx = acc(byx + gy[q] * wide_x)
             byy = acc(byy + gy[q] * wide_y)
             along = (right[q] - left[q]) * qx[q] + (down[q] - up[q]) * qy[q]
-            vx = acc(vx + gx[q] * along)
-            vy = acc(vy + gy[q] * along)
+            vx += np.int64(acc(gx[q] * along))
+            vy += np.int64(acc(gy[q] * along))
     # the sums of the gradients' products with twice the third differences
     gxx3 = float(bxx) - 2.0 * h11 if third else 0.0
     gxy3 = float(bxy) - 2.0 * h12 if third else 0.0

@@ -168,3 +168,29 @@ def test_a_kernel_compiled_after_the_warm_up_is_a_warning(caplog):
     warned = [m for level, m in said if level == logging.WARNING]
     assert len(warned) == 1 and "vistrack.common.vision.late" in warned[0], said
     assert any("other" in m for level, m in said if level == logging.DEBUG), said
+
+
+def test_the_auto_tuners_windows_sum_in_the_default_trackers_type():
+    """Every correlation window a tuning cycle runs (its design's levels, its sweep's range,
+    the reference windows), each with the wide window, has the sub-pixel sums' type of the
+    default tracker's, so that the cycle runs the kernels the start-up warm-up compiled.
+    Step 7's centroid sums, once summed in that type, made the reference window (30 px) need
+    int64: on a cold cache the first tuning cycle after the warm-up took 28 s instead of 3,
+    compiling the int64 kernels."""
+    from vistrack.common.params import TrackerParams
+    from vistrack.common.vision import window_weights
+    from vistrack.services.auto_tuner.design import PAPER_LEVELS
+    from vistrack.services.auto_tuner.experiment import REFERENCE_WINDOWS
+    from vistrack.services.auto_tuner.sensitivity import CORR_RANGE
+
+    base = TrackerParams()
+
+    def sum_type(corr_size: int) -> str:
+        p = base.replace(corr_size=corr_size)
+        wts = window_weights(p.weights, p.corr_half)
+        return str(pyramid._sum_type(wts.tobytes(), p.corr_half, p.refine_half).dtype)
+
+    sizes = ({*range(CORR_RANGE[0], CORR_RANGE[1] + 1), REFERENCE_WINDOWS[1]}
+             | {int(v) for v in PAPER_LEVELS["corr_size"]})
+    assert REFERENCE_WINDOWS[1] == 30 and sum_type(base.corr_size) == "int32"
+    assert {c: sum_type(c) for c in sorted(sizes)} == dict.fromkeys(sorted(sizes), "int32")

@@ -225,7 +225,9 @@ def _refinement_calls() -> list[tuple[Callable[..., object], tuple]]:
                               pts.copy(), 0.1, 2.0, 8.0, np.zeros(1, np.bool_), pts.copy())),
             (pyramid._affine_correction, (frame, pts, pts.copy(),
                                           np.full(1, ssd.LEFT, np.int8), np.zeros(1, np.bool_),
-                                          pts.copy(), 2, wts, uniform, 0.2))]
+                                          pts.copy(), 2, wts, uniform, 0.2,
+                                          np.empty(0, np.int64),
+                                          np.empty((0, pyramid.NEIGHBOURS), np.int64)))]
 
 
 #: the parameters of :func:`~vistrack.common.vision.ssd._search_level` that

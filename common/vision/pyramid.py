@@ -93,7 +93,11 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
    to its nearest matches' displacements, where they fit one (:func:`_affine_correction`). On
    the scoreboard's approaches (10 % a frame) the median error fell from 0.16 to 0.24 px to
    0.05 to 0.07 (LK 0.27 to 0.33); elsewhere it moved by a few thousandths. Cost: ~25 us a
-   frame on the bench's frames (step 7 on and off in one process, best of 200 rounds).
+   frame on the bench's frames (step 7 on and off in one process, best of 200 rounds); ~7 us
+   less since it takes its matches' neighbours from the consensus's, searching again only
+   next to a match rejected since (:func:`_reused_neighbourhoods`: the same lists; the
+   tracker 332.5 -> 325.3 us a frame, old and new side by side, best of 200 rounds, the same
+   outputs).
 
 With one level, no test and no retry this is the paper's single-level search, exactly
 :func:`.ssd.track_ssd`.
@@ -630,8 +634,10 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
                 if stb[f] != OK or ex * ex + ey * ey > fb_bound * fb_bound:
                     out_status[f] = FB
     # 5. consensus: a match must move as its nearest neighbours do
+    judged = np.empty(0, np.int64)
+    judged_near = np.empty((0, NEIGHBOURS), np.int64)
     if consensus > 0.0:
-        _consensus(pts, out_pos, out_status, consensus)
+        judged, judged_near = _consensus(pts, out_pos, out_status, consensus)
     # 5b. the frame's dominant motion as a second minimum
     if ratio > 0.0:
         _dominant_alternative(prev, curr, pts, out_pos, out_ssd, out_status, active, n, wts,
@@ -654,7 +660,7 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
     # point by its neighbourhood's scale and rotation
     if subpixel and affine_fit > 0.0:
         _affine_correction(prev, pts, out_pos, out_status, took, cen, n, wts, uniform,
-                           affine_fit)
+                           affine_fit, judged, judged_near)
     return found
 
 
@@ -931,11 +937,14 @@ def _consensus(pts, pos, status, bound):  # pragma: no cover - numba
     inserted. A brute-force search, tried before, inserts more. Measured old against new
     compiled side by side in one process, on the bench's 7 frame pairs, best of 200 rounds
     of each in turn: 38.5 -> 11.4 us a frame (3.4x); each frame run once in turn with the
-    other kernel's (branch predictors untrained on it): 43.0 -> 18.9 us (2.3x)."""
+    other kernel's (branch predictors untrained on it): 43.0 -> 18.9 us (2.3x).
+
+    Returns the matches it judged (their indices) and their neighbours (:func:`_neighbourhoods`)
+    for step 7 (:func:`_reused_neighbourhoods`)."""
     idx, xs, ys, dxs, dys, near = _neighbourhoods(pts, pos, status)
     c = idx.shape[0]
     if c <= NEIGHBOURS:
-        return
+        return idx, near
     reject = np.zeros(c, np.bool_)
     for a in range(c):
         n0, n1, n2, n3, n4, n5 = near[a, 0], near[a, 1], near[a, 2], near[a, 3], near[a, 4], \
@@ -955,6 +964,7 @@ def _consensus(pts, pos, status, bound):  # pragma: no cover - numba
     for a in range(c):
         if reject[a]:
             status[idx[a]] = DISAGREES
+    return idx, near
 
 
 @nb.njit(cache=True, nogil=True)
@@ -989,6 +999,68 @@ def _neighbourhoods(pts, pos, status):  # pragma: no cover - numba
     idx, xs, ys, dxs, dys = _matches(pts, pos, status)
     near = (_nearest(xs, ys) if idx.shape[0] > NEIGHBOURS
             else np.empty((0, NEIGHBOURS), np.int64))
+    return idx, xs, ys, dxs, dys, near
+
+
+@nb.njit(cache=True, nogil=True)
+def _reused_neighbourhoods(pts, pos, status, judged, judged_near):  # pragma: no cover - numba
+    """:func:`_neighbourhoods`, from the neighbourhoods of an earlier set of matches that
+    holds this one (``judged``, their indices, and ``judged_near``): the same result. A
+    match whose earlier NEIGHBOURS nearest are all still matches has them as its nearest now
+    (taking points away brings none nearer), in the same order (by squared distance, then
+    index: the indices keep their order); the others (next to a match rejected since: few)
+    are searched among the matches. Without an earlier set holding this one, all are searched
+    afresh (:func:`_nearest`). Saves step 7 most of the consensus's search."""
+    idx, xs, ys, dxs, dys = _matches(pts, pos, status)
+    c = idx.shape[0]
+    if c <= NEIGHBOURS:
+        return idx, xs, ys, dxs, dys, np.empty((0, NEIGHBOURS), np.int64)
+    m = judged.shape[0]
+    if judged_near.shape[0] != m or m < c:
+        return idx, xs, ys, dxs, dys, _nearest(xs, ys)
+    # where each earlier match is now (-1: no longer a match); both lists ascend
+    now = np.full(m, -1, np.int64)
+    a = 0
+    for j in range(m):
+        if a < c and judged[j] == idx[a]:
+            now[j] = a
+            a += 1
+    if a < c:  # a match the earlier set does not hold
+        return idx, xs, ys, dxs, dys, _nearest(xs, ys)
+    near = np.empty((c, NEIGHBOURS), np.int64)
+    near_d = np.empty(NEIGHBOURS, np.float64)
+    last = NEIGHBOURS - 1
+    for j in range(m):
+        a = now[j]
+        if a < 0:
+            continue
+        kept = True
+        for u in range(NEIGHBOURS):
+            b = now[judged_near[j, u]]
+            if b < 0:
+                kept = False
+                break
+            near[a, u] = b
+        if kept:
+            continue
+        # by (squared distance, index) among the matches, as _nearest keeps them
+        near_d[:] = np.inf
+        near[a, :] = c
+        for b in range(c):
+            if b == a:
+                continue
+            ex = xs[b] - xs[a]
+            ey = ys[b] - ys[a]
+            d = ex * ex + ey * ey
+            if d > near_d[last] or (d == near_d[last] and b > near[a, last]):
+                continue
+            u = last
+            while u > 0 and (near_d[u - 1] > d or (near_d[u - 1] == d and near[a, u - 1] > b)):
+                near_d[u] = near_d[u - 1]
+                near[a, u] = near[a, u - 1]
+                u -= 1
+            near_d[u] = d
+            near[a, u] = b
     return idx, xs, ys, dxs, dys, near
 
 
@@ -1186,8 +1258,8 @@ def _widen(prev, curr, pts, n, wide, acc, ok, out_pos, agree, straddle, floor, t
 
 
 @nb.njit(cache=True, nogil=True)
-def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform,
-                       bound):  # pragma: no cover - numba
+def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform, bound,
+                       judged, judged_near):  # pragma: no cover - numba
     """Step 7: each match's (``status`` OK) estimate moved from its window's centroid to its
     feature's point, by the scale and rotation of its neighbourhood, where that is known.
 
@@ -1211,8 +1283,10 @@ def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform,
     rotation gave about what the fitted ones give; one similarity fitted to the whole frame
     made the pairs worse (Urban2's 0.084 -> 0.129: parallax is not a similarity), and so did
     the local fits taken everywhere (0.120); the second fit's residual is the test that tells
-    them apart."""
-    idx, xs, ys, dxs, dys, near = _neighbourhoods(pts, out_pos, status)
+    them apart. The neighbours are the consensus's (``judged``, ``judged_near``; empty when it
+    did not run), where they are all still matches (:func:`_reused_neighbourhoods`)."""
+    idx, xs, ys, dxs, dys, near = _reused_neighbourhoods(pts, out_pos, status, judged,
+                                                         judged_near)
     c = idx.shape[0]
     if c <= NEIGHBOURS:
         return

@@ -28,7 +28,8 @@ def correct(pts, measured, cen):
     wts = np.ones((9, 9), np.int32)
     pyramid._affine_correction(np.zeros((64, 64), np.uint8), pts, out,
                                np.full(n, ssd.OK, np.int8), np.ones(n, np.bool_), cen, 4, wts,
-                               True, pyramid.AFFINE_FIT_PX)
+                               True, pyramid.AFFINE_FIT_PX, np.empty(0, np.int64),
+                               np.empty((0, pyramid.NEIGHBOURS), np.int64))
     return out
 
 

@@ -258,6 +258,43 @@ def test_the_consensus_kernel_equals_a_brute_force_reference():
     assert rejected > 500 and small > 50  # the cases reject, and test the early return
 
 
+def test_step_7_reuses_the_consensus_neighbours_with_the_same_result():
+    """Step 7 takes its matches' nearest neighbours from the consensus's, searching again
+    only for a match next to one rejected since (:func:`pyramid._reused_neighbourhoods`): on
+    every layout of the consensus's cases (ties between equal distances included) and after
+    rejecting matches at random, the same lists as a fresh search (:func:`_neighbourhoods`);
+    a match the earlier set did not hold makes it search all afresh."""
+    from vistrack.common.vision.pyramid import _neighbourhoods, _reused_neighbourhoods
+
+    rng = np.random.default_rng(13)
+    reused = searched = 0
+    for pts, pos, status, bound in consensus_cases(rng):
+        judged, judged_near = _consensus(pts, pos, status.copy(), bound)
+        later = status.copy()
+        later[rng.random(len(later)) < rng.choice([0.0, 0.05, 0.3])] = DISAGREES
+        want = _neighbourhoods(pts, pos, later)
+        got = _reused_neighbourhoods(pts, pos, later, judged, judged_near)
+        for w, g in zip(want, got, strict=True):
+            np.testing.assert_array_equal(g, w, err_msg=f"{len(pts)} points: {pts.tolist()}")
+        if len(want[0]) > NEIGHBOURS:
+            # how many lists came whole from the consensus's
+            kept = np.isin(judged, want[0])
+            whole = kept[judged_near].all(axis=1) & kept
+            reused += int(whole.sum())
+            searched += int(len(want[0]) - whole.sum())
+    assert reused > 1000 and searched > 200  # both ways exercised
+    # a match that the earlier set does not hold: searched afresh, the same lists
+    pts, pos, status, bound = next(c for c in consensus_cases(rng) if (c[2] == OK).sum() > 20)
+    judged, judged_near = _consensus(pts, pos, status.copy(), bound)
+    later = status.copy()
+    newcomer = np.flatnonzero(status != OK)[:1]
+    assert len(newcomer) == 1
+    later[newcomer] = OK
+    for w, g in zip(_neighbourhoods(pts, pos, later),
+                    _reused_neighbourhoods(pts, pos, later, judged, judged_near), strict=True):
+        np.testing.assert_array_equal(g, w)
+
+
 def test_repetitive_texture_is_ambiguous_not_matched():
     """Vertical stripes with a period of 6 px: every shift by a period matches as well, so a
     start whose window sees only stripes is ambiguous; a distinct patch is found."""

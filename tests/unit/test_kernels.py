@@ -170,6 +170,43 @@ def test_a_kernel_compiled_after_the_warm_up_is_a_warning(caplog):
     assert any("other" in m for level, m in said if level == logging.DEBUG), said
 
 
+TUNE_KERNELS = """
+import importlib, pkgutil
+import numba
+import vistrack.common.vision as vision
+from vistrack.common import synthetic
+from vistrack.common.vision import warm_up
+from vistrack.services.auto_tuner.sensitivity import tune
+
+def loaded():
+    out = set()
+    for info in pkgutil.iter_modules(vision.__path__):
+        mod = importlib.import_module(f"vistrack.common.vision.{info.name}")
+        for name, obj in vars(mod).items():
+            if isinstance(obj, numba.core.registry.CPUDispatcher):
+                out |= {f"{mod.__name__}.{name}{sig}" for sig in obj.signatures}
+    return out
+
+warm_up()
+before = loaded()
+result = tune(synthetic.builtin_sequence(10), 0)
+print(result.optimum.params["search_size"] > 0)
+print("\\n".join(sorted(loaded() - before)))
+"""
+
+
+def test_a_tuning_cycle_runs_on_the_kernels_the_start_up_warm_up_loaded():
+    """A tuning cycle (the design, its reference windows, the sweep) in a fresh process
+    after the start-up warm-up calls no kernel of ours with types the warm-up did not load:
+    each would be compiled inside the cycle on a new machine (seconds to tens of seconds;
+    step 7's centroid sums once made the 30 px reference window need int64 kernels, and a
+    cold first cycle took 28 s instead of 3). Read from the kernels' loaded signatures, so
+    it holds whether the cache is cold or warm."""
+    out = subprocess.run([sys.executable, "-c", TUNE_KERNELS], capture_output=True,
+                         text=True, check=True, timeout=300).stdout.splitlines()
+    assert out[0] == "True"  # the cycle ran to an optimum
+    assert [line for line in out[1:] if line] == []
+
 def test_the_auto_tuners_windows_sum_in_the_default_trackers_type():
     """Every correlation window a tuning cycle runs (its design's levels, its sweep's range,
     the reference windows), each with the wide window, has the sub-pixel sums' type of the

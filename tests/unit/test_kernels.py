@@ -170,12 +170,16 @@ def test_a_kernel_compiled_after_the_warm_up_is_a_warning(caplog):
     assert any("other" in m for level, m in said if level == logging.DEBUG), said
 
 
-TUNE_KERNELS = """
+#: a fresh process's kernels of ours loaded by the start-up warm-up, then what ``RUN`` adds
+LATE_KERNELS = """
 import importlib, pkgutil
 import numba
+import numpy as np
 import vistrack.common.vision as vision
 from vistrack.common import synthetic
-from vistrack.common.vision import warm_up
+from vistrack.common.params import TrackerParams
+from vistrack.common.vision import Tracker, warm_up
+from vistrack.common.vision.preprocess import DeferredPreprocessed
 from vistrack.services.auto_tuner.sensitivity import tune
 
 def loaded():
@@ -189,23 +193,61 @@ def loaded():
 
 warm_up()
 before = loaded()
-result = tune(synthetic.builtin_sequence(10), 0)
-print(result.optimum.params["search_size"] > 0)
+RUN
 print("\\n".join(sorted(loaded() - before)))
 """
 
+TUNE = """
+result = tune(synthetic.builtin_sequence(10), 0)
+print(result.optimum.params["search_size"] > 0)
+"""
+
+TRACK = """
+frames = synthetic.builtin_sequence(60)
+p = TrackerParams()
+tr = Tracker(p)
+for f in frames:
+    tr.process(f)
+for f in (np.zeros_like(frames[0]), np.full_like(frames[0], 255)):
+    tr.process(f)  # black, saturated
+for size in ((8, 8), (320, 240)):
+    tr = Tracker(p)
+    for f in frames[:5]:
+        tr.process(np.ascontiguousarray(f[:size[1], :size[0]]))
+tr = Tracker(p)  # as motion-estimation takes a pre-processed frame: copied, deferred
+for f in frames[:10]:
+    tr.update(DeferredPreprocessed(np.array(np.frombuffer(f.tobytes(), np.uint8)
+                                            .reshape(f.shape)), p))
+print(tr.lost_total >= 0)
+"""
+
+
+def late_kernels(run: str) -> list[str]:
+    """What ``run`` (a script's body) prints, then the kernels of ours it loaded with types
+    the start-up warm-up had not, in a fresh process: each would be compiled on a new
+    machine while a frame or a tuning cycle waits (seconds to tens of seconds). Read from the
+    kernels' loaded signatures, so it holds whether numba's cache is cold or warm."""
+    return subprocess.run([sys.executable, "-c", LATE_KERNELS.replace("RUN", run)],
+                          capture_output=True, text=True, check=True,
+                          timeout=300).stdout.splitlines()
+
 
 def test_a_tuning_cycle_runs_on_the_kernels_the_start_up_warm_up_loaded():
-    """A tuning cycle (the design, its reference windows, the sweep) in a fresh process
-    after the start-up warm-up calls no kernel of ours with types the warm-up did not load:
-    each would be compiled inside the cycle on a new machine (seconds to tens of seconds;
-    step 7's centroid sums once made the 30 px reference window need int64 kernels, and a
-    cold first cycle took 28 s instead of 3). Read from the kernels' loaded signatures, so
-    it holds whether the cache is cold or warm."""
-    out = subprocess.run([sys.executable, "-c", TUNE_KERNELS], capture_output=True,
-                         text=True, check=True, timeout=300).stdout.splitlines()
+    """A tuning cycle (the design, its reference windows, the sweep): step 7's centroid sums
+    once made the 30 px reference window need int64 kernels, and a cold first cycle took 28 s
+    instead of 3."""
+    out = late_kernels(TUNE)
     assert out[0] == "True"  # the cycle ran to an optimum
     assert [line for line in out[1:] if line] == []
+
+
+def test_a_track_runs_on_the_kernels_the_start_up_warm_up_loaded():
+    """Tracking, re-detection, a black and a saturated frame, frames of 8 x 8 and 320 x 240,
+    and the copied, deferred frames of motion-estimation."""
+    out = late_kernels(TRACK)
+    assert out[0] == "True"
+    assert [line for line in out[1:] if line] == []
+
 
 def test_the_auto_tuners_windows_sum_in_the_default_trackers_type():
     """Every correlation window a tuning cycle runs (its design's levels, its sweep's range,

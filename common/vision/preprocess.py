@@ -267,8 +267,9 @@ def _min_eigen(img, out):  # pragma: no cover - numba
     integers below 2^24, so they are computed exactly in int32 here and converted where that
     pipeline first rounded (the sum sxx + syy, which may exceed 2^24, and sxy * sxy in
     float32). One pass down the rows with a ring of 3 rows of gradient products, every loop a
-    long contiguous one that vectorises; the float64 square root (~0.5 ns a pixel) bounds the
-    speed.
+    long contiguous one that vectorises. At 1280 x 720 it takes ~1.3 ms, as long without the
+    float64 square root (1.36 against 1.28 ms, the square root replaced by its argument in a
+    copy): the passes over the rows bound it, not the square root.
     """
     h, w = img.shape
     if h < 3 or w < 3:

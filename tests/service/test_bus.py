@@ -630,6 +630,39 @@ def test_signal_handlers_off_main_thread_do_nothing():
     result[0]()  # the no-op restore
 
 
+SLOW_HANDLER_SCRIPT = textwrap.dedent("""
+    import signal, threading, time
+    from vistrack.common.bus import MemoryNode
+    node = MemoryNode("fuzzy_controller")
+    node.subscribe(node.keys.estimate, latest=True)
+    main = threading.main_thread().ident
+
+    def handler(signum, frame):
+        time.sleep(0.2)  # longer than what is left of recv's 50 ms slice of waiting
+        threading.Thread(target=node.stop.set, daemon=True).start()
+
+    signal.signal(signal.SIGUSR2, handler)
+    threading.Timer(0.3, lambda: signal.pthread_kill(main, signal.SIGUSR2)).start()
+    t0 = time.monotonic()
+    node.recv(timeout=30.0)
+    print(f"{time.monotonic() - t0:.2f}", node.stop.is_set(), flush=True)
+""")
+
+
+def test_recv_ends_once_stop_is_set_even_after_a_slow_signal_handler():
+    """A signal handler that runs inside recv's wait, and outlasts it, leaves CPython 3.11's
+    queue waiting with a negative timeout: forever, until the next message. A service stopped
+    by SIGINT or SIGTERM while nothing came in then hung (4 of 100 here, the flake of
+    ``test_service_process_stops_on_signal_and_exits``). Setting ``stop`` wakes the wait: recv
+    returns as soon as the handler has set it (0.3 s to the signal + 0.2 s of handler), not at
+    its own 30 s timeout nor never."""
+    out = subprocess.run([sys.executable, "-c", SLOW_HANDLER_SCRIPT], capture_output=True,
+                         text=True, timeout=20)
+    assert out.returncode == 0, out.stderr
+    seconds, stopped = out.stdout.split()
+    assert stopped == "True" and 0.45 <= float(seconds) < 5.0, out.stdout
+
+
 SERVICE_SCRIPT = textwrap.dedent("""
     import sys
     from vistrack.common.bus import ZenohNode, install_signal_handlers

@@ -1485,6 +1485,14 @@ def _sum_type(weights: bytes, corr_half: int, wide_half: int) -> np.ndarray:
     return refine_acc(wts)
 
 
+def sum_type(weights: np.ndarray, corr_half: int, wide_half: int) -> str:
+    """The name of the integer type (int32 or int64) in which :func:`track_pyramid` sums the
+    sub-pixel refinement for the correlation window of ``weights`` (int32, (2 corr_half + 1)^2)
+    and the wide window of ``wide_half`` (-1: no sub-pixel refinement). The kernels compile
+    for each type once: int64 (the largest windows) is a set of its own."""
+    return _sum_type(weights.tobytes(), int(corr_half), int(wide_half)).dtype.name
+
+
 def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions: np.ndarray,
                   *, corr_half: int, search_half: int, weights: np.ndarray,
                   subpixel: bool = False, search: str = "pruned", uniqueness: float = 0.0,

@@ -42,7 +42,7 @@ from .features import select_features
 from .motion import _incremental_motion, centroid_scatter
 from .noise import noise_level
 from .preprocess import Preprocessed, preprocess
-from .pyramid import Pyramid, build_pyramid, track_pyramid, wide_tests
+from .pyramid import Pyramid, build_pyramid, sum_type, track_pyramid, wide_tests
 from .ssd import BORDER, LEFT, OK, RESIDUAL, STATUS_NAMES, track_ssd, window_weights
 
 #: The scale steps a new feature's prediction extrapolates (:meth:`Tracker._add_features`):
@@ -412,16 +412,27 @@ def warm_up(on_compile: Callable[[], None] | None = None,
             TrackerParams(search="exhaustive"), *([params] if params is not None else [])]
     todo = {_kernel_set(p): p for p in sets if _kernel_set(p) not in _WARM}
     with compile_watch(on_compile) as watch:
-        if todo:
-            frames = sequence(3, size=(64, 64), seed=1)
         for key, p in todo.items():
+            small = p.replace(max_features=20, search_size=5, corr_size=5)
+            if _kernel_set(small) != key:
+                # windows whose sums need int64 (:func:`_kernel_set`): warmed at their size,
+                # on frames where they fit with room to track
+                small = p.replace(max_features=20, search_size=5)
+            side = 64 + 4 * (max(small.corr_half, small.refine_half) + small.search_half)
             _WARMING.add(threading.get_ident())
             try:
-                track_frames(frames, p.replace(max_features=20, search_size=5, corr_size=5))
+                track_frames(sequence(3, size=(side, side), seed=1), small)
             finally:
                 _WARMING.discard(threading.get_ident())
             _WARM.add(key)
     return watch.compiled
+
+
+def kernels_warm(params: TrackerParams) -> bool:
+    """Whether :func:`warm_up` has loaded the kernels ``params`` run in this process: False
+    when tracking with them would first compile (or load) kernels of their own, for seconds
+    on a cold cache."""
+    return _kernel_set(params) in _WARM
 
 
 def warming_up() -> bool:
@@ -429,13 +440,18 @@ def warming_up() -> bool:
     return threading.get_ident() in _WARMING
 
 
-def _kernel_set(p: TrackerParams) -> tuple[bool, str, bool]:
-    """What decides which kernels ``p`` runs (their types do not depend on the values)."""
-    return _single_level(p), p.search, p.subpixel
+def _kernel_set(p: TrackerParams) -> tuple[bool, str, bool, str]:
+    """What decides which kernels ``p`` runs: the search, the sub-pixel refinement, and the
+    integer type its sums take (int64 for the largest windows, :func:`.pyramid.sum_type`).
+    Their types depend on no other value."""
+    single = _single_level(p)
+    acc = "int32" if single else sum_type(window_weights(p.weights, p.corr_half),
+                                          p.corr_half, p.refine_half if p.subpixel else -1)
+    return single, p.search, p.subpixel, acc
 
 
 #: the kernel sets (:func:`_kernel_set`) this process has warmed up
-_WARM: set[tuple[bool, str, bool]] = set()
+_WARM: set[tuple[bool, str, bool, str]] = set()
 #: the threads in :func:`warm_up`'s tracking
 _WARMING: set[int] = set()
 

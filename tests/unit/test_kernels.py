@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 import numba as nb
+import pytest
 from numba.core import event as numba_event
 
 from vistrack.common.vision import kernel_cache_dir, pyramid, ssd, tracker
@@ -191,7 +192,7 @@ def loaded():
                 out |= {f"{mod.__name__}.{name}{sig}" for sig in obj.signatures}
     return out
 
-warm_up()
+warm_up(WARM)
 before = loaded()
 RUN
 print("\\n".join(sorted(loaded() - before)))
@@ -222,14 +223,15 @@ print(tr.lost_total >= 0)
 """
 
 
-def late_kernels(run: str) -> list[str]:
+def late_kernels(run: str, warm: str = "") -> list[str]:
     """What ``run`` (a script's body) prints, then the kernels of ours it loaded with types
-    the start-up warm-up had not, in a fresh process: each would be compiled on a new
-    machine while a frame or a tuning cycle waits (seconds to tens of seconds). Read from the
-    kernels' loaded signatures, so it holds whether numba's cache is cold or warm."""
-    return subprocess.run([sys.executable, "-c", LATE_KERNELS.replace("RUN", run)],
-                          capture_output=True, text=True, check=True,
-                          timeout=300).stdout.splitlines()
+    the start-up warm-up (``warm_up(warm)``) had not, in a fresh process: each would be
+    compiled on a new machine while a frame or a tuning cycle waits (seconds to tens of
+    seconds). Read from the kernels' loaded signatures, so it holds whether numba's cache is
+    cold or warm."""
+    script = LATE_KERNELS.replace("RUN", run).replace("WARM", warm)
+    return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          check=True, timeout=300).stdout.splitlines()
 
 
 def test_a_tuning_cycle_runs_on_the_kernels_the_start_up_warm_up_loaded():
@@ -245,6 +247,28 @@ def test_a_track_runs_on_the_kernels_the_start_up_warm_up_loaded():
     """Tracking, re-detection, a black and a saturated frame, frames of 8 x 8 and 320 x 240,
     and the copied, deferred frames of motion-estimation."""
     out = late_kernels(TRACK)
+    assert out[0] == "True"
+    assert [line for line in out[1:] if line] == []
+
+
+WIDE = """
+p = TrackerParams().replace(**PARAMS)
+tr = Tracker(p)
+for f in synthetic.builtin_sequence(20):
+    e = tr.process(f)
+print(e.npi > 0)
+"""
+
+
+@pytest.mark.parametrize("params", ["dict(corr_size=64)", "dict(weights='gaussian')",
+                                    "dict(refine_size=64)"])
+def test_parameters_whose_sums_need_int64_are_warmed_with_them(params):
+    """Windows whose sub-pixel sums outgrow int32 (a 64 px window, Gaussian weights, a 64 px
+    wide window) run the kernels in int64, a set of their own: the warm-up for them loaded
+    the int32 set instead (it warmed every set at a 5 px window), and they compiled in the
+    first frames, ~27 s on a cold cache (motion-estimation, judged hung, was killed)."""
+    out = late_kernels(WIDE.replace("PARAMS", params),
+                       f"params=TrackerParams().replace(**{params})")
     assert out[0] == "True"
     assert [line for line in out[1:] if line] == []
 

@@ -34,6 +34,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import inspect
+import json
 import logging
 import os
 import subprocess
@@ -365,6 +366,71 @@ def compile_search() -> None:
                   subpixel=p.subpixel, search=p.search, uniqueness=p.uniqueness,
                   allowance=1.0, reject_border=p.reject_border, guided_retry=p.guided_retry,
                   max_fb_error=p.max_fb_error, consensus=p.consensus, wide_half=p.refine_half)
+
+
+class KernelsAhead:
+    """Kernels of new tracker parameters, made ready beside a service's loop.
+
+    Parameters whose windows sum in int64 (:func:`~vistrack.common.vision.tracker.
+    _kernel_set`), or ``--paper``'s search, run kernels of their own that the start-up warm-up
+    did not load: on a cold cache they compile for up to half a minute, far past the
+    launcher's hang timeout (5 s) if the loop waited. :meth:`ready` answers at once; when the
+    kernels are not loaded, a thread compiles them in a second process (another core, and no
+    contention for this process's interpreter lock with the loop), which leaves them in
+    numba's cache, then loads them here (~0.5 s, or compiles them here if the cache could not
+    be written). The loop keeps its parameters in force until then.
+    """
+
+    def __init__(self, log: logging.Logger) -> None:
+        self._log = log
+        self._lock = threading.Lock()
+        self._wanted: TrackerParams | None = None
+        self._thread: threading.Thread | None = None
+
+    def ready(self, params: TrackerParams) -> bool:
+        """Whether ``params``'s kernels are loaded; if not, have them made ready (the latest
+        parameters asked for are the ones made ready next)."""
+        from ..common.vision.tracker import kernels_warm
+
+        if kernels_warm(params):
+            return True
+        with self._lock:
+            self._wanted = params
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, daemon=True,
+                                                name="kernels-ahead")
+                self._thread.start()
+        return False
+
+    def _run(self) -> None:
+        from ..common.vision import warm_up
+        from ..common.vision.tracker import kernels_warm
+
+        while True:
+            with self._lock:
+                params, self._wanted = self._wanted, None
+                if params is None or kernels_warm(params):
+                    if params is None:
+                        self._thread = None
+                        return
+                    continue
+            t0 = time.monotonic()
+            try:
+                subprocess.run([sys.executable, "-c", _AHEAD], input=json.dumps(
+                    params.as_dict()).encode(), stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL, timeout=HELPER_TIMEOUT_S, check=False)
+                warm_up(params=params)  # loads what the other process compiled
+            except Exception as e:  # noqa: BLE001 - the loop goes on; a later update retries
+                self._log.error("could not make the kernels of %s ready: %s",
+                                params.factors(), e)
+                continue
+            self._log.info("kernels of the new parameters ready in %.1f s",
+                           time.monotonic() - t0)
+
+
+_AHEAD = ("import json, sys; from vistrack.common.params import TrackerParams; "
+          "from vistrack.common.vision import warm_up; "
+          "warm_up(params=TrackerParams.from_mapping(json.load(sys.stdin)))")
 
 
 @contextlib.contextmanager

@@ -336,6 +336,16 @@ def wait_for_consumers(node: Node, key: str, *, reliable: bool = False) -> bool:
     return True
 
 
+@dataclass(frozen=True)
+class ParamsUpdate:
+    """A ``tuner/params`` update accepted by :meth:`ParamsInForce.accept`."""
+
+    params: TrackerParams
+    params_id: int
+    source: str
+    reason: str
+
+
 @dataclass
 class ParamsInForce:
     """The tracker parameters a service runs with and how it accepts ``tuner/params``.
@@ -357,26 +367,42 @@ class ParamsInForce:
 
     def apply(self, payload: bytes, node: Node, logger: logging.Logger) -> bool:
         """Apply an encoded ``tuner/params``; return True when the parameters changed."""
+        update = self.accept(payload, node, logger)
+        if update is None:
+            return False
+        self.commit(update, node, logger)
+        return True
+
+    def accept(self, payload: bytes, node: Node, logger: logging.Logger,
+               pending: ParamsUpdate | None = None) -> ParamsUpdate | None:
+        """Validate an encoded ``tuner/params`` against what is in force, or against the
+        ``pending`` update (accepted, not yet in force) when there is one: the update to put
+        in force, or None (rejected and counted, stale, or a reminder of what is already)."""
         try:
             msg = Params.decode(payload)
             new = msg.tracker_params(self.params)
         except (MessageError, ParamError) as e:
             node.status.reject(e)
             logger.error("rejected tuner/params: %s; keeping params_id %d", e, self.params_id)
-            return False
-        if msg.params_id == self.params_id and new == self.params:
-            return False  # the tuner's periodic reminder of what is in force
-        if msg.params_id <= self.params_id:
-            node.status.reject(f"stale params_id {msg.params_id} <= {self.params_id}")
-            logger.warning("ignored tuner/params with params_id %d: %d is in force",
-                           msg.params_id, self.params_id)
-            return False
-        self.params, self.params_id = new, msg.params_id
-        self.source, self.reason = msg.source, msg.reason
+            return None
+        latest_id, latest = ((pending.params_id, pending.params) if pending is not None
+                             else (self.params_id, self.params))
+        if msg.params_id == latest_id and new == latest:
+            return None  # the tuner's periodic reminder of what is in force (or pending)
+        if msg.params_id <= latest_id:
+            node.status.reject(f"stale params_id {msg.params_id} <= {latest_id}")
+            logger.warning("ignored tuner/params with params_id %d: %d is %s", msg.params_id,
+                           latest_id, "pending" if pending is not None else "in force")
+            return None
+        return ParamsUpdate(new, msg.params_id, msg.source, msg.reason)
+
+    def commit(self, update: ParamsUpdate, node: Node, logger: logging.Logger) -> None:
+        """Put an accepted update in force, in the status and the log."""
+        self.params, self.params_id = update.params, update.params_id
+        self.source, self.reason = update.source, update.reason
         self.publish_status(node)
-        logger.info("params_id %d from %s (%s): %s", msg.params_id, msg.source,
-                    msg.reason or "no reason given", new.factors())
-        return True
+        logger.info("params_id %d from %s (%s): %s", update.params_id, update.source,
+                    update.reason or "no reason given", update.params.factors())
 
     def publish_status(self, node: Node) -> None:
         node.status.set_params({**self.params.factors(), "params_id": self.params_id,

@@ -5,6 +5,12 @@ Reads   ``vistrack/<robot>/preprocessing/frame``   (latest only: drops are count
 Writes  ``vistrack/<robot>/motion/estimate``       (one per processed frame)
         ``vistrack/<robot>/motion/demand``         (reliable: when it changes, and every s)
 
+Parameters are put in force between frames. Those that run kernels of their own (the largest
+windows, whose sums need int64; ``--paper``'s search), which a cold cache would compile for up
+to half a minute, stay pending (status ``extra``: ``params_pending``) while the kernels are made
+ready beside the loop (:class:`~vistrack.services.kernels.KernelsAhead`); the parameters in
+force track the frames meanwhile, and each estimate's ``params_id`` says which ones did.
+
 The tracker is the library's :class:`~vistrack.common.vision.Tracker`, fed the filtered frame
 and candidates computed upstream, so the pipeline computes exactly what ``vistrack track`` does.
 Estimates keep the camera frame's ``seq``; when it goes back (the camera restarted), or the
@@ -33,11 +39,12 @@ import numpy as np
 from ...common.bus import Node
 from ...common.messages import Demand, Estimate, PreFrame, encode_estimate
 from ...common.params import TrackerParams
-from ...common.vision import Preprocessed, Tracker, warm_up
+from ...common.vision import Preprocessed, Tracker
 from ...common.vision.preprocess import DeferredPreprocessed
-from ..kernels import late_compiles_logged, warm_up_kernels
+from ..kernels import KernelsAhead, late_compiles_logged, warm_up_kernels
 from ..runtime import (
     ParamsInForce,
+    ParamsUpdate,
     add_service_args,
     decode_or_reject,
     dispatch,
@@ -128,14 +135,38 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     # (seq, stamp_ns) of the frame last tracked, and its estimate: what a frame sent again gets
     answered: tuple[int, int, bytes] = (-1, -1, b"")
 
+    ahead = KernelsAhead(log)
+    pending: ParamsUpdate | None = None  # accepted, waiting for kernels of its own
+
     def on_params(payload: bytes) -> None:
-        if state.apply(payload, node, log):
-            warm_up(params=state.params)  # kernels of their own (--paper's): here, not mid-frame
-            tracker.set_params(state.params)
+        nonlocal pending
+        update = state.accept(payload, node, log, pending)
+        if update is None:
+            return
+        pending = update
+        if not put_in_force():
+            log.info("params_id %d needs kernels of its own: making them ready beside the "
+                     "loop (on a cold cache up to half a minute); params_id %d stays in "
+                     "force until then", update.params_id, state.params_id)
+            node.status.extra["params_pending"] = update.params_id
+
+    def put_in_force() -> bool:
+        """Put the pending update in force once its kernels are loaded (at once when they
+        are): never a frame, nor the loop, waits for a compile."""
+        nonlocal pending
+        if pending is None or not ahead.ready(pending.params):
+            return False
+        state.commit(pending, node, log)
+        tracker.set_params(state.params)
+        pending = None
+        node.status.extra.pop("params_pending", None)
+        return True
 
     def on_frame(payload: bytes) -> None:
         nonlocal last_seq, answered
         t0 = time.perf_counter()
+        if pending is not None:
+            put_in_force()
         msg = decode_or_reject(PreFrame, payload, node, log)
         if msg is None:
             return

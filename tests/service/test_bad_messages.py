@@ -80,6 +80,28 @@ def test_a_params_id_beyond_the_largest_is_refused():
                                    params_id=MAX_PARAMS_ID + 1, source="user")
 
 
+def test_an_update_is_judged_against_the_pending_one_while_one_waits():
+    """While an accepted update waits for its kernels (motion-estimation), the tuner's
+    reminder of it is neither applied again nor counted as stale; an older one is stale
+    against it (it would undo the newer) and a newer one supersedes it. Nothing is in force
+    until committed."""
+    with MemoryNode("motion_estimation") as node:
+        state = ParamsInForce(TrackerParams(), params_id=3)
+        pending = state.accept(params_payload(5, corr_size=64), node, log)
+        assert pending is not None and (pending.params_id, pending.params.corr_size) == (5, 64)
+        assert (state.params, state.params_id) == (TrackerParams(), 3)  # not yet in force
+        assert state.accept(params_payload(5, corr_size=64), node, log, pending) is None
+        assert node.status.rejected == 0  # a reminder is not stale
+        assert state.accept(params_payload(4, corr_size=21), node, log, pending) is None
+        assert node.status.rejected == 1
+        assert node.status.last_error == "stale params_id 4 <= 5"
+        newer = state.accept(params_payload(6, corr_size=21), node, log, pending)
+        assert newer is not None and newer.params.corr_size == 21
+        state.commit(newer, node, log)
+        assert (state.params.corr_size, state.params_id) == (21, 6)
+        assert node.status.params["params_id"] == 6
+
+
 def test_the_tuner_at_the_largest_params_id_keeps_what_is_in_force():
     from vistrack.services.auto_tuner.service import AutoTuner, check_flags
 

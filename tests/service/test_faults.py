@@ -184,3 +184,56 @@ def test_motion_estimation_survives_a_featureless_8x8_frame_and_tracks_again():
     assert [e.seq for e in got if e.npi > 0] == [0, 2, 3]
     assert got[-2].first and got[-2].npi > 10  # a new track on the first textured frame
     assert node.status.rejected == 0
+
+
+def test_parameters_with_kernels_of_their_own_wait_for_them_beside_the_loop(monkeypatch):
+    """A 64 px correlation window sums in int64: kernels the start-up warm-up does not load,
+    which a cold cache compiled for ~27 s inside the loop (the launcher killed the service
+    as hung: 6 exits in ``vistrack bench faults``). The update now waits, pending in the
+    status, while a second process makes them ready; frames go on being tracked with the
+    parameters in force, and each estimate's params_id says which ones; then it is in
+    force. (The kernels are unloaded for this test's process: a cache that holds them still
+    takes the second process's start, seconds, against a frame's milliseconds.)"""
+    from vistrack.common.messages import Params
+    from vistrack.common.vision import tracker as tracker_module
+    from vistrack.services.motion_estimation.service import loop
+
+    big = TrackerParams(corr_size=64)
+    key = tracker_module._kernel_set(big)
+    assert key[-1] == "int64"  # what makes the set one of its own
+    monkeypatch.setattr(tracker_module, "_WARM", set(tracker_module._WARM) - {key})
+    frames = builtin_sequence(40)
+    with MemoryNode("motion_estimation") as node:
+        thread = run_loop(loop, node, parse("motion-estimation"))
+        wait_for(lambda: node.feed(node.keys.pre_frame, pre_frame(frames[0], 0)),
+                 timeout=60, what="the subscription")
+
+        def estimates() -> list[Estimate]:
+            return [Estimate.decode(p) for p in node.published_on(node.keys.estimate)]
+        wait_for(lambda: len(estimates()) == 1, timeout=60, what="the first estimate")
+        node.feed(node.keys.params, Params.from_tracker_params(
+            big, seq=0, stamp_ns=time.time_ns(), params_id=7, source="user",
+            reason="test").encode())
+        node.feed(node.keys.pre_frame, pre_frame(frames[1], 1))
+        wait_for(lambda: len(estimates()) == 2, what="the frame after the update")
+        assert estimates()[-1].params_id == 0  # tracked with the parameters in force
+        assert node.status.extra.get("params_pending") == 7
+        assert node.status.params["params_id"] == 0
+        seq = 2
+        while estimates()[-1].params_id != 7:
+            assert seq < 2000 and thread.is_alive(), "the update never came in force"
+            node.feed(node.keys.pre_frame, pre_frame(frames[seq % 40], seq))
+            wait_for(lambda seq=seq: estimates()[-1].seq == seq, what=f"frame {seq}")
+            seq += 1
+            time.sleep(0.05)
+        node.stop.set()
+        thread.join(10)
+    assert thread.error is None
+    assert seq > 3  # frames went on while the kernels were made ready
+    got = estimates()
+    ids = [e.params_id for e in got]
+    assert ids == sorted(ids)  # never back to the old parameters
+    assert node.status.params["params_id"] == 7 and node.status.params["corr_size"] == 64
+    assert "params_pending" not in node.status.extra
+    assert tracker_module.kernels_warm(big)
+    assert node.status.failed == 0 and node.status.rejected == 0

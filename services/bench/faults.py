@@ -187,7 +187,10 @@ def flood(up: UpRun, out: TextIO) -> dict[str, float]:
     time.sleep(3.0)
     flowing = _estimates_in(up, 2.0)
     after = up.statuses()
-    exits = up.count(r"^\[launcher\] .* exited with") + up.count(r"is hung")
+    exit_lines = up.matching(r"^\[launcher\] .* (exited with|is hung)")
+    exits = len(exit_lines)
+    for line in exit_lines[:10]:  # which service, and why: what to look into
+        print(line, file=out)
     fig: dict[str, float] = {"exits": float(exits), "send_s": sent_s,
                              "estimates_after_hz": flowing / 2.0,
                              "pids_unchanged": float({n: s["pid"] for n, s in after.items()}

@@ -147,9 +147,13 @@ class UpRun:
 
     def count(self, pattern: str) -> int:
         """Output lines matching ``pattern`` so far."""
+        return len(self.matching(pattern))
+
+    def matching(self, pattern: str) -> list[str]:
+        """The output lines matching ``pattern`` so far."""
         regex = re.compile(pattern)
         with self._cond:
-            return sum(1 for _, line in self.lines if regex.search(line))
+            return [line for _, line in self.lines if regex.search(line)]
 
     def statuses(self, timeout: float = 2.0) -> dict[str, dict[str, Any]]:
         """Service name (as in keys) -> its status reply."""

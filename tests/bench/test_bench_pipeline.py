@@ -22,7 +22,7 @@ pytestmark = pytest.mark.bench
 
 def test_bench_pipeline(capsys):
     buf = io.StringIO()
-    fig = bench_pipeline(out=buf, seconds=3.0)
+    fig = bench_pipeline(out=buf, seconds=3.0, paced_seconds=6.0)
     with capsys.disabled():
         print("\n" + buf.getvalue())
     for key in ("raw_one_way_ms", "in_process_fps", "skeleton_paced_hop_ms",
@@ -32,6 +32,7 @@ def test_bench_pipeline(capsys):
                 "free_cpu_us_per_frame"):
         assert math.isfinite(fig[key]) and fig[key] > 0, key
     assert fig["paced_lat_p99_ms"] >= fig["paced_lat_p50_ms"]
+    assert fig["paced_frames"] >= 100 and fig["paced_720_frames"] >= 100  # ~30 fps for 6 s
     assert fig["hop_ratio_skeleton"] == pytest.approx(fig["paced_hop_ms"]
                                                       / fig["skeleton_paced_hop_ms"])
     assert fig["throughput_ratio_in_process"] == pytest.approx(fig["free_rate_hz"]

@@ -386,21 +386,30 @@ class KernelsAhead:
         self._lock = threading.Lock()
         self._wanted: TrackerParams | None = None
         self._thread: threading.Thread | None = None
+        self._failed: dict[TrackerParams, str] = {}
 
     def ready(self, params: TrackerParams) -> bool:
         """Whether ``params``'s kernels are loaded; if not, have them made ready (the latest
-        parameters asked for are the ones made ready next)."""
+        parameters asked for are the ones made ready next), unless that failed
+        (:meth:`failure`)."""
         from ..common.vision.tracker import kernels_warm
 
         if kernels_warm(params):
             return True
         with self._lock:
+            if params in self._failed:
+                return False
             self._wanted = params
             if self._thread is None:
                 self._thread = threading.Thread(target=self._run, daemon=True,
                                                 name="kernels-ahead")
                 self._thread.start()
         return False
+
+    def failure(self, params: TrackerParams) -> str | None:
+        """Why ``params``'s kernels could not be made ready, or None."""
+        with self._lock:
+            return self._failed.get(params)
 
     def _run(self) -> None:
         from ..common.vision import warm_up
@@ -420,9 +429,9 @@ class KernelsAhead:
                     params.as_dict()).encode(), stdout=subprocess.DEVNULL,
                     stderr=subprocess.DEVNULL, timeout=HELPER_TIMEOUT_S, check=False)
                 warm_up(params=params)  # loads what the other process compiled
-            except Exception as e:  # noqa: BLE001 - the loop goes on; a later update retries
-                self._log.error("could not make the kernels of %s ready: %s",
-                                params.factors(), e)
+            except Exception as e:  # noqa: BLE001 - the loop goes on with what is in force
+                with self._lock:
+                    self._failed[params] = f"{type(e).__name__}: {e}"
                 continue
             self._log.info("kernels of the new parameters ready in %.1f s",
                            time.monotonic() - t0)

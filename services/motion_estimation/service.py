@@ -154,7 +154,17 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         """Put the pending update in force once its kernels are loaded (at once when they
         are): never a frame, nor the loop, waits for a compile."""
         nonlocal pending
-        if pending is None or not ahead.ready(pending.params):
+        if pending is None:
+            return False
+        if not ahead.ready(pending.params):
+            failed = ahead.failure(pending.params)
+            if failed is not None:  # never comes in force: said, and the set in force stays
+                node.status.error(f"params_id {pending.params_id}: its kernels could not be "
+                                  f"made ready ({failed}); keeping params_id {state.params_id}")
+                log.error("params_id %d dropped: its kernels could not be made ready (%s); "
+                          "keeping params_id %d", pending.params_id, failed, state.params_id)
+                pending = None
+                node.status.extra.pop("params_pending", None)
             return False
         state.commit(pending, node, log)
         tracker.set_params(state.params)

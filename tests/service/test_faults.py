@@ -237,3 +237,51 @@ def test_parameters_with_kernels_of_their_own_wait_for_them_beside_the_loop(monk
     assert "params_pending" not in node.status.extra
     assert tracker_module.kernels_warm(big)
     assert node.status.failed == 0 and node.status.rejected == 0
+
+
+def test_parameters_whose_kernels_fail_are_dropped_and_the_old_ones_stay(monkeypatch):
+    """Should their kernels fail to build (a compiler error), a pending update is dropped with
+    an error in the status and the log, once: the parameters in force stay, and the loop does
+    not retry a compile of half a minute on every frame."""
+    from vistrack.common import vision
+    from vistrack.common.messages import Params
+    from vistrack.common.vision import tracker as tracker_module
+    from vistrack.services.motion_estimation.service import loop
+
+    big = TrackerParams(corr_size=64)
+    key = tracker_module._kernel_set(big)
+    monkeypatch.setattr(tracker_module, "_WARM", set(tracker_module._WARM) - {key})
+    tries = []
+    real_warm_up = vision.warm_up
+
+    def broken_warm_up(*args, params=None, **kwargs):
+        if params != big:  # the start-up's: as it is
+            return real_warm_up(*args, params=params, **kwargs)
+        tries.append(params)
+        raise RuntimeError("the compiler failed")
+    monkeypatch.setattr(vision, "warm_up", broken_warm_up)
+    frames = builtin_sequence(10)
+    with MemoryNode("motion_estimation") as node:
+        thread = run_loop(loop, node, parse("motion-estimation"))
+        wait_for(lambda: node.feed(node.keys.pre_frame, pre_frame(frames[0], 0)),
+                 timeout=60, what="the subscription")
+        node.feed(node.keys.params, Params.from_tracker_params(
+            big, seq=0, stamp_ns=time.time_ns(), params_id=7, source="user",
+            reason="test").encode())
+        seq = 1
+        while "could not be made ready" not in (node.status.last_error or ""):
+            assert seq < 2000 and thread.is_alive(), "the failure was never said"
+            node.feed(node.keys.pre_frame, pre_frame(frames[seq % 10], seq))
+            time.sleep(0.05)
+            seq += 1
+        for more in range(seq, seq + 5):  # tracking goes on, with what is in force
+            node.feed(node.keys.pre_frame, pre_frame(frames[more % 10], more))
+        wait_for(lambda: Estimate.decode(node.published_on(node.keys.estimate)[-1]).seq
+                 == seq + 4, what="the frames after")
+        node.stop.set()
+        thread.join(10)
+    assert thread.error is None
+    assert "params_id 7" in node.status.last_error
+    assert {Estimate.decode(p).params_id for p in node.published_on(node.keys.estimate)} == {0}
+    assert node.status.params["params_id"] == 0 and "params_pending" not in node.status.extra
+    assert tries == [big]  # tried once, not again on every frame

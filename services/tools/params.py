@@ -15,6 +15,9 @@ search_size, corr_size, ungroup_size):
    once a subscriber matches (what is put before the subscription is known is lost);
 3. motion_estimation's status is polled until it runs with the new ``params_id`` (the message
    is repeated every second meanwhile: a duplicate is ignored by the services), else exit 1.
+   While its status says the set is accepted but pending (``extra.params_pending``: windows
+   whose kernels are being made ready, up to half a minute on their first use on a machine),
+   the tool says so on stderr and waits up to :data:`PENDING_WAIT_S` more.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from ...common.bus import SourcedPublisher
 from ...common.keys import Keys
 from ...common.messages import MessageError, Params, next_params_id, unpack
 from ...common.params import BOUNDS, FACTORS, ParamError, TrackerParams
+from ..kernels import say_on_stderr
 from ..usage import add_number
 from .shared import (
     ServiceState,
@@ -46,6 +50,9 @@ CONFIRMING_SERVICE = "motion_estimation"
 HEADERS = ("SERVICE", "PARAMS_ID", "SOURCE", *(f.upper() for f in FACTORS), "REASON")
 REPEAT_S = 1.0  # how often an unconfirmed set is published again
 POLL_S = 0.1  # how often the confirming service's status is asked
+#: How long a set the confirming service has accepted, pending its kernels, is waited for
+#: beyond ``--timeout`` (their compile on a first use: ~30 s on two cores, 80 s when busy).
+PENDING_WAIT_S = 180.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -204,6 +211,7 @@ def _publish_until_confirmed(session: zenoh.Session, keys: Keys, publisher: Sour
     seq = time.time_ns() // 1000
     next_put = 0.0
     seen: dict[str, Any] = {}
+    said_pending = False
     while True:
         now = time.monotonic()
         if now >= next_put:
@@ -213,7 +221,18 @@ def _publish_until_confirmed(session: zenoh.Session, keys: Keys, publisher: Sour
             publisher.put(msg.encode())
             seq += 1
             next_put = now + REPEAT_S
-        seen = _service_params(session, keys, CONFIRMING_SERVICE, timeout=0.5) or seen
+        status = _service_status(session, keys, CONFIRMING_SERVICE, timeout=0.5)
+        if status is not None and isinstance(status.get("params"), dict):
+            seen = status["params"]
+        extra = status.get("extra") if status is not None else None
+        if isinstance(extra, dict) and extra.get("params_pending") == params_id \
+                and not said_pending:
+            said_pending = True
+            deadline = max(deadline, time.monotonic() + PENDING_WAIT_S)
+            say_on_stderr("params")(
+                f"params_id {params_id} accepted by {CONFIRMING_SERVICE}, not yet in force: "
+                "the kernels of these windows are being made ready (on their first use on "
+                "this machine, up to half a minute); waiting")
         found = seen.get("params_id")
         # ours, not a tuning that happened to take the same params_id (the service then keeps
         # the tuner's and refuses ours as stale: not confirmed)
@@ -231,17 +250,17 @@ def _publish_until_confirmed(session: zenoh.Session, keys: Keys, publisher: Sour
         time.sleep(POLL_S)
 
 
-def _service_params(session: zenoh.Session, keys: Keys, service: str, timeout: float
+def _service_status(session: zenoh.Session, keys: Keys, service: str, timeout: float
                     ) -> dict[str, Any] | None:
-    """The ``params`` of one service's status reply, or None if it did not answer."""
+    """One service's status reply (a map), or None if it did not answer."""
     for reply in session.get(keys.status(service), timeout=timeout):
         if reply.ok is None:
             continue
         try:
-            params = unpack(reply.ok.payload.to_bytes()).get("params")
+            status = unpack(reply.ok.payload.to_bytes())
         except MessageError:
             continue
-        if isinstance(params, dict):
-            return params
+        if isinstance(status, dict):
+            return status
     return None
 

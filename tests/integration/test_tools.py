@@ -19,6 +19,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -29,7 +30,7 @@ import zenoh
 from forkcli import vistrack
 
 from vistrack.common.keys import Keys
-from vistrack.common.messages import pack
+from vistrack.common.messages import Params, pack
 from vistrack.common.params import TrackerParams
 
 from procs import Collector, Proc, router, services, zenoh_config
@@ -328,6 +329,45 @@ def test_params_set_is_not_confirmed_by_another_set_with_its_id(endpoint, sessio
     assert run.stderr.count("\n") == 1
     assert "did not confirm params_id 3" in run.stderr
     assert "runs params_id 3 from tuner" in run.stderr
+
+
+def test_params_set_waits_for_a_set_accepted_pending_its_kernels(endpoint, session):
+    """Windows whose kernels motion-estimation has not loaded (a 64 px window's int64 sums)
+    stay pending while they are made ready, up to half a minute on a new machine; the tool
+    gave up after its timeout, saying the set "may have been lost". It now says it waits, and
+    confirms the set once in force. A stand-in motion-estimation (robot "slow") answers its
+    status with the set pending for 2.5 s, past the tool's 1 s timeout, then in force."""
+    keys = Keys("slow")
+    before = {"params_id": 4, "source": "flags", "reason": "start-up",
+              **TrackerParams().factors()}
+    state: dict = {"params": before, "extra": {}}
+
+    def on_status(query: zenoh.Query) -> None:
+        query.reply(query.key_expr, pack({"service": "motion_estimation", **state}))
+
+    def on_params(sample: zenoh.Sample) -> None:
+        msg = Params.decode(sample.payload.to_bytes())
+        if state["extra"].get("params_pending") != msg.params_id \
+                and state["params"]["params_id"] < msg.params_id:
+            state["extra"] = {"params_pending": msg.params_id}
+            threading.Timer(2.5, lambda: state.update(extra={}, params={
+                "params_id": msg.params_id, "source": msg.source, "reason": msg.reason,
+                **msg.tracker_params(TrackerParams()).factors()})).start()
+
+    token = session.liveliness().declare_token(keys.alive("motion_estimation"))
+    queryable = session.declare_queryable(keys.status("motion_estimation"), on_status)
+    sub = session.declare_subscriber(keys.params, on_params)
+    try:
+        run = tool(endpoint, "params", "set", "corr_size=64", "--timeout", "1",
+                   "--robot", "slow")
+    finally:
+        sub.undeclare()
+        queryable.undeclare()
+        token.undeclare()
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "params_id 5 accepted by motion_estimation, not yet in force" in run.stderr
+    assert run.stdout.startswith("params_id 5 in force on motion_estimation")
+    assert "corr_size=64" in run.stdout
 
 
 def _params_set_and_get(endpoint: str, est: Collector) -> None:

@@ -300,6 +300,25 @@ def test_params_set_reaches_motion_estimation(pipeline, endpoint, session):
         assert 0 <= after["dropped"] - before[s]["dropped"] <= frames, s
 
 
+@contextmanager
+def stand_in_motion_estimation(session: zenoh.Session, keys: Keys, state: dict,
+                               on_params: Callable[[zenoh.Sample], None]) -> Iterator[None]:
+    """A motion-estimation of robot ``keys.robot`` that the params tool sees: alive, its
+    status the map ``state`` (read at each query), ``on_params`` called on each set."""
+    def on_status(query: zenoh.Query) -> None:
+        query.reply(query.key_expr, pack({"service": "motion_estimation", **state}))
+
+    token = session.liveliness().declare_token(keys.alive("motion_estimation"))
+    queryable = session.declare_queryable(keys.status("motion_estimation"), on_status)
+    sub = session.declare_subscriber(keys.params, on_params)
+    try:
+        yield
+    finally:
+        sub.undeclare()
+        queryable.undeclare()
+        token.undeclare()
+
+
 def test_params_set_is_not_confirmed_by_another_set_with_its_id(endpoint, session):
     """The tool takes the id after the largest in force; if the tuner takes the same id first
     (its initial tuning, finishing meanwhile), motion-estimation runs that id with the tuner's
@@ -312,19 +331,10 @@ def test_params_set_is_not_confirmed_by_another_set_with_its_id(endpoint, sessio
              **TrackerParams(search_size=12, corr_size=5).factors()}
     state = {"params": {**tuner, "params_id": 2}}
 
-    def on_status(query: zenoh.Query) -> None:
-        query.reply(query.key_expr, pack({"service": "motion_estimation", **state}))
-
-    token = session.liveliness().declare_token(keys.alive("motion_estimation"))
-    queryable = session.declare_queryable(keys.status("motion_estimation"), on_status)
-    sub = session.declare_subscriber(keys.params, lambda _: state.update(params=tuner))
-    try:
+    with stand_in_motion_estimation(session, keys, state,
+                                    lambda _: state.update(params=tuner)):
         run = tool(endpoint, "params", "set", "search_size=19", "--timeout", "3",
                    "--robot", "race")
-    finally:
-        sub.undeclare()
-        queryable.undeclare()
-        token.undeclare()
     assert run.returncode == 1, run.stdout + run.stderr
     assert run.stderr.count("\n") == 1
     assert "did not confirm params_id 3" in run.stderr
@@ -342,9 +352,6 @@ def test_params_set_waits_for_a_set_accepted_pending_its_kernels(endpoint, sessi
               **TrackerParams().factors()}
     state: dict = {"params": before, "extra": {}}
 
-    def on_status(query: zenoh.Query) -> None:
-        query.reply(query.key_expr, pack({"service": "motion_estimation", **state}))
-
     def on_params(sample: zenoh.Sample) -> None:
         msg = Params.decode(sample.payload.to_bytes())
         if state["extra"].get("params_pending") != msg.params_id \
@@ -354,16 +361,9 @@ def test_params_set_waits_for_a_set_accepted_pending_its_kernels(endpoint, sessi
                 "params_id": msg.params_id, "source": msg.source, "reason": msg.reason,
                 **msg.tracker_params(TrackerParams()).factors()})).start()
 
-    token = session.liveliness().declare_token(keys.alive("motion_estimation"))
-    queryable = session.declare_queryable(keys.status("motion_estimation"), on_status)
-    sub = session.declare_subscriber(keys.params, on_params)
-    try:
+    with stand_in_motion_estimation(session, keys, state, on_params):
         run = tool(endpoint, "params", "set", "corr_size=64", "--timeout", "1",
                    "--robot", "slow")
-    finally:
-        sub.undeclare()
-        queryable.undeclare()
-        token.undeclare()
     assert run.returncode == 0, run.stdout + run.stderr
     assert "params_id 5 accepted by motion_estimation, not yet in force" in run.stderr
     assert run.stdout.startswith("params_id 5 in force on motion_estimation")

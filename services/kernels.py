@@ -372,8 +372,8 @@ class KernelsAhead:
     """Kernels of new tracker parameters, made ready beside a service's loop.
 
     Parameters whose windows sum in int64 (:func:`~vistrack.common.vision.tracker.
-    _kernel_set`), or ``--paper``'s search, run kernels of their own that the start-up warm-up
-    did not load: on a cold cache they compile for up to half a minute, far past the
+    _kernel_set`: a 64 px window, say) run kernels of their own that the start-up warm-up did
+    not load: on a cold cache they compile for up to half a minute, far past the
     launcher's hang timeout (5 s) if the loop waited. :meth:`ready` answers at once; when the
     kernels are not loaded, a thread compiles them in a second process (another core, and no
     contention for this process's interpreter lock with the loop), which leaves them in

@@ -6,10 +6,10 @@ Writes  ``vistrack/<robot>/motion/estimate``       (one per processed frame)
         ``vistrack/<robot>/motion/demand``         (reliable: when it changes, and every s)
 
 Parameters are put in force between frames. Those that run kernels of their own (the largest
-windows, whose sums need int64; ``--paper``'s search), which a cold cache would compile for up
-to half a minute, stay pending (status ``extra``: ``params_pending``) while the kernels are made
-ready beside the loop (:class:`~vistrack.services.kernels.KernelsAhead`); the parameters in
-force track the frames meanwhile, and each estimate's ``params_id`` says which ones did.
+windows, whose sums need int64), which a cold cache would compile for up to half a minute,
+stay pending (status ``extra``: ``params_pending``) while the kernels are made ready beside
+the loop (:class:`~vistrack.services.kernels.KernelsAhead`); the parameters in force track the
+frames meanwhile, and each estimate's ``params_id`` says which ones did.
 
 The tracker is the library's :class:`~vistrack.common.vision.Tracker`, fed the filtered frame
 and candidates computed upstream, so the pipeline computes exactly what ``vistrack track`` does.

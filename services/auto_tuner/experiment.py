@@ -417,7 +417,7 @@ class Experiment:
             tick()
 
     def _run(self, params: TrackerParams, key: tuple) -> None:
-        warm_up(params=params)  # kernels of their own (the paper's search): before the timing
+        warm_up(params=params)  # kernels of their own (paper, int64 sums): before the timing
         frames = self._preprocessed(params)
         tracker = Tracker(params)
         estimates = [tracker.update(pre) for pre in frames]
@@ -438,7 +438,7 @@ class Experiment:
         pre-processed and tracked anew. Returns its (n_frames,) pre-processing and tracking
         times, ms. The outputs are deterministic, so the first ones are kept for the motion
         and for the untimed runs that share them; the times are never stored."""
-        warm_up(params=params)  # kernels of their own (the paper's search): before the timing
+        warm_up(params=params)  # kernels of their own (paper, int64 sums): before the timing
         t_pre = np.empty(len(self.frames))
         frames = []
         for i, frame in enumerate(self.frames):

@@ -772,12 +772,15 @@ def _search_level(prev, curr, anchors, centers, active, n, s, wts, exhaustive, r
                                             uniform, reg, acc64)
         else:
             width = (ncol + LANES - 1) // LANES * LANES
+            # the template's row sums, by unsigned flat index: a row's view took a reference
+            # (an atomic increment and decrement of numba's runtime) for 9 pixels
+            t0 = np.uint64((ay - n) * w + ax - n)
             for j in range(m):
-                trow = prev[ay - n + j, ax - n:ax + n + 1]
                 acc = 0
                 for i in range(m):
-                    acc += trow[i]
+                    acc += pf[t0 + np.uint64(i)]
                 trs[j] = acc
+                t0 += np.uint64(w)
             if nrow != lanes_nrow or ncol != lanes_ncol:
                 # which bound lanes are displacements: the same for every search inside the
                 # image

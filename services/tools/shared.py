@@ -298,19 +298,28 @@ def gather(session: zenoh.Session, keys: Keys, timeout: float = 1.0) -> list[Ser
     """Every service that is alive or answers its status query, sorted by name.
 
     A session that has just connected may not know every token and queryable yet (a first
-    liveliness query can come back empty), so both queries are repeated while their answers
-    disagree or are both empty, until ``timeout`` s have passed: a service alive but silent,
-    or a robot without services, costs the timeout.
+    liveliness query can come back empty, or short of some), so both queries are repeated
+    until their answers agree and a further round finds no one new, or until ``timeout`` s
+    have passed: a service alive but silent, or a robot without services, costs the timeout.
+    (A CI run's status table once had no row for a live auto-tuner: the likeliest reading is
+    that both answers of a first round had left it out, and agreeing, ended the gathering.)
     """
     deadline = time.monotonic() + timeout
     alive: set[str] = set()
     statuses: dict[str, dict[str, Any]] = {}
+    agreed: set[str] | None = None  # the services both answers named in the last round
     while True:
         remaining = max(0.2, deadline - time.monotonic())
         alive.update(alive_services(session, keys, timeout=remaining))
         for reply in query_status(session, keys, timeout=remaining):
             statuses[str(reply.get("service", "?"))] = reply
-        if (alive and alive == statuses.keys()) or time.monotonic() >= deadline:
+        if alive and alive == statuses.keys():
+            if agreed == alive:
+                break  # the same in two rounds in a row
+            agreed = set(alive)
+        else:
+            agreed = None
+        if time.monotonic() >= deadline:
             break
         time.sleep(0.05)  # let the missing declarations arrive, then ask again
     return [ServiceState(name, name in alive, statuses.get(name))

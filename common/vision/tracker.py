@@ -408,9 +408,14 @@ def warm_up(on_compile: Callable[[], None] | None = None,
     """
     from ..synthetic import sequence
 
-    sets = [TrackerParams(), TrackerParams(weights="gaussian", subpixel=False),
-            TrackerParams(search="exhaustive"), *([params] if params is not None else [])]
-    todo = {_kernel_set(p): p for p in sets if _kernel_set(p) not in _WARM}
+    if not _START_UP_KEYS:
+        _START_UP_KEYS.update((_kernel_set(p), p) for p in _START_UP_SETS)
+    keyed = dict(_START_UP_KEYS)
+    if params is not None:
+        keyed[_kernel_set(params)] = params  # its own, where it shares a set's key
+    todo = {key: p for key, p in keyed.items() if key not in _WARM}
+    if not todo:
+        return False  # everything warm: the tuner asks before each of its timed runs
     with compile_watch(on_compile) as watch:
         for key, p in todo.items():
             small = p.replace(max_features=20, search_size=5, corr_size=5)
@@ -450,6 +455,12 @@ def _kernel_set(p: TrackerParams) -> tuple[bool, str, bool, str]:
     return single, p.search, p.subpixel, acc
 
 
+#: the parameters whose kernels every warm-up loads: the default tracker's, of its
+#: exhaustive search, and of integer positions
+_START_UP_SETS = (TrackerParams(), TrackerParams(weights="gaussian", subpixel=False),
+                  TrackerParams(search="exhaustive"))
+#: their kernel sets (:func:`_kernel_set`), keyed once a process
+_START_UP_KEYS: dict[tuple[bool, str, bool, str], TrackerParams] = {}
 #: the kernel sets (:func:`_kernel_set`) this process has warmed up
 _WARM: set[tuple[bool, str, bool, str]] = set()
 #: the threads in :func:`warm_up`'s tracking

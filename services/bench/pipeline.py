@@ -21,7 +21,10 @@ In one run, on this machine's loopback, through one local Zenoh router as ``vist
    camera -> preprocessing -> motion-estimation -> here);
 5. ours unpaced: the camera with ``--fps 0 --in-flight 2`` (pre-processing and tracking
    overlap): estimates per second, and the frames dropped at the latest-only inputs (counted by
-   the services).
+   the services);
+6. ours unpaced without the auto-tuner: what its taking every 64 KiB frame costs the whole
+   pipeline (its own process, the router's fan-out, the contention for the two cores), against
+   what its own process spends.
 
 The auto-tuner runs with ``--no-tune``: it buffers every frame and watches every estimate, but
 its experiments, which would take a core for seconds, are left out of the measurement.
@@ -441,18 +444,20 @@ def _collect_estimates(session: zenoh.Session, keys: Keys, seconds: float
 
 
 def distributed(session: zenoh.Session, endpoint: str, keys: Keys, *, fps: float,
-                seconds: float, size: str | None = None) -> dict[str, float]:
+                seconds: float, size: str | None = None, tuner: bool = True
+                ) -> dict[str, float]:
     """Run camera + four services for ``seconds``; latency and rate figures. ``size``
-    (``WxH``): the built-in frames resized to it, else 256x256."""
+    (``WxH``): the built-in frames resized to it, else 256x256. ``tuner=False``: without
+    the auto-tuner (what its buffering costs the whole pipeline)."""
     with ExitStack() as stack:
         pids = {ROUTER: os.getpid()}  # the router and this collector
-        for name in SERVICES:
+        names = SERVICES if tuner else tuple(n for n in SERVICES if n != "auto-tuner")
+        for name in names:
             # the tuner buffers every frame but runs no experiment: its worker would take the
             # CPU the pipeline is being measured on
             extra = ("--no-tune",) if name == "auto-tuner" else ()
             pids[name] = stack.enter_context(_process(_vistrack(name, endpoint, *extra))).pid
-        _wait_alive(session, keys, {"preprocessing", "motion_estimation", "auto_tuner",
-                                    "fuzzy_controller"}, 60)
+        _wait_alive(session, keys, {n.replace("-", "_") for n in names}, 60)
         pids["camera"] = stack.enter_context(_process(_vistrack(
             "camera", endpoint, "--source", "builtin", "--loop", "--fps", f"{fps:g}",
             "--in-flight", "2", *(("--size", size) if size else ())))).pid
@@ -508,12 +513,19 @@ def bench_pipeline(out: TextIO = sys.stdout, seconds: float = 5.0,
         paced_720 = distributed(session, endpoint, keys, fps=30, seconds=paced_seconds,
                                 size="1280x720")
         free = distributed(session, endpoint, keys, fps=0, seconds=seconds)
+        free_alone = distributed(session, endpoint, keys, fps=0, seconds=seconds, tuner=False)
     fig.update({f"skeleton_paced_{k}": v for k, v in skel_paced.items()})
     fig.update({f"skeleton_free_{k}": v for k, v in skel_free.items()})
     fig.update({f"skeleton_loop_{k}": v for k, v in skel_loop.items()})
     fig.update({f"paced_{k}": v for k, v in paced.items()})
     fig.update({f"paced_720_{k}": v for k, v in paced_720.items()})
     fig.update({f"free_{k}": v for k, v in free.items()})
+    fig.update({f"free_no_tuner_{k}": v for k, v in free_alone.items()})
+    # what the auto-tuner's taking every frame costs the whole pipeline (its process, the
+    # router's fan-out, the other processes' share of two cores), beside what its own process
+    # spends
+    fig["tuner_cost_us_per_frame"] = (free["cpu_us_per_frame"]
+                                      - free_alone["cpu_us_per_frame"])
     fig["hop_ratio_raw"] = paced["hop_ms"] / fig["raw_one_way_ms"]
     fig["hop_ratio_skeleton"] = paced["hop_ms"] / skel_paced["hop_ms"]
     fig["throughput_ratio_in_process"] = free["rate_hz"] / fig["in_process_fps"]
@@ -562,6 +574,11 @@ def bench_pipeline(out: TextIO = sys.stdout, seconds: float = 5.0,
          f"{100 * fig['throughput_ratio_skeleton_loop']:.0f} % of raw skeleton (callback / "
          f"loop), {free['cpu_us_per_frame']:.0f} us of CPU a frame"),
         ("ours unpaced: frames dropped at latest-only inputs", f"{free['dropped']:.0f}"),
+        ("ours unpaced without the auto-tuner",
+         f"{free_alone['rate_hz']:.0f} fps, {free_alone['cpu_us_per_frame']:.0f} us of CPU a "
+         f"frame: the tuner's taking every frame costs the pipeline "
+         f"{fig['tuner_cost_us_per_frame']:+.0f} us a frame, its own process "
+         f"{free['cpu_auto_tuner_total']:.0f}"),
         ("ours unpaced: CPU a frame / (skeleton loops + in-process)",
          f"{free['cpu_us_per_frame']:.0f} / ({skel_loop['cpu_us_per_frame']:.0f} + "
          f"{1e6 / fig['in_process_fps']:.0f}) us = "

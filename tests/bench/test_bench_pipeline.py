@@ -40,6 +40,12 @@ def test_bench_pipeline(capsys):
     assert fig["throughput_ratio_skeleton_loop"] == pytest.approx(fig["free_rate_hz"]
                                                                   / fig["skeleton_loop_rate_hz"])
     assert fig["free_dropped"] >= 0
+    # the run without the auto-tuner: no tuner process measured, and its cost is the difference
+    assert fig["free_no_tuner_rate_hz"] > 0 and "free_no_tuner_cpu_auto_tuner_total" not in fig
+    assert fig["free_cpu_auto_tuner_total"] > 0
+    assert fig["tuner_cost_us_per_frame"] == pytest.approx(
+        fig["free_cpu_us_per_frame"] - fig["free_no_tuner_cpu_us_per_frame"])
+    assert "without the auto-tuner" in buf.getvalue()
     assert fig["paced_720_lat_p99_ms"] >= fig["paced_720_lat_p50_ms"] > 0
     assert fig["cpu_ratio_skeleton_loop_plus_in_process"] == pytest.approx(
         fig["free_cpu_us_per_frame"] / (fig["skeleton_loop_cpu_us_per_frame"]

@@ -18,13 +18,16 @@ the default tracker's SSD search (``track_pyramid`` and the kernels it calls: mo
 work) while this one compiles the rest; the final :func:`~vistrack.common.vision.warm_up` then
 compiles what is left and loads the rest from the cache. Each process compiles what the other
 will load from the cache before it needs it: the second process starts with the single-level
-search that every level of the coarse-to-fine search calls, this one with the last kernels that
-search compiles (:func:`_search_tail_signatures`), the sub-pixel refinement that the
-coarse-to-fine search calls after it and the search's last checks (:func:`_compile_refinement`,
-with the types that search gives them), the other kernels of its matching
-(:func:`_match_signatures`), then the kernels of a first frame and of the motion estimate:
-measured on a quiet machine, this process was done 7 s before the second one without the
-kernels of those two lists (~3.4 s of compile), which the second then had to compile. The
+search that every level of the coarse-to-fine search calls, this one with the Gauss-Newton
+refinement the matching calls next, the last kernels the single-level search compiles
+(:func:`_search_tail_signatures`), the other kernels of the matching
+(:func:`_match_signatures`), the coarse-to-fine search's last checks
+(:func:`_compile_refinement`, with the types that search gives them), then the kernels of a
+first frame and of the motion estimate. Measured on a quiet machine: without the kernels of
+those lists this process was done 7 s before the second one, which then had to compile them
+(~3.4 s); with Gauss-Newton after the search's tail, the second process reached it a moment
+before it was cached and compiled it again, with the matching's kernels that call it (~4 s:
+cold warm-ups of 36.4 and 38.5 s, against 31.5 and 35.8 with this order, interleaved). The
 split only changes how long the compile takes: whatever the second process did not compile,
 or compiled for other types, the final warm-up compiles here.
 """
@@ -185,9 +188,15 @@ def _compile_first_frame() -> None:
     from ..common.vision import Tracker, incremental_motion
     from ..common.vision import tracker as tracker_kernels
 
-    _compile_ahead(_search_tail_signatures())  # before the second process reaches them
-    _compile_refinement()  # the second process needs them after its first step
-    _compile_ahead(_match_signatures())  # they call the refinement
+    # in the order the second process reaches them, each before it does: it compiles its
+    # own copy of what is not in the cache yet. Its matching calls Gauss-Newton right after
+    # its first step (~10 s in): compiled after the search's tail, it was cached a moment too
+    # late, and the second process compiled it again (with the matching's kernels, ~4 s of
+    # its ~30)
+    _compile_refinement(gauss_newton=True)
+    _compile_ahead(_search_tail_signatures())  # the end of its first step
+    _compile_ahead(_match_signatures())  # its second step's (they call Gauss-Newton)
+    _compile_refinement(gauss_newton=False)  # the coarse-to-fine search's last steps
     (frame,) = sequence(1, size=(64, 64), seed=1)
     Tracker(TrackerParams(subpixel=True, max_features=20, search_size=5, corr_size=5)
             ).process(frame)
@@ -325,12 +334,15 @@ def _compile_ahead(signatures: list[tuple[Any, tuple]]) -> None:
             pass
 
 
-def _compile_refinement() -> None:
-    """Compile the sub-pixel refinement's kernels (:func:`_refinement_calls`)."""
+def _compile_refinement(gauss_newton: bool | None = None) -> None:
+    """Compile the sub-pixel refinement's kernels (:func:`_refinement_calls`): all of them,
+    or (``gauss_newton`` True) the Gauss-Newton refinement only, (False) all but it."""
     try:
         calls = _refinement_calls()
     except Exception:  # noqa: BLE001 - a kernel renamed or changed: the final warm-up
         return  # compiles what the search calls
+    if gauss_newton is not None:
+        calls = calls[:1] if gauss_newton else calls[1:]
     for kernel, args in calls:
         try:
             kernel(*args)

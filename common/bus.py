@@ -268,6 +268,10 @@ class Status:
     params : the parameters in force (set by the service).
     extra : service-specific values (e.g. frames, npi), msgpack-encodable; reported as is.
         Mutate from the service loop's thread only.
+    extra_on_read : optional; called when the status is read (:meth:`as_dict`, from the
+        status queryable's thread), its map added to ``extra``: values a service would
+        otherwise recompute every frame for a status read once a second or less (it must only
+        read what the loop writes).
     started : wall-clock start time, s since the Unix epoch.
     """
 
@@ -282,6 +286,7 @@ class Status:
         self.last_error = ""
         self.params: dict[str, Any] = {}
         self.extra: dict[str, Any] = {}
+        self.extra_on_read: Callable[[], Mapping[str, Any]] | None = None
         self.started = time.time()
         self._started_mono = time.monotonic()
         # Takes in what has arrived but is not counted yet (set by the node: its arrivals
@@ -359,13 +364,15 @@ class Status:
         params, extra, started.
         """
         self.absorb()  # before the lock: it takes the node's, then this one
+        on_read = self.extra_on_read
+        late = {} if on_read is None else dict(on_read())
         with self._lock:
             times = np.fromiter(self._times_ms, dtype=float, count=len(self._times_ms))
             snap: dict[str, Any] = {
                 "received": self._received, "published": self.published,
                 "dropped": self._dropped, "rejected": self.rejected, "failed": self.failed,
                 "last_error": self.last_error, "params": dict(self.params),
-                "extra": dict(self.extra), "started": self.started,
+                "extra": {**self.extra, **late}, "started": self.started,
             }
         p50: float | None = None
         p90: float | None = None

@@ -134,6 +134,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     last_seq = -1
     # (seq, stamp_ns) of the frame last tracked, and its estimate: what a frame sent again gets
     answered: tuple[int, int, bytes] = (-1, -1, b"")
+    last_npi, last_valid = 0, False  # the last estimate's, for the status
 
     ahead = KernelsAhead(log)
     pending: ParamsUpdate | None = None  # accepted, waiting for kernels of its own
@@ -173,7 +174,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         return True
 
     def on_frame(payload: bytes) -> None:
-        nonlocal last_seq, answered
+        nonlocal last_seq, answered, last_npi, last_valid
         t0 = time.perf_counter()
         if pending is not None:
             put_in_force()
@@ -210,11 +211,18 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                 node.status.extra.get("candidates_here", 0) + 1
         demand.after(tracker, est.npi, tracker.redetections > redetections, msg.stamp_ns)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
-        # features lost since the start, and those of them whose match was rejected, by
-        # reason (not ``rejected``: that is the status's count of bad messages)
+        last_npi, last_valid = est.npi, est.valid
+        if node.status.extra_on_read is None:
+            node.status.extra_on_read = tracked
+
+    def tracked() -> dict[str, object]:
+        """The tracker's counters, when the status is read (~9 us a frame when they were
+        written every frame): features lost since the start, and those of them whose match
+        was rejected, by reason (not ``rejected``: that is the status's count of bad
+        messages)."""
         lost_by = tracker.lost_by
-        node.status.extra.update(
-            npi=est.npi, valid=est.valid, lost=tracker.lost_total,
+        return dict(
+            npi=last_npi, valid=last_valid, lost=tracker.lost_total,
             rejected_features=tracker.rejected_total, redetections=tracker.redetections,
             exposure_steps=tracker.exposure_steps, noise=round(tracker.noise, 2),
             rejected_by={k: v for k, v in lost_by.items() if k not in ("left", "cut")})

@@ -327,6 +327,30 @@ def test_status_queryable_answers_with_counters(nodes):
     assert cam["uptime_s"] >= 0 and statuses[0]["published"] == 1
 
 
+def test_status_values_computed_when_read_come_in_extra(nodes):
+    """``extra_on_read``: a service's counters computed when the status is read (a status
+    query), not written every frame; they join ``extra``, as of the moment of the read."""
+    a, b = nodes()
+    state = {"npi": 7}
+    reads = []
+
+    def on_read():
+        reads.append(1)
+        return {"npi": state["npi"], "lost_by": {"fb": 2}}
+
+    a.status.extra["frames"] = 3
+    a.status.extra_on_read = on_read
+    assert reads == []  # nothing computed until read
+    first = [s for s in query_status(b.session, b.keys, timeout=2.0)
+             if s["service"] == "camera"][0]
+    assert first["extra"] == {"frames": 3, "npi": 7, "lost_by": {"fb": 2}}
+    state["npi"] = 9
+    second = [s for s in query_status(b.session, b.keys, timeout=2.0)
+              if s["service"] == "camera"][0]
+    assert second["extra"]["npi"] == 9 and len(reads) >= 2
+    assert "npi" not in a.status.extra  # read, never written into the loop's own map
+
+
 def test_liveliness_visible_then_gone_after_close(nodes, free_port):
     a, b = nodes()
     wait_for(lambda: alive_services(b.session, b.keys) == ["auto_tuner", "camera"],

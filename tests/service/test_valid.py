@@ -98,7 +98,7 @@ def test_motion_estimation_status_counts_rejected_features_by_reason():
                      what="a subscription")
             wait_for(lambda seq=seq: len(node.published_on(node.keys.estimate)) > seq,
                      what=f"estimate {seq}")
-        extra = dict(node.status.extra)
+        extra = node.status.as_dict()["extra"]  # the tracker's counters: computed when read
     by = extra["rejected_by"]
     assert set(by) == {"border", "ambiguous", "runaway", "fb", "disagrees", "residual"}
     assert extra["rejected_features"] == sum(by.values()) > 10, extra

@@ -271,7 +271,8 @@ class Status:
     extra_on_read : optional; called when the status is read (:meth:`as_dict`, from the
         status queryable's thread), its map added to ``extra``: values a service would
         otherwise recompute every frame for a status read once a second or less (it must only
-        read what the loop writes).
+        read what the loop writes). Should it raise, the status still answers, with
+        ``extra_on_read_error`` in ``extra`` (and the traceback in the log).
     started : wall-clock start time, s since the Unix epoch.
     """
 
@@ -365,7 +366,11 @@ class Status:
         """
         self.absorb()  # before the lock: it takes the node's, then this one
         on_read = self.extra_on_read
-        late = {} if on_read is None else dict(on_read())
+        try:
+            late = {} if on_read is None else dict(on_read())
+        except Exception as err:  # noqa: BLE001 - a status without them beats none at all
+            log.exception("status: the values read at query time failed")
+            late = {"extra_on_read_error": repr(err)}
         with self._lock:
             times = np.fromiter(self._times_ms, dtype=float, count=len(self._times_ms))
             snap: dict[str, Any] = {

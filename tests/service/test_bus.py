@@ -349,6 +349,12 @@ def test_status_values_computed_when_read_come_in_extra(nodes):
               if s["service"] == "camera"][0]
     assert second["extra"]["npi"] == 9 and len(reads) >= 2
     assert "npi" not in a.status.extra  # read, never written into the loop's own map
+    # a fault there leaves the status answering, the fault named
+    a.status.extra_on_read = lambda: {"npi": 1 // 0}
+    broken = [s for s in query_status(b.session, b.keys, timeout=2.0)
+              if s["service"] == "camera"]
+    assert broken and broken[0]["extra"]["frames"] == 3
+    assert "ZeroDivisionError" in broken[0]["extra"]["extra_on_read_error"]
 
 
 def test_liveliness_visible_then_gone_after_close(nodes, free_port):

@@ -46,7 +46,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from ..common.params import TrackerParams
@@ -70,7 +70,7 @@ def warm_up_kernels(say: Callable[[str], None], *, helper: bool = True,
 
     Parameters
     ----------
-    say : where the two lines go (a logger's ``info``, :func:`say_on_stderr`).
+    say : where the two lines go (a logger's ``info``, :func:`.usage.say_on_stderr`).
     helper : compile the SSD search in a second process when the cache is cold.
     on_turn : called once this process holds the warm-up turn, before it compiles or loads
         anything: what it starts then (the services) waits for the kernels, not with them.
@@ -493,9 +493,3 @@ def late_compiles_logged(log: logging.Logger) -> Iterator[None]:
         numba_event.unregister("numba:compile", listener)
 
 
-def say_on_stderr(command: str, stream: TextIO | None = None) -> Callable[[str], None]:
-    """A ``say`` for :func:`warm_up_kernels` that prints ``vistrack COMMAND: ...`` on
-    ``stream`` (default: stderr at the time of the call)."""
-    def say(text: str) -> None:
-        print(f"vistrack {command}: {text}", file=stream or sys.stderr, flush=True)
-    return say

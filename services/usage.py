@@ -23,9 +23,10 @@ import argparse
 import math
 import re
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
-from typing import Any
+from typing import Any, TextIO
 
 from ..common.params import BOUNDS, SEARCH_KINDS, ParamError, TrackerParams
 
@@ -254,3 +255,12 @@ def one_line(message: object) -> str:
 def print_error(command: str, message: object) -> None:
     """The one-line error of a subcommand on stderr: ``vistrack COMMAND: error: MESSAGE``."""
     print(f"vistrack {command}: error: {one_line(message)}", file=sys.stderr, flush=True)
+
+
+def say_on_stderr(command: str, stream: TextIO | None = None) -> Callable[[str], None]:
+    """A line of a subcommand that is not an error (a compile starting, a wait), as
+    :func:`print_error` says errors: ``vistrack COMMAND: ...`` on ``stream`` (default: stderr
+    at the time of the call). The ``say`` of :func:`.kernels.warm_up_kernels`."""
+    def say(text: str) -> None:
+        print(f"vistrack {command}: {text}", file=stream or sys.stderr, flush=True)
+    return say

@@ -60,7 +60,8 @@ def _work(conn: Any, parent_pid: int) -> None:
     import cv2
 
     cv2.setNumThreads(1)  # "bounded CPU": one core at most, and only when it is idle
-    from ..kernels import say_on_stderr, warm_up_kernels
+    from ..kernels import warm_up_kernels
+    from ..usage import say_on_stderr
     from .sensitivity import TextureError, tune
 
     # numba's compile (said on stderr) or cache load, before the first job rather than in it

@@ -710,7 +710,8 @@ def compile_kernels(command: str = "up", start: Callable[[], None] | None = None
     process has the warm-up turn: the services then start while the kernels compile and wait
     for them (services/kernels.py), so their own start-up overlaps the compile.
     """
-    from ..kernels import say_on_stderr, warm_up_kernels
+    from ..kernels import warm_up_kernels
+    from ..usage import say_on_stderr
 
     warm_up_kernels(say_on_stderr(command), on_turn=start)
     # What the compiler leaves behind lives as long as this process (the launcher, the demo's

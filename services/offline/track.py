@@ -17,8 +17,8 @@ from typing import TextIO
 from ...common.params import ParamError
 from ...common.sources import SourceError, open_files, parse_size
 from ...common.vision import Estimate, Tracker, timing
-from ..kernels import say_on_stderr, warm_up_kernels
-from ..usage import add_param_flags, params_from_args, print_error
+from ..kernels import warm_up_kernels
+from ..usage import add_param_flags, params_from_args, print_error, say_on_stderr
 
 CSV_FIELDS = ["seq", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale", "t_ms", "valid"]
 

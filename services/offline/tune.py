@@ -46,8 +46,14 @@ from ..auto_tuner.sensitivity import (
     new_seed,
     tune,
 )
-from ..kernels import say_on_stderr, warm_up_kernels
-from ..usage import add_number, add_search_flag, add_tracker_flags, params_from_args
+from ..kernels import warm_up_kernels
+from ..usage import (
+    add_number,
+    add_search_flag,
+    add_tracker_flags,
+    params_from_args,
+    say_on_stderr,
+)
 from .track import offline_main
 
 UNITS = {"t1": "ms", "tf": "ms", "ex": "px", "ey": "px"}

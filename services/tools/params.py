@@ -32,8 +32,7 @@ from ...common.bus import SourcedPublisher
 from ...common.keys import Keys
 from ...common.messages import MessageError, Params, next_params_id, unpack
 from ...common.params import BOUNDS, FACTORS, ParamError, TrackerParams
-from ..kernels import say_on_stderr
-from ..usage import add_number
+from ..usage import add_number, say_on_stderr
 from .shared import (
     ServiceState,
     ToolError,

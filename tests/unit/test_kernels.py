@@ -20,7 +20,8 @@ from numba.core import event as numba_event
 
 from vistrack.common.vision import kernel_cache_dir, pyramid, ssd, tracker
 from vistrack.services import kernels
-from vistrack.services.kernels import LOCK_NAME, say_on_stderr, warm_up_kernels
+from vistrack.services.kernels import LOCK_NAME, warm_up_kernels
+from vistrack.services.usage import say_on_stderr
 
 
 def test_a_compile_is_said_once_when_it_starts():

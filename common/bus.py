@@ -58,6 +58,7 @@ _N = TypeVar("_N", bound="Node")
 
 _monotonic = time.monotonic  # bound once: recv stamps every input with it
 _PUT = zenoh.SampleKind.PUT
+_BLOCK = zenoh.CongestionControl.BLOCK
 
 #: Reliable payloads a node queues before its Zenoh callback blocks (see ZenohNode).
 DEFAULT_CAPACITY = 1024
@@ -553,6 +554,9 @@ class _Inbox:
         self._reliable: collections.deque[tuple[str, bytes]] = collections.deque()
         # dict order = order in which slots became pending; an overwrite keeps the position
         self._latest: dict[str, bytes] = {}
+        self._latest_block: set[str] = set()  # latest-only keys whose payload came BLOCK
+        #: whether the payload get() last handed out was sent BLOCK (see Node.answer_reliably)
+        self.last_block = False
         #: what Zenoh's callbacks put (samples) and wake-up tokens (None)
         self.arrivals: queue.SimpleQueue[zenoh.Sample | None] = queue.SimpleQueue()
         self._routes: list[tuple[zenoh.KeyExpr, _Route]] = []
@@ -614,7 +618,8 @@ class _Inbox:
             if not route.latest:
                 self._release_room()
             return
-        self._arrive(key, sample.payload.to_bytes(), _source_name(sample), route)
+        self._arrive(key, sample.payload.to_bytes(), _source_name(sample), route,
+                     sample.congestion_control == _BLOCK)
 
     def _route(self, key: str) -> _Route:
         # a key two subscriptions match (a wildcard and an exact one) arrives once for each:
@@ -626,8 +631,10 @@ class _Inbox:
         self._route_of[key] = route
         return route
 
-    def arrive(self, key: str, payload: bytes, source: str | None, route: _Route) -> None:
-        """Count ``payload`` (from the publisher ``source``) and queue it per ``route``.
+    def arrive(self, key: str, payload: bytes, source: str | None, route: _Route,
+               block: bool = False) -> None:
+        """Count ``payload`` (from the publisher ``source``, sent BLOCK if ``block``) and queue
+        it per ``route``.
 
         Raises
         ------
@@ -635,15 +642,20 @@ class _Inbox:
             In non-block mode, if ``capacity`` reliable payloads are pending.
         """
         with self._lock:
-            self._arrive(key, payload, source, route)
+            self._arrive(key, payload, source, route, block)
 
-    def _arrive(self, key: str, payload: bytes, source: str | None, route: _Route) -> None:
+    def _arrive(self, key: str, payload: bytes, source: str | None, route: _Route,
+                block: bool) -> None:
         if self._closed:
             return
         missing = route.gaps.update(key, payload, source)
         if route.latest:
             overwritten = key in self._latest
             self._latest[key] = payload
+            if block:
+                self._latest_block.add(key)
+            else:
+                self._latest_block.discard(key)
             missing += overwritten
         else:
             if not self._block and len(self._reliable) >= self._capacity:
@@ -673,10 +685,12 @@ class _Inbox:
                     item = self._reliable.popleft()
                     self._release_room()
                     self.taken += 1
+                    self.last_block = True  # all of it must be processed: so must its answers
                     return item
                 if self._latest:
                     key = next(iter(self._latest))
                     self.taken += 1
+                    self.last_block = key in self._latest_block
                     return key, self._latest.pop(key)
                 now = _monotonic()
                 if deadline < 0.0:
@@ -806,6 +820,16 @@ class Node(abc.ABC):
         item = self._inbox.get(timeout, self.stop)
         self._busy_since = _monotonic()
         return item
+
+    @property
+    def answer_reliably(self) -> bool:
+        """Whether what answers the payload :meth:`recv` last returned must reach every
+        subscriber: the payload was sent BLOCK (``reliable=True``, as a camera in lockstep
+        sends its frames), or came on a subscription with ``latest=False``. A stage answers
+        such a frame with ``publish(..., reliable=node.answer_reliably)``: with one frame in
+        flight BLOCK queues no backlog, and a recorder of a file's run loses no estimate
+        (BLOCK_FIRST, at a router's hop to a client, lost one now and then at start-up)."""
+        return self._inbox.last_block
 
     def sleep(self, seconds: float) -> bool:
         """Wait ``seconds`` (a loop's pacing) or until ``stop`` is set; True if it was.
@@ -941,9 +965,11 @@ class MemoryNode(Node):
         self._deliver: dict[str, tuple[zenoh.KeyExpr, _Route]] = {}
         self._published_lock = threading.Lock()
 
-    def feed(self, key: str, payload: bytes, source: str | None = None) -> bool:
+    def feed(self, key: str, payload: bytes, source: str | None = None, *,
+             reliable: bool = False) -> bool:
         """Deliver ``payload`` as if published on ``key`` by the publisher ``source`` (None:
-        one without a source id); False if no subscription matches.
+        one without a source id), sent BLOCK if ``reliable``; False if no subscription
+        matches.
 
         Raises
         ------
@@ -953,7 +979,7 @@ class MemoryNode(Node):
         matched = False
         for expr, route in list(self._deliver.values()):
             if expr.intersects(key):
-                self._inbox.arrive(key, bytes(payload), source, route)
+                self._inbox.arrive(key, bytes(payload), source, route, reliable)
                 matched = True
         if matched:
             self._inbox.wake()

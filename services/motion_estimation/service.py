@@ -182,7 +182,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         if msg is None:
             return
         if (msg.seq, msg.stamp_ns) == answered[:2]:
-            node.publish(node.keys.estimate, answered[2], reliable=False)
+            node.publish(node.keys.estimate, answered[2], reliable=node.answer_reliably)
             node.status.extra["repeated"] = node.status.extra.get("repeated", 0) + 1
             return
         # decoded arrays are read-only views of the payload; numba would compile (and cache)
@@ -204,7 +204,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             est = tracker.update(pre, seq=msg.seq, t_start=t0)
         out = estimate_payload(est, seq=msg.seq, stamp_ns=msg.stamp_ns,
                                params_id=state.params_id)
-        node.publish(node.keys.estimate, out, reliable=False)
+        node.publish(node.keys.estimate, out, reliable=node.answer_reliably)
         answered = (msg.seq, msg.stamp_ns, out)
         if isinstance(pre, DeferredPreprocessed) and pre.computed:
             node.status.extra["candidates_here"] = \

@@ -120,7 +120,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                                    candidates=NO_CANDIDATES, strength=NO_STRENGTH,
                                    params_id=state.params_id, deferred=True)
             node.status.extra["deferred"] += 1
-        node.publish(node.keys.pre_frame, out, reliable=False)
+        node.publish(node.keys.pre_frame, out, reliable=node.answer_reliably)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
 
     def on_frame(payload: bytes) -> None:

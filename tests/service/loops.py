@@ -39,10 +39,12 @@ class Running:
         self.thread.join(10)
         self.node.close()
 
-    def feed(self, key: str, payload: bytes, *, wait: bool = True) -> None:
-        """Deliver ``payload`` once the loop has subscribed; ``wait``: until it is handled."""
+    def feed(self, key: str, payload: bytes, *, wait: bool = True,
+             reliable: bool = False) -> None:
+        """Deliver ``payload`` (sent BLOCK if ``reliable``) once the loop has subscribed;
+        ``wait``: until it is handled."""
         deadline = time.monotonic() + IDLE_S
-        while not self.node.feed(key, payload):
+        while not self.node.feed(key, payload, reliable=reliable):
             assert self.thread.is_alive() and time.monotonic() < deadline, key
             time.sleep(0.01)
         if wait:

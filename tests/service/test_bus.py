@@ -268,6 +268,29 @@ def test_reliable_before_latest(nodes):
     assert [k for k, _ in drain(a)] == [a.keys.params, a.keys.params, a.keys.frame]
 
 
+def test_answer_reliably_follows_how_the_payload_was_sent(nodes):
+    # a frame sent BLOCK (a camera in lockstep) is answered BLOCK; one sent BLOCK_FIRST (a
+    # live camera) latest-only; anything on a reliable subscription (parameters) BLOCK
+    a, b = nodes()
+    subscribe_and_match(a, b, a.keys.frame, latest=True, reliable=False)
+    subscribe_and_match(a, b, a.keys.frame, latest=True, reliable=True)
+    subscribe_and_match(a, b, a.keys.params, latest=False)
+    got = []
+    for payload, key, reliable in [(msg(0), a.keys.frame, True), (msg(1), a.keys.frame, False),
+                                   (msg(2), a.keys.params, True), (msg(3), a.keys.frame, True)]:
+        b.publish(key, payload, reliable=reliable)
+        item = a.recv(timeout=DEADLINE_S)
+        assert item is not None
+        got.append((seqs([item])[0], a.answer_reliably))
+    assert got == [(0, True), (1, False), (2, True), (3, True)]
+    # the newest payload of a latest-only key decides: BLOCK overwritten by BLOCK_FIRST
+    b.publish(b.keys.frame, msg(4), reliable=True)
+    wait_for(lambda: a.status.received == 5, what="frame 4")
+    b.publish(b.keys.frame, msg(5), reliable=False)
+    wait_for(lambda: a.status.received == 6, what="frame 5")
+    assert seqs(drain(a)) == [5] and not a.answer_reliably
+
+
 def test_reliable_in_order_without_loss_to_a_slow_consumer(nodes):
     # a small inbox makes the Zenoh callback block: backpressure instead of loss
     a, b = nodes(capacity=8)

@@ -54,12 +54,13 @@ def _carry(cam: Running, pre: Running, me: Running, lose: dict[tuple[int, int], 
         assert time.monotonic() < deadline, "the camera did not end"
         moved = False
         for hop, (src, key, dst) in enumerate(hops):
-            for payload in src.node.published_on(key)[carried[hop]:]:
+            for payload, reliable in [(p.payload, p.reliable) for p in src.node.published
+                                      if p.key == key][carried[hop]:]:
                 carried[hop] += 1
                 seq = peek_seq(payload)
                 sent[hop, seq] = sent.get((hop, seq), 0) + 1
                 if sent[hop, seq] > lose.get((hop, seq), 0):
-                    dst.feed(key, payload, wait=dst is not cam)
+                    dst.feed(key, payload, wait=dst is not cam, reliable=reliable)
                     moved = True
         if not moved:
             time.sleep(0.001)
@@ -104,6 +105,10 @@ def test_a_lost_message_is_sent_again_and_no_frame_is_lost(lose, resent, repeate
     # reliable (BLOCK): a subscriber outside the loop (a recorder) loses none either
     frames = [p for p in cam.published if p.key == cam.keys.frame]
     assert len(frames) >= N + resent and all(p.reliable for p in frames)
+    # and so are the answers to them, the ones sent again included: a recorder gets every
+    # estimate of a file's run
+    answers = [p for p in me.published if p.key == me.keys.estimate]
+    assert len(answers) == len(published) and all(p.reliable for p in answers)
 
 
 def test_a_paced_camera_publishes_latest_only():

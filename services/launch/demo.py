@@ -187,6 +187,12 @@ def summarise(rec: Recorder, scenario: Any, wall_s: float) -> dict[str, Any]:
         poses = list(rec.poses)
         cmds = list(rec.cmds)
     lat = np.array([(t - m["stamp_ns"]) * 1e-6 for t, m in est]) if est else np.array([np.nan])
+    # the longest the loop went without an estimate (arrivals), and the camera without a
+    # frame (capture stamps): a gap over the fuzzy controller's watchdog bound (0.3 s) makes
+    # its stale stops; when the camera's gap is as long, the machine stalled, not the pipeline
+    gap = np.diff([t for t, _ in est]) * 1e-6 if len(est) > 1 else np.zeros(1)
+    cam_gap = np.diff([p["stamp_ns"] for p in poses]) * 1e-6 if len(poses) > 1 \
+        else np.zeros(1)
     cam = Camera()
     truth = np.array([image_truth(p, cam, scenario.distance_m) for p in poses]) \
         if poses else np.full((1, 2), np.nan)
@@ -207,6 +213,8 @@ def summarise(rec: Recorder, scenario: Any, wall_s: float) -> dict[str, Any]:
         "retunes": max(0, len(rec.params_ids) - 1),
         "npi_mean": round(float(np.mean([m["npi"] for _, m in est])), 1) if est else 0.0,
         "commands": len(cmds), "stale_commands": sum(1 for c in cmds if c["stale"]),
+        "estimate_gap_ms_max": round(float(np.max(gap)), 2),
+        "camera_gap_ms_max": round(float(np.max(cam_gap)), 2),
         "mean_speed_cmd_m_s": round(float(np.mean(effort)), 4) if effort else 0.0,
         "params": {k: rec.params.get(k) for k in ("max_features", "thres_percent",
                                                  "search_size", "corr_size", "ungroup_size",

@@ -39,7 +39,14 @@ def test_demo_runs_the_closed_loop_and_writes_its_summary_and_files(tmp_path, fr
     assert 25 <= summary["fps"] <= 31
     assert 0 < summary["latency_ms_p50"] <= summary["latency_ms_p99"]
     assert summary["latency_ms_p50"] <= summary["cmd_latency_ms_p50"]
-    assert summary["commands"] >= summary["frames"] - 5 and summary["stale_commands"] == 0
+    assert summary["commands"] >= summary["frames"] - 5, summary
+    # no stale stop: the fuzzy controller's watchdog (0.3 s) never found the estimates old,
+    # unless this shared machine stalled the camera itself that long (twice in CI this week:
+    # 10 to 12 frames short, 2 stops); then the stops were right, and as few as the gap makes
+    assert summary["estimate_gap_ms_max"] > 0 and summary["camera_gap_ms_max"] > 0
+    if summary["stale_commands"]:
+        assert summary["camera_gap_ms_max"] > 300 and summary["stale_commands"] <= \
+            math.ceil(summary["estimate_gap_ms_max"] / 100), diagnosis(summary, out)
     assert summary["npi_mean"] > 20
     # the printed summary is the file's
     printed = json.loads(run.stdout[run.stdout.index("{"):run.stdout.rindex("}") + 1])
@@ -58,6 +65,12 @@ def test_demo_runs_the_closed_loop_and_writes_its_summary_and_files(tmp_path, fr
                for line in (run.stdout + run.stderr).splitlines()}
     for line in readme_transcript():
         assert shape(line) in printed, line
+
+
+def diagnosis(summary: dict, out: Path) -> str:
+    """The summary and the services' last log lines: what a failed run left to read."""
+    log = (out / "services.log").read_text().splitlines()[-40:]
+    return json.dumps(summary, indent=1) + "\n" + "\n".join(log)
 
 
 README = Path(__file__).resolve().parents[2] / "README.md"

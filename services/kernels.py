@@ -228,7 +228,7 @@ def _refinement_calls() -> list[tuple[Callable[..., object], tuple]]:
     uniform, _, _ = ssd._weights_info(wts)
     flat = frame.ravel()
     pts = np.full((1, 2), 32.0)
-    return [(ssd._refine_with, (frame, frame, 32, 32, 32.0, 32.0, 2, scratch, True)),
+    return [(ssd._refine_with, (frame, frame, 32, 32, 32.0, 32.0, 2, scratch, ssd.THIRD)),
             (ssd._parabola, (flat, flat, 64, 64, 32, 32, 32, 32, 2, wts, uniform, 0.0)),
             (pyramid._consensus, (pts, pts.copy(), np.full(1, ssd.LEFT, np.int8), 2.0)),
             (pyramid._widen, (frame, frame, pts, 2, 10, acc, np.zeros(1, np.bool_),

@@ -175,8 +175,10 @@ from .ssd import (
     DISAGREES,
     FB,
     LEFT,
+    NO_THIRD,
     OK,
     RUNAWAY,
+    THIRD,
     _parabola,
     _refine_scratch,
     _refine_with,
@@ -467,7 +469,7 @@ def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, 
             done = False
             if subpixel:
                 good, x, y = _refine_with(prev, curr, ax, ay, ax + dx, ay + dy, n, scratch,
-                                          k == 0)
+                                          THIRD if k == 0 else NO_THIRD)
                 if good:
                     disp[f, 0] = x - ax
                     disp[f, 1] = y - ay
@@ -715,7 +717,8 @@ def _follow(pdata, cdata, geo, pts, preds, held, n, wts, fb_bound, scratch, acti
                 dx = ox / scale
                 dy = oy / scale
             have, xk, yk = _refine_with(_level(pdata, geo, k), _level(cdata, geo, k), kx, ky,
-                                        kx + dx, ky + dy, n, scratch, k == 0)
+                                        kx + dx, ky + dy, n, scratch,
+                                        THIRD if k == 0 else NO_THIRD)
             if have:
                 dx = xk - kx
                 dy = yk - ky
@@ -737,7 +740,7 @@ def _follow(pdata, cdata, geo, pts, preds, held, n, wts, fb_bound, scratch, acti
         bx = int(np.rint(px))
         by = int(np.rint(py))
         good, xb, yb = _refine_with(curr, prev, bx, by, bx + (pts[f, 0] - px),
-                                    by + (pts[f, 1] - py), n, scratch, False)
+                                    by + (pts[f, 1] - py), n, scratch, NO_THIRD)
         if not good:
             continue
         ex = px + (xb - bx) - pts[f, 0]
@@ -830,7 +833,7 @@ def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaus
         ax = int(np.rint(back[f, 0]))
         ay = int(np.rint(back[f, 1]))
         good, x, y = _refine_with(prev, curr, ax, ay, ax + (pts[f, 0] - back[f, 0]),
-                                  ay + (pts[f, 1] - back[f, 1]), n, scratch, False)
+                                  ay + (pts[f, 1] - back[f, 1]), n, scratch, NO_THIRD)
         if not good:
             full += 1
             continue
@@ -847,7 +850,7 @@ def _from_integer(prev, curr, ax, ay, qx, qy, n, wts, uniform, ssd,
                   scratch):  # pragma: no cover - numba
     """The sub-pixel position of the template at (ax, ay) from its integer minimum (qx, qy)
     (S there ``ssd``): Gauss-Newton, or where it cannot run a parabola per axis."""
-    good, x, y = _refine_with(prev, curr, ax, ay, float(qx), float(qy), n, scratch, True)
+    good, x, y = _refine_with(prev, curr, ax, ay, float(qx), float(qy), n, scratch, THIRD)
     if good:
         return x, y
     h, w = prev.shape
@@ -1242,7 +1245,7 @@ def _widen(prev, curr, pts, n, wide, acc, ok, out_pos, agree, straddle, floor, t
         ay = int(np.rint(pts[f, 1]))
         x = ax + (out_pos[f, 0] - pts[f, 0])
         y = ay + (out_pos[f, 1] - pts[f, 1])
-        good, xw, yw = _refine_with(prev, curr, ax, ay, x, y, wide, scratch, True)
+        good, xw, yw = _refine_with(prev, curr, ax, ay, x, y, wide, scratch, THIRD)
         if not good:
             continue
         take = (xw - x) * (xw - x) + (yw - y) * (yw - y) <= agree * agree

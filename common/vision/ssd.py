@@ -857,6 +857,10 @@ AGREE_PX = 0.1
 AGREE_NOISE = 2.0
 #: Gauss-Newton stops once a step is below this, px, or after GN_ITERATIONS
 GN_STEP_PX = 1e-3
+#: :func:`_refine`'s ``third``: the refinement corrects the interpolation's third-order term
+THIRD = 1.0
+#: ... or not
+NO_THIRD = 0.0
 GN_ITERATIONS = 10
 #: the largest |W (2 gradient)| * |second difference| term of the sums of :func:`_refine`, per
 #: unit of weight (2 * 255 * 4 * 255): with a term of the centroid's sums (below), what
@@ -969,8 +973,11 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
     differences: four more sums, computed with the normal matrix. The next term, f (1 - f)
     (1 - 2 f) / 6 times the third derivative (odd about the half pixel, so it moves the
     estimate rather than blurring it), is corrected the same way from the template's third
-    differences: four more sums, in a second pass only where ``third`` (the refinements whose
-    estimate is returned; a check's or a coarse level's needs no hundredths of a pixel). At a
+    differences: four more sums, in a second pass only where ``third`` is 1.0 (the refinements
+    whose estimate is returned; a check's or a coarse level's, 0.0, needs no hundredths of a
+    pixel). ``third`` is a float, not a bool: numba compiles a kernel again for each constant
+    True or False a caller passes (a literal type), and this one and :func:`_refine_with` were
+    3 copies each, 3.6 s of a 57 s cold compile; a float has no literal type. At a
     steady sub-pixel speed that term's error is the same every frame and adds up: real frames
     shifted by exact band-limited shifts of (3.3, 1.2) px a frame, 16 frames, on Venus: +0.43
     / +0.44 px without it, +0.23 / +0.20 with it (RubberWhale +0.19 / +0.21 -> +0.07 / +0.07).
@@ -1044,7 +1051,7 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
     # sum everything in int64, kernels of their own that no start-up warm-up compiled (a cold
     # first tuning cycle took 28 s, 25 of them compiling)
     vx = vy = np.int64(0)
-    if third:
+    if third > 0.0:
         # twice the third differences are right2 - left2 - 2 (right - left) and their y twin:
         # the gradients' products with the differences 4 px wide, less twice the normal
         # matrix's sums (below); and the centroid's sums, of W (2 g) (2 g . q)
@@ -1061,10 +1068,10 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
             vx += np.int64(acc(gx[q] * along))
             vy += np.int64(acc(gy[q] * along))
     # the sums of the gradients' products with twice the third differences
-    gxx3 = float(bxx) - 2.0 * h11 if third else 0.0
-    gxy3 = float(bxy) - 2.0 * h12 if third else 0.0
-    gyx3 = float(byx) - 2.0 * h12 if third else 0.0
-    gyy3 = float(byy) - 2.0 * h22 if third else 0.0
+    gxx3 = float(bxx) - 2.0 * h11 if third > 0.0 else 0.0
+    gxy3 = float(bxy) - 2.0 * h12 if third > 0.0 else 0.0
+    gyx3 = float(byx) - 2.0 * h12 if third > 0.0 else 0.0
+    gyy3 = float(byy) - 2.0 * h22 if third > 0.0 else 0.0
     # the normal matrix of the half-gradient: the same floats as summing it in float64
     f11 = 0.25 * h11
     f12 = 0.25 * h12
@@ -1072,7 +1079,7 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
     det = f11 * f22 - f12 * f12
     if det <= 1e-6 * (f11 + f22) * (f11 + f22) or det <= 0.0:
         return False, x0, y0
-    if third:
+    if third > 0.0:
         cen[0] = 0.25 * (f22 * vx - f12 * vy) / det
         cen[1] = 0.25 * (f11 * vy - f12 * vx) / det
     x = x0
@@ -1120,7 +1127,8 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
 
 @nb.njit(cache=True, nogil=True)
 def _refine_with(prev, curr, ax, ay, x0, y0, n, scratch, third):  # pragma: no cover - numba
-    """:func:`_refine` with the scratch of :func:`_refine_scratch`."""
+    """:func:`_refine` with the scratch of :func:`_refine_scratch`; ``third``: 1.0 or 0.0
+    (:data:`THIRD`, :data:`NO_THIRD`)."""
     wpad, tp, cp, g, qs, cen = scratch
     return _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g[0], g[1], third, qs, cen)
 
@@ -1163,7 +1171,7 @@ def _subpixel(prev, curr, anchors, n, wts, uniform, acc, out_pos, out_ssd,
         ay = anchors[f, 1]
         qx = int(out_pos[f, 0])
         qy = int(out_pos[f, 1])
-        refined, x, y = _refine_with(prev, curr, ax, ay, float(qx), float(qy), n, scratch, True)
+        refined, x, y = _refine_with(prev, curr, ax, ay, float(qx), float(qy), n, scratch, THIRD)
         if not refined:
             ox, oy = _parabola(pf, cf, w, h, ax, ay, qx, qy, n, wts, uniform, out_ssd[f])
             x = qx + ox

@@ -37,6 +37,7 @@ import zenoh
 from ...common.bus import BusError, add_zenoh_args
 from ..camera.scenarios import ScenarioError, load_scenario
 from ..camera.sim import Camera, image_truth
+from ..fuzzy_controller.control import ControllerConfig
 from ..usage import add_number, print_error
 from .launchfile import LaunchError, LaunchSpec, default_launch
 from .router import listen_endpoints, router_config
@@ -95,6 +96,7 @@ class Recorder:
         self.cmds: list[dict] = []
         self.params: dict = {}
         self.params_ids: set[int] = set()
+        self.params_arrivals: list[int] = []  # when each new params_id of the tuner came
         self.frames: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
         self.strip: list[tuple[np.ndarray, dict]] = []
         self._next_strip = 0.0
@@ -139,8 +141,9 @@ class Recorder:
         m = msgpack.unpackb(sample.payload.to_bytes())
         with self.lock:
             self.params = m
-            if m.get("source") == "tuner":
+            if m.get("source") == "tuner" and m["params_id"] not in self.params_ids:
                 self.params_ids.add(m["params_id"])
+                self.params_arrivals.append(time.time_ns())
 
     def _on_frame(self, sample: zenoh.Sample) -> None:
         if time.monotonic() - self._t0 < self._next_strip:
@@ -186,11 +189,15 @@ def summarise(rec: Recorder, scenario: Any, wall_s: float) -> dict[str, Any]:
         est = list(rec.estimates)
         poses = list(rec.poses)
         cmds = list(rec.cmds)
+        retuned = list(rec.params_arrivals[1:])
     lat = np.array([(t - m["stamp_ns"]) * 1e-6 for t, m in est]) if est else np.array([np.nan])
     # the longest the loop went without an estimate (arrivals), and the camera without a
     # frame (capture stamps): a gap over the fuzzy controller's watchdog bound (0.3 s) makes
     # its stale stops; when the camera's gap is as long, the machine stalled, not the pipeline
-    gap = np.diff([t for t, _ in est]) * 1e-6 if len(est) > 1 else np.zeros(1)
+    arrivals = np.array([t for t, _ in est], np.int64)
+    gap = np.diff(arrivals) * 1e-6 if len(est) > 1 else np.zeros(1)
+    # when the longest gap began, s after the first estimate
+    gap_at = (arrivals[int(np.argmax(gap))] - arrivals[0]) * 1e-9 if len(est) > 1 else 0.0
     cam_gap = np.diff([p["stamp_ns"] for p in poses]) * 1e-6 if len(poses) > 1 \
         else np.zeros(1)
     cam = Camera()
@@ -214,6 +221,12 @@ def summarise(rec: Recorder, scenario: Any, wall_s: float) -> dict[str, Any]:
         "npi_mean": round(float(np.mean([m["npi"] for _, m in est])), 1) if est else 0.0,
         "commands": len(cmds), "stale_commands": sum(1 for c in cmds if c["stale"]),
         "estimate_gap_ms_max": round(float(np.max(gap)), 2),
+        "estimate_gap_at_s": round(float(gap_at), 3),
+        # gaps over the fuzzy controller's default watchdog bound: each makes stale stops
+        "estimate_gaps_over_watchdog": int(np.sum(gap > 1e3 * ControllerConfig().stale_after_s)),
+        # when each retune's parameters came, s after the first estimate
+        "retunes_at_s": [round((t - int(arrivals[0])) * 1e-9, 3)
+                         for t in retuned] if len(est) else [],
         "camera_gap_ms_max": round(float(np.max(cam_gap)), 2),
         "mean_speed_cmd_m_s": round(float(np.mean(effort)), 4) if effort else 0.0,
         "params": {k: rec.params.get(k) for k in ("max_features", "thres_percent",

@@ -43,7 +43,7 @@ def test_demo_runs_the_closed_loop_and_writes_its_summary_and_files(tmp_path, fr
     # no stale stop: the fuzzy controller's watchdog (0.3 s) never found the estimates old,
     # but for one short stall. In CI on this shared 2-vCPU machine about a third of these 6 s
     # runs had one gap of 0.31 to 0.45 s in the estimates (1 or 2 stops, 10 to 12 frames
-    # short), once with the camera running steadily (its longest gap 35 ms); none in 50 runs
+    # short), once with the camera running steadily (its longest gap 35 ms); none in over 40 runs
     # outside CI. Its cause is not known (README, Known limits); the watchdog's stops for it are
     # right. A longer stall, a second one, or a stop without one still fails here.
     assert summary["estimate_gap_ms_max"] > 0 and summary["camera_gap_ms_max"] > 0

@@ -220,6 +220,9 @@ def summarise(rec: Recorder, scenario: Any, wall_s: float) -> dict[str, Any]:
         "retunes": max(0, len(rec.params_ids) - 1),
         "npi_mean": round(float(np.mean([m["npi"] for _, m in est])), 1) if est else 0.0,
         "commands": len(cmds), "stale_commands": sum(1 for c in cmds if c["stale"]),
+        # when each stale stop came, s after the first estimate
+        "stale_at_s": [round((c["_arrival_ns"] - int(arrivals[0])) * 1e-9, 3)
+                       for c in cmds if c["stale"]] if len(est) else [],
         "estimate_gap_ms_max": round(float(np.max(gap)), 2),
         "estimate_gap_at_s": round(float(gap_at), 3),
         # gaps over the fuzzy controller's default watchdog bound: each makes stale stops

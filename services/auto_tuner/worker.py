@@ -13,6 +13,7 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
 from typing import Any
 
 log = logging.getLogger("vistrack.auto_tuner")
@@ -95,9 +96,34 @@ class Worker:
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(target=_work, args=(child, os.getpid()), name="auto-tuner-worker",
                                  daemon=True)
-        self._proc.start()
+        self._started = threading.Event()
+        self._closing = threading.Event()
+        self._error: BaseException | None = None
+        threading.Thread(target=self._spawn, name="tuning-worker-spawner", daemon=True).start()
+        self._started.wait()
         child.close()
+        if self._error is not None:
+            raise self._error
         self.ready = False  # a job sent before would block the loop on a full pipe
+
+    def _spawn(self) -> None:
+        """Start the worker from this thread, at idle priority from its first instruction.
+
+        A new interpreter's start and imports (numpy, OpenCV, numba, Zenoh: ~1.5 s of CPU) ran
+        at normal priority until :func:`_work` set SCHED_IDLE, beside a pipeline that had just
+        started: the first half second of a demo is where its stalls were recorded. SCHED_IDLE
+        (or nice) is per thread and inherited through fork and exec, so this thread takes it
+        and starts the process. It then waits until :meth:`close`: the worker's
+        PR_SET_PDEATHSIG fires when the thread that started it exits."""
+        try:
+            _idle_priority()
+            self._proc.start()
+        except BaseException as e:  # noqa: BLE001 - raised in __init__, in the caller's thread
+            self._error = e
+            self._started.set()
+            return
+        self._started.set()
+        self._closing.wait()
 
     def submit(self, job: dict[str, Any]) -> None:
         self._conn.send(job)
@@ -119,3 +145,4 @@ class Worker:
         if self._proc.is_alive():
             self._proc.kill()
             self._proc.join()
+        self._closing.set()  # the spawning thread may end now

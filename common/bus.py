@@ -573,6 +573,13 @@ class _Inbox:
             self._routes.append((zenoh.KeyExpr(key), route))
             self._route_of.clear()
 
+    def remove_route(self, route: _Route) -> None:
+        """Stop taking in samples for ``route``: those Zenoh has queued for it and not yet
+        taken in are dropped (a payload already taken in stays pending: it was accepted)."""
+        with self._lock:
+            self._routes = [(e, r) for e, r in self._routes if r is not route]
+            self._route_of.clear()
+
     def reliable_callback(self) -> Callable[[zenoh.Sample], None]:
         """The callback of a reliable subscription: waits while ``capacity`` reliable
         payloads are pending, then queues the sample (block mode)."""
@@ -614,6 +621,8 @@ class _Inbox:
         route = self._route_of.get(key)
         if route is None:
             route = self._route(key)
+            if route is None:  # queued before its subscription was undeclared
+                return
         if sample.kind != _PUT:
             if not route.latest:
                 self._release_room()
@@ -621,14 +630,15 @@ class _Inbox:
         self._arrive(key, sample.payload.to_bytes(), _source_name(sample), route,
                      sample.congestion_control == _BLOCK)
 
-    def _route(self, key: str) -> _Route:
+    def _route(self, key: str) -> _Route | None:
         # a key two subscriptions match (a wildcard and an exact one) arrives once for each:
-        # the first subscription's mode, or reliable if any is (lose nothing)
+        # the first subscription's mode, or reliable if any is (lose nothing). None: the
+        # subscription was undeclared after Zenoh queued the sample (a latest-only one: a
+        # reliable subscription is never undeclared but at close)
         matches = [route for expr, route in self._routes if expr.intersects(key)]
         route = next((r for r in matches if not r.latest), matches[0] if matches else None)
-        if route is None:  # cannot happen: Zenoh only delivers what a subscription matches
-            route = _Route(latest=False)
-        self._route_of[key] = route
+        if route is not None:
+            self._route_of[key] = route
         return route
 
     def arrive(self, key: str, payload: bytes, source: str | None, route: _Route,
@@ -776,7 +786,7 @@ class Node(abc.ABC):
         self._inbox = _Inbox(capacity, block=self._BLOCK_WHEN_FULL, status=self.status)
         self.stop = _StopEvent(self._inbox.wake)
         self.status.absorb = self._inbox.absorb
-        self._subscriptions: dict[str, bool] = {}
+        self._subscriptions: dict[str, _Route] = {}
         self._closed = False
         # when the loop last came back from waiting (recv, sleep); None while it waits and
         # before it first does: see busy_s
@@ -794,14 +804,43 @@ class Node(abc.ABC):
         if self._closed:
             raise BusError(f"node {self.service!r} is closed")
         if key in self._subscriptions:
-            if self._subscriptions[key] != latest:
+            if self._subscriptions[key].latest != latest:
                 raise BusError(f"{key} is already subscribed with latest="
-                               f"{self._subscriptions[key]}")
+                               f"{self._subscriptions[key].latest}")
             return
         route = _Route(latest)
         self._inbox.add_route(key, route)
         self._declare(key, route)
-        self._subscriptions[key] = latest
+        self._subscriptions[key] = route
+
+    def unsubscribe(self, key: str) -> None:
+        """Stop receiving ``key`` (subscribed latest-only): the network no longer sends its
+        samples here, which is what a service taking only some frames saves (a router
+        forwards, and Zenoh's thread queues, every sample of a subscription). A payload
+        already taken in stays pending; one Zenoh had queued and not yet handed over is
+        dropped, as a newer one would have replaced it. Subscribing again starts the key's
+        ``seq`` count afresh: the samples not subscribed to are not losses. A no-op if
+        ``key`` is not subscribed.
+
+        Raises
+        ------
+        BusError
+            If ``key`` is subscribed reliably (``latest=False``): what such a subscription
+            has not yet received would be lost.
+        """
+        route = self._subscriptions.get(key)
+        if route is None or self._closed:
+            return
+        if not route.latest:
+            raise BusError(f"{key} is subscribed with latest=False: it cannot be "
+                           "unsubscribed without losing what is in flight")
+        del self._subscriptions[key]
+        self._undeclare(key)
+        self._inbox.remove_route(route)
+
+    def subscribed(self, key: str) -> bool:
+        """Whether ``key`` is subscribed (:meth:`subscribe`, not since :meth:`unsubscribe`)."""
+        return key in self._subscriptions
 
     def declare_alive(self) -> None:
         """Declare the liveliness token ``vistrack/<robot>/alive/<service>`` (if not yet):
@@ -913,6 +952,10 @@ class Node(abc.ABC):
         """Start delivering payloads of ``key`` to the inbox, taken in per ``route``."""
 
     @abc.abstractmethod
+    def _undeclare(self, key: str) -> None:
+        """Stop delivering payloads of ``key`` (declared by :meth:`_declare`)."""
+
+    @abc.abstractmethod
     def _send(self, key: str, payload: bytes, reliable: bool) -> None:
         """Put ``payload`` on ``key``."""
 
@@ -1013,6 +1056,9 @@ class MemoryNode(Node):
     def _declare(self, key: str, route: _Route) -> None:
         self._deliver[key] = (zenoh.KeyExpr(key), route)
 
+    def _undeclare(self, key: str) -> None:
+        del self._deliver[key]
+
     def _advertise(self, key: str, reliable: bool) -> None:
         pass  # in memory there is nothing to declare
 
@@ -1073,7 +1119,7 @@ class ZenohNode(Node):
         super().__init__(service, robot, capacity=capacity)
         self._publishers: dict[tuple[str, bool], SourcedPublisher] = {}
         self._publishers_lock = threading.Lock()
-        self._subscribers: list[zenoh.Subscriber] = []
+        self._subscribers: dict[str, zenoh.Subscriber] = {}
         self._token: zenoh.LivelinessToken | None = None
         self.session = open_session(conf)
         try:
@@ -1137,8 +1183,14 @@ class ZenohNode(Node):
         # for room first (backpressure).
         on_sample = self._inbox.arrivals.put if route.latest else \
             self._inbox.reliable_callback()
-        self._subscribers.append(self.session.declare_subscriber(
-            key, zenoh.handlers.Callback(on_sample, indirect=False)))
+        self._subscribers[key] = self.session.declare_subscriber(
+            key, zenoh.handlers.Callback(on_sample, indirect=False))
+
+    def _undeclare(self, key: str) -> None:
+        try:
+            self._subscribers.pop(key).undeclare()
+        except zenoh.ZError as err:  # the session is closing
+            log.debug("undeclare of the subscriber of %s failed: %s", key, err)
 
     def _publisher(self, key: str, reliable: bool) -> SourcedPublisher:
         with self._publishers_lock:
@@ -1161,7 +1213,7 @@ class ZenohNode(Node):
             self._sweeper.join(1.0)
         # Undeclare in reverse order of use, then close: subscribers first so no callback
         # runs against a closing session; every step is attempted even if one fails.
-        entities: list[Any] = [*self._subscribers, self._queryable,
+        entities: list[Any] = [*self._subscribers.values(), self._queryable,
                                *([self._token] if self._token is not None else []),
                                *self._publishers.values()]
         for entity in entities:

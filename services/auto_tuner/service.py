@@ -1,6 +1,7 @@
 """auto-tuner: tune the tracker on a rolling buffer of recent frames, off the hot path.
 
-Reads   ``vistrack/<robot>/camera/frame``     (latest only, into the rolling buffer; a frame
+Reads   ``vistrack/<robot>/camera/frame``     (latest only, into the rolling buffer while a
+        tuning waits for it, else one every SCENE_SAMPLE_S s for the scene signal; a frame
         sent again, the ``stamp_ns`` of the newest one buffered, is not buffered twice)
         ``vistrack/<robot>/motion/estimate``  (latest only: scene and distance watch)
         ``vistrack/<robot>/tuner/params``     (reliable: what users set, to keep params_id rising)
@@ -20,9 +21,19 @@ and estimates. After every cycle the full ``tuner/report`` is published, with ex
 optimum differs from the parameters in force. A user's set is in force until a later cycle
 finds a different optimum; one that arrives while a cycle runs wins over that cycle's result.
 
+Frames are taken only as the triggers need them (:meth:`Triggers.collecting
+<.triggers.Triggers.collecting>`): every frame from the moment a tuning waits only for its
+buffer (at start, after a change once the interval has passed) until it starts, so the buffer
+holds consecutive frames (taking every frame resumes on an empty buffer); otherwise the
+subscription is undeclared after each frame and declared again SCENE_SAMPLE_S later, so that
+the router forwards, and this process receives, five frames a second for the scene signal
+instead of the camera's rate (at 30 fps the tuner taking every frame cost the unpaced
+pipeline about a quarter of its CPU; at camera resolutions each frame is a megabyte or more).
+
 The parameters in force are published again every second (same ``params_id``) for late
-joiners. ``--no-tune`` keeps only the buffer and that reminder. Status ``extra``: buffered,
-tunings, last_reason, tuning, last_cycle_s, pending, scene_distance, scale_ratio, skipped.
+joiners. ``--no-tune`` keeps only that reminder (no frame is taken). Status ``extra``:
+buffered, tunings, last_reason, tuning, last_cycle_s, pending, scene_distance, scale_ratio,
+skipped, every_frame (frames are all taken now, not sampled).
 
 A buffer with too little texture to tune on (the reference windows track fewer than 3
 features on most frames: a covered lens, a dark room) is not tuned on: every window size would
@@ -80,6 +91,10 @@ log = logging.getLogger("vistrack.auto_tuner")
 # The parameters in force are published again this often (same params_id), so a service that
 # starts or reconnects after the last change still learns them.
 REMIND_S = 1.0
+#: While no tuning waits for frames, one frame is taken this often, s, for the scene signal:
+#: a change then counts after about 3 x this (its hysteresis), and a tuning needs a full
+#: buffer of frames after it anyway (1 s at 30 fps).
+SCENE_SAMPLE_S = 0.2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -92,7 +107,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     f"pixels fit, at least {MIN_FRAMES}; %(allowed)s (default "
                     f"{DEFAULT_MEGAPIXELS:g}: 30 frames of 640x480, 21 of 1280x720)")
     parser.add_argument("--no-tune", action="store_true",
-                        help="never tune: keep the buffer and remind the parameters in force")
+                        help="never tune (no frame is taken): only remind the parameters in force")
     add_number(parser, "--tune-sweep-step", lo=STEP_RANGE[0], hi=STEP_RANGE[1], integer=True,
                default=DEFAULT_STEP, metavar="PX",
                help=f"sweep grid step, %(allowed)s (default {DEFAULT_STEP})")
@@ -145,8 +160,10 @@ class AutoTuner:
         self.id_at_start = 0
         self.stamp_ns = 0
         self._said: set[str] = set()  # the changes logged at INFO since the last start
+        self.every_frame = False  # frames are taken one after the other into the buffer
+        self.next_sample = 0.0  # when the next frame for the scene signal is taken
         node.status.extra.update(buffered=0, tunings=0, last_reason="", tuning=False,
-                                 last_cycle_s=None, skipped=0)
+                                 last_cycle_s=None, skipped=0, every_frame=False)
 
     def announce(self, reason: str | None = None) -> bool:
         """Publish the parameters in force: a new ``params_id`` from the tuner when ``reason``
@@ -177,10 +194,38 @@ class AutoTuner:
         if msg is not None and msg.source != "tuner":  # a user's set: in force now
             self.state.apply(payload, self.node, log)
 
+    def take_frames(self, now: float) -> None:
+        """Subscribe to frames as the triggers need them at monotonic time ``now``: every
+        frame while a tuning waits for its buffer (which then starts again: the frames
+        before were samples, not consecutive), else one frame every SCENE_SAMPLE_S (see
+        :meth:`on_frame`); none without a worker."""
+        node, key = self.node, self.node.keys.frame
+        if self.worker is None:
+            node.unsubscribe(key)
+            return
+        collecting = self.triggers.collecting(now)
+        if collecting != self.every_frame:
+            self.every_frame = collecting
+            node.status.extra["every_frame"] = collecting
+            if collecting:
+                self.frames.clear()
+                self.triggers.restart()
+                node.status.extra["buffered"] = 0
+        if (collecting or now >= self.next_sample) and not node.subscribed(key):
+            node.subscribe(key, latest=True)
+
     def on_frame(self, payload: bytes) -> None:
         t0 = time.perf_counter()
         msg = decode_or_reject(Frame, payload, self.node, log)
         if msg is None:
+            return
+        if not self.every_frame:  # a sample for the scene signal: the next one in a while
+            self.node.unsubscribe(self.node.keys.frame)
+            self.next_sample = time.monotonic() + SCENE_SAMPLE_S
+            if self.worker is not None:
+                self._changed(self.triggers.frame(msg.data))
+                self.node.status.extra["scene_distance"] = round(self.triggers.distance, 3)
+            self.node.status.observe_ms((time.perf_counter() - t0) * 1e3)
             return
         # a read-only view of the payload, kept as it is: a received payload is bytes,
         # never reused, and a copy of every frame cost the loop 64 KiB a frame
@@ -219,7 +264,9 @@ class AutoTuner:
         self.node.status.extra["pending"] = pending
 
     def tick(self, now: float) -> None:
-        """Collect a finished cycle, start one when due (only between messages: cheap)."""
+        """Collect a finished cycle, start one when due, take frames as needed (only between
+        messages: cheap)."""
+        self.take_frames(now)
         if self.worker is None:
             return
         try:
@@ -300,11 +347,11 @@ class AutoTuner:
 def loop(node: Node, args: argparse.Namespace) -> None:
     tuner = AutoTuner(node, args, check_flags(args))
     node.subscribe(node.keys.params, latest=False)
-    node.subscribe(node.keys.frame, latest=True)
     node.subscribe(node.keys.estimate, latest=True)
     handlers = {node.keys.params: tuner.on_params, node.keys.frame: tuner.on_frame,
                 node.keys.estimate: tuner.on_estimate}
     tuner.worker = None if args.no_tune else Worker()  # warms up while the loop runs
+    tuner.take_frames(time.monotonic())  # the initial tuning's buffer, before ready
     last_announce = 0.0
 
     def tick() -> None:

@@ -42,9 +42,12 @@ Hysteresis (:class:`Hysteresis`)
     glitch, motion blur) is not a scene change, and a signal hovering about its threshold does
     not trigger again and again.
 
-Timing (:meth:`Triggers.due`)
+Timing (:meth:`Triggers.due`, :meth:`Triggers.collecting`)
     A tuning runs on the whole rolling buffer, so after a change the tuner waits until the
     buffer holds only frames from after it (``buffer`` new frames; at start, a full buffer).
+    Only then are frames wanted one after the other (:meth:`Triggers.collecting`); the
+    service samples them otherwise, and calls :meth:`Triggers.restart` when it goes back to
+    taking every frame, so the buffer and the scene reference are consecutive frames.
     Between the end of one tuning and the start of the next at least ``min_interval_s``
     (default :data:`DEFAULT_MIN_INTERVAL_S`) pass: with a cycle of 4 to 5 s on one core, the
     default keeps the experiments' share of one core below a fifth however often the scene
@@ -322,12 +325,25 @@ class Triggers:
             self.fresh = fresh
         return reason
 
+    def restart(self) -> None:
+        """Frames were missed since the last one observed (they were not taken): the buffer
+        starts again, and a pending tuning waits for ``config.buffer`` new frames."""
+        self.fresh = 0
+        self._thumbs.clear()
+
     # -- the decision -------------------------------------------------------------------------
+    def collecting(self, now: float) -> bool:
+        """Whether a tuning waits only for frames at monotonic time ``now`` (one is pending,
+        none is running, the interval since the last has passed): every frame is wanted
+        until it starts. Otherwise frames only serve the scene signal, and a sample of them
+        is enough."""
+        return (not self.running and self.pending is not None
+                and (self._last_end is None
+                     or now - self._last_end >= self.config.min_interval_s))
+
     def due(self, now: float) -> str | None:
         """The reason to start a tuning at monotonic time ``now``, or None."""
-        if self.running or self.pending is None or self.fresh < self.config.buffer:
-            return None
-        if self._last_end is not None and now - self._last_end < self.config.min_interval_s:
+        if self.fresh < self.config.buffer or not self.collecting(now):
             return None
         return self.pending
 

@@ -8,7 +8,8 @@ In one run, on this machine's loopback, through one local Zenoh router as ``vist
    after the other in one process: the throughput ceiling without any messaging;
 3. the raw Zenoh skeleton: five plain-zenoh processes (no project code, no work) wired like the
    pipeline, each passing on a payload of the size ours sends (camera 64 KiB -> pre-processing
-   75 KiB -> motion-estimation 1 KiB -> controller; the auto-tuner takes frames and estimates).
+   75 KiB -> motion-estimation 1 KiB -> controller; the auto-tuner takes every estimate and,
+   as ours does between tunings, one frame every 0.2 s, subscribing again for each).
    At 30 fps its capture-to-estimate latency / 3 is a raw hop under the same pacing, process
    count and wake-ups as ours; unpaced (two frames in flight) its rate is what Zenoh-Python
    itself allows this machine for that message pattern. Run unpaced once more with every node
@@ -22,12 +23,13 @@ In one run, on this machine's loopback, through one local Zenoh router as ``vist
 5. ours unpaced: the camera with ``--fps 0 --in-flight 2`` (pre-processing and tracking
    overlap): estimates per second, and the frames dropped at the latest-only inputs (counted by
    the services);
-6. ours unpaced without the auto-tuner: what its taking every 64 KiB frame costs the whole
-   pipeline (its own process, the router's fan-out, the contention for the two cores), against
-   what its own process spends.
+6. ours unpaced without the auto-tuner: what it costs the whole pipeline (its own process, the
+   router's fan-out, the contention for the two cores), against what its own process spends.
 
-The auto-tuner runs with ``--no-tune``: it buffers every frame and watches every estimate, but
-its experiments, which would take a core for seconds, are left out of the measurement.
+The auto-tuner runs as deployed, and each run is measured once its initial tuning is over:
+between tunings (nearly all of a run's life) it takes every estimate and a frame every
+``SCENE_SAMPLE_S`` for its scene signal; its experiments, at idle priority in a worker process
+whose CPU is not counted, would take a core for seconds.
 """
 
 from __future__ import annotations
@@ -117,8 +119,16 @@ with zenoh.open(c) as s:
     elif role == "fuzzy-controller":
         relay(s, "est", "cmd", cmd)
     elif role == "auto-tuner":
-        for key in ("frame", "est"):
-            receive(s, key, lambda payload: None)
+        receive(s, "est", lambda payload: None)
+        def sample():  # one frame, then none for 0.2 s: the subscription declared for each
+            while True:
+                got = threading.Event()
+                sub = s.declare_subscriber("bench/skel/frame",
+                                           lambda smp: (smp.payload.to_bytes(), got.set()))
+                got.wait()
+                sub.undeclare()
+                time.sleep(0.2)
+        threading.Thread(target=sample, daemon=True).start()
     if role != "camera":
         print("ready", flush=True)
         sys.stdin.read()
@@ -267,6 +277,19 @@ def _wait_alive(session: zenoh.Session, keys: Keys, names: set[str], timeout: fl
                        f"{sorted(names - set(alive_services(session, keys)))}")
 
 
+def _wait_tuned(session: zenoh.Session, keys: Keys, timeout: float) -> None:
+    """Wait until the auto-tuner's initial tuning is over (done or skipped)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for s in query_status(session, keys, timeout=0.5):
+            extra = s.get("extra", {})
+            if (s.get("service") == "auto_tuner" and not extra.get("tuning")
+                    and extra.get("tunings", 0) + extra.get("skipped", 0) >= 1):
+                return
+        time.sleep(0.1)
+    raise RuntimeError(f"the auto-tuner's initial tuning not over after {timeout} s")
+
+
 def raw_round_trip(session: zenoh.Session, endpoint: str, size: int, n: int = 300) -> np.ndarray:
     """Round-trip times (s) of ``size``-byte payloads through a plain-zenoh echo process."""
     got = threading.Event()
@@ -329,7 +352,8 @@ def stage_costs(frames: list[np.ndarray], passes: int = 3) -> dict[str, dict[str
     frames, best of ``passes``) rather than inside the services, which would perturb the run:
     process -> ``decode`` (and validate its inputs), ``work`` (its computation), ``encode``
     (build, validate and encode its output). The camera's work (reading its source) is not
-    timed; the auto-tuner's (run with ``--no-tune``) is keeping a copy of every frame.
+    timed; the auto-tuner's is none (its decode: an estimate; between tunings it takes a
+    frame only every ``SCENE_SAMPLE_S``, nothing a frame).
     Pre-processing computes the candidates of a frame only when motion-estimation's
     ``motion/demand`` asks for them (as the services do by default), else sends it deferred."""
     warm_up()
@@ -381,11 +405,8 @@ def stage_costs(frames: list[np.ndarray], passes: int = 3) -> dict[str, dict[str
             t = lap("fuzzy-controller", "work", t)
             encode_cmd_vel(seq=k, stamp_ns=stamp, vx=0.1, vy=-0.1, wz=0.0)
             t = lap("fuzzy-controller", "encode", t)
-            kept = Frame.decode(payload)
             Estimate.decode(est_payload)
-            t = lap("auto-tuner", "decode", t)
-            np.array(kept.data)
-            lap("auto-tuner", "work", t)
+            lap("auto-tuner", "decode", t)
         for (proc, part), ts in times.items():
             row = best.setdefault(proc, {})
             row[part] = min(row.get(part, math.inf), float(np.median(ts)))
@@ -448,21 +469,21 @@ def distributed(session: zenoh.Session, endpoint: str, keys: Keys, *, fps: float
                 ) -> dict[str, float]:
     """Run camera + four services for ``seconds``; latency and rate figures. ``size``
     (``WxH``): the built-in frames resized to it, else 256x256. ``tuner=False``: without
-    the auto-tuner (what its buffering costs the whole pipeline)."""
+    the auto-tuner (what it costs the whole pipeline); with it, the run is measured once its
+    initial tuning is over."""
     with ExitStack() as stack:
         pids = {ROUTER: os.getpid()}  # the router and this collector
         names = SERVICES if tuner else tuple(n for n in SERVICES if n != "auto-tuner")
         for name in names:
-            # the tuner buffers every frame but runs no experiment: its worker would take the
-            # CPU the pipeline is being measured on
-            extra = ("--no-tune",) if name == "auto-tuner" else ()
-            pids[name] = stack.enter_context(_process(_vistrack(name, endpoint, *extra))).pid
+            pids[name] = stack.enter_context(_process(_vistrack(name, endpoint))).pid
         _wait_alive(session, keys, {n.replace("-", "_") for n in names}, 60)
         pids["camera"] = stack.enter_context(_process(_vistrack(
             "camera", endpoint, "--source", "builtin", "--loop", "--fps", f"{fps:g}",
             "--in-flight", "2", *(("--size", size) if size else ())))).pid
         _wait_alive(session, keys, {"camera"}, 30)
         time.sleep(1.0)  # let the first-frame work (feature selection) pass: steady state
+        if tuner:  # and the initial tuning, which takes every frame until it starts
+            _wait_tuned(session, keys, 120)
         meter = CpuMeter(pids)
         meter.start()
         samples = _collect_estimates(session, keys, seconds)
@@ -521,7 +542,7 @@ def bench_pipeline(out: TextIO = sys.stdout, seconds: float = 5.0,
     fig.update({f"paced_720_{k}": v for k, v in paced_720.items()})
     fig.update({f"free_{k}": v for k, v in free.items()})
     fig.update({f"free_no_tuner_{k}": v for k, v in free_alone.items()})
-    # what the auto-tuner's taking every frame costs the whole pipeline (its process, the
+    # what the auto-tuner costs the whole pipeline between tunings (its process, the
     # router's fan-out, the other processes' share of two cores), beside what its own process
     # spends
     fig["tuner_cost_us_per_frame"] = (free["cpu_us_per_frame"]
@@ -576,7 +597,7 @@ def bench_pipeline(out: TextIO = sys.stdout, seconds: float = 5.0,
         ("ours unpaced: frames dropped at latest-only inputs", f"{free['dropped']:.0f}"),
         ("ours unpaced without the auto-tuner",
          f"{free_alone['rate_hz']:.0f} fps, {free_alone['cpu_us_per_frame']:.0f} us of CPU a "
-         f"frame: the tuner's taking every frame costs the pipeline "
+         f"frame: the auto-tuner (between tunings) costs the pipeline "
          f"{fig['tuner_cost_us_per_frame']:+.0f} us a frame, its own process "
          f"{free['cpu_auto_tuner_total']:.0f}"),
         ("ours unpaced: CPU a frame / (skeleton loops + in-process)",

@@ -257,6 +257,48 @@ def test_a_stalled_loop_holds_one_frame_of_a_latest_only_key(nodes):
     assert drain(a) == [(a.keys.frame, frames[-1])]
 
 
+def test_unsubscribe_stops_the_samples_at_the_network_and_counts_no_gap(nodes):
+    # a service that takes some frames only (the auto-tuner between tunings) undeclares its
+    # subscription: the publisher sees no subscriber, nothing arrives, and the frames it did
+    # not take are not counted as lost once it subscribes again
+    a, b = nodes()
+    key = a.keys.frame
+    subscribe_and_match(a, b, key, latest=True)
+    b.publish(key, msg(0), reliable=True)
+    wait_for(lambda: a.status.received == 1, what="the first frame")
+    a.unsubscribe(key)
+    assert not a.subscribed(key)
+    wait_for(lambda: not b.has_subscribers(key, reliable=True),
+             what="the publisher to see the subscription gone")
+    for seq in range(1, 6):
+        b.publish(key, msg(seq), reliable=True)
+    assert [seqs([item]) for item in drain(a, timeout=0.2)] == [[0]]  # taken in before: kept
+    assert a.status.received == 1
+    a.unsubscribe(key)  # again: a no-op
+    subscribe_and_match(a, b, key, latest=True)
+    b.publish(key, msg(6), reliable=True)
+    assert seqs([a.recv(timeout=DEADLINE_S)]) == [6]
+    assert (a.status.received, a.status.dropped) == (2, 0)
+    a.subscribe(a.keys.params, latest=False)
+    with pytest.raises(BusError, match="latest=False"):
+        a.unsubscribe(a.keys.params)  # what is in flight would be lost
+    assert a.subscribed(a.keys.params)
+
+
+def test_memory_node_unsubscribes_like_zenoh_node():
+    with MemoryNode("auto_tuner") as node:
+        key = node.keys.frame
+        node.subscribe(key, latest=True)
+        assert node.feed(key, msg(0))
+        node.unsubscribe(key)
+        assert not node.feed(key, msg(1))  # nobody takes it
+        assert seqs(drain(node)) == [0]
+        node.subscribe(key, latest=True)
+        assert node.feed(key, msg(5))
+        assert seqs(drain(node)) == [5]
+        assert (node.status.received, node.status.dropped) == (2, 0)
+
+
 def test_reliable_before_latest(nodes):
     a, b = nodes()
     subscribe_and_match(a, b, a.keys.frame, latest=True)

@@ -173,7 +173,9 @@ def test_an_estimate_published_again_moves_the_robot_once():
 def test_a_frame_sent_again_is_buffered_once_by_the_tuner():
     images = synthetic.builtin_sequence(N)
     stamp = time.time_ns()
-    with Running("auto-tuner", "--no-tune") as tuner:
+    # tuning on (no cycle starts: the buffer of 30 is far from full), so that it takes every
+    # frame for its initial tuning's buffer
+    with Running("auto-tuner") as tuner:
         key = tuner.node.keys.frame
         for seq, image in ((0, images[0]), (0, images[0]), (1, images[1])):
             tuner.feed(key, Frame.from_image(image, seq=seq, stamp_ns=stamp + seq).encode(),

@@ -135,6 +135,28 @@ def test_scene_change_waits_for_a_refilled_buffer_and_the_interval(scene_a, scen
     assert feed(t, scene_b[5:]) == []  # the new scene is the reference now
 
 
+def test_frames_are_wanted_one_after_the_other_only_while_a_tuning_waits_for_them(
+        scene_a, scene_b):
+    t = Triggers(TriggerConfig(buffer=4, min_interval_s=10, confirm=2))
+    assert t.collecting(0.0)  # the initial tuning: from the first frame
+    feed(t, scene_a[:4])
+    t.started()
+    assert not t.collecting(1.0)  # running: frames only for the scene signal
+    t.finished(now=2.0)
+    assert not t.collecting(100.0)  # nothing pending
+    assert feed(t, scene_b[:2]) == [SCENE]
+    assert not t.collecting(11.9) and t.collecting(12.0)  # after the interval
+    # the service took samples until then: the buffer starts again on consecutive frames
+    t.restart()
+    assert t.fresh == 0 and t.due(12.0) is None
+    feed(t, scene_b[2:5])
+    assert t.due(12.0) is None
+    feed(t, scene_b[5:6])
+    assert t.due(12.0) == SCENE
+    t.started()  # its reference is the new buffer, not the samples before it
+    assert feed(t, scene_b[6:]) == [] and t.distance < 0.3
+
+
 def test_a_scene_change_during_a_tuning_waits_for_it(scene_a, scene_b):
     t = Triggers(TriggerConfig(buffer=3, min_interval_s=0, confirm=1))
     feed(t, scene_a[:3])

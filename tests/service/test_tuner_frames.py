@@ -1,0 +1,80 @@
+"""The auto-tuner takes every frame only while a tuning waits for its buffer; between tunings
+it takes one frame every SCENE_SAMPLE_S for the scene signal, and a change seen in those
+samples starts the buffer again from consecutive frames.
+
+The auto-tuner's loop runs in-process on a MemoryNode with its real worker process: a frame
+fed while the loop is not subscribed is not delivered (``MemoryNode.feed`` returns False),
+as Zenoh would not send it.
+"""
+
+from __future__ import annotations
+
+import time
+
+import msgpack
+
+from vistrack.common.messages import Frame
+from vistrack.common.synthetic import Motion, sequence
+from vistrack.services.auto_tuner.service import SCENE_SAMPLE_S
+
+from loops import IDLE_S, Running
+
+BUFFER = 6
+
+
+def _until(condition, what: str, timeout: float = IDLE_S) -> float:
+    t0 = time.monotonic()
+    while not condition():
+        assert time.monotonic() - t0 < timeout, what
+        time.sleep(0.005)
+    return time.monotonic() - t0
+
+
+def test_the_tuner_takes_every_frame_only_while_a_tuning_waits_for_them():
+    scene_a = sequence(30, motion=Motion(dx=1.0, dy=0.5), seed=1)
+    scene_b = sequence(30, motion=Motion(dx=-1.0), seed=5)
+    seq = iter(range(10**6))
+
+    def frame(image) -> bytes:
+        n = next(seq)
+        return Frame.from_image(image, seq=n, stamp_ns=10**9 + n).encode()
+
+    with Running("auto-tuner", "--buffer", str(BUFFER), "--min-interval", "0",
+                 "--tune-sweep-step", "5") as tuner:
+        node, key = tuner.node, tuner.node.keys.frame
+        extra = node.status.extra
+        # the initial tuning waits for its buffer: every frame is taken, one after the other
+        for i in range(BUFFER - 1):
+            tuner.feed(key, frame(scene_a[i]))
+        assert extra["every_frame"] and extra["buffered"] == BUFFER - 1
+        assert node.subscribed(key)
+        tuner.feed(key, frame(scene_a[BUFFER - 1]))
+        _until(lambda: extra["tunings"] == 1, "the initial tuning")
+
+        # between tunings: one frame, then none until SCENE_SAMPLE_S later
+        _until(lambda: node.subscribed(key), "a sample to be due")
+        assert not extra["every_frame"]
+        tuner.feed(key, frame(scene_a[10]))
+        assert not node.subscribed(key) and not node.feed(key, frame(scene_a[11]))
+        waited = _until(lambda: node.subscribed(key), "the next sample to be due")
+        assert waited >= 0.5 * SCENE_SAMPLE_S, waited
+        assert extra["buffered"] == BUFFER  # the samples are not buffered
+        received = node.status.received
+
+        # another scene, seen in the samples: the buffer starts again, empty
+        for image in scene_b[:12]:
+            tuner.feed(key, frame(image))
+            if extra["every_frame"]:
+                break
+        assert extra["every_frame"], extra
+        assert extra["buffered"] == 0 and extra["pending"] == "scene change"
+        samples = node.status.received - received
+        assert 3 <= samples <= 5, samples  # the hysteresis confirms on the third
+        # and fills with consecutive frames: none is refused until the tuning has them all
+        for i, image in enumerate(scene_b[12:12 + BUFFER]):
+            assert node.feed(key, frame(image)), f"frame {i} of the new buffer not taken"
+            assert node.wait_idle(IDLE_S)
+        _until(lambda: extra["tunings"] == 2, "the re-tune")
+        reports = [msgpack.unpackb(p) for p in node.published_on(node.keys.report)]
+    assert [r["trigger"] for r in reports] == ["initial tuning", "scene change"]
+    assert [r["frames_offered"] for r in reports] == [BUFFER, BUFFER]

@@ -3,7 +3,8 @@
 Reads   ``vistrack/<robot>/camera/frame``     (latest only, into the rolling buffer while a
         tuning waits for it, else one every SCENE_SAMPLE_S s for the scene signal; a frame
         sent again, the ``stamp_ns`` of the newest one buffered, is not buffered twice)
-        ``vistrack/<robot>/motion/estimate``  (latest only: scene and distance watch)
+        ``vistrack/<robot>/motion/estimate``  (latest only, at most one every
+        ESTIMATE_PERIOD_S between tunings: scene and distance watch)
         ``vistrack/<robot>/tuner/params``     (reliable: what users set, to keep params_id rising)
 Writes  ``vistrack/<robot>/tuner/params``     (reliable)
         ``vistrack/<robot>/tuner/report``     (reliable)
@@ -95,6 +96,11 @@ REMIND_S = 1.0
 #: a change then counts after about 3 x this (its hysteresis), and a tuning needs a full
 #: buffer of frames after it anyway (1 s at 30 fps).
 SCENE_SAMPLE_S = 0.2
+#: Estimates are watched at most one every this, s (latest only: a faster camera's are
+#: sampled; at up to 60 fps every one is seen). Their signals are slow (a storm over 30
+#: estimates, the accumulated scale), and an estimate taken woke this process: unpaced, at
+#: 800 a second, that was most of its CPU.
+ESTIMATE_PERIOD_S = 1.0 / 60.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -162,6 +168,7 @@ class AutoTuner:
         self._said: set[str] = set()  # the changes logged at INFO since the last start
         self.every_frame = False  # frames are taken one after the other into the buffer
         self.next_sample = 0.0  # when the next frame for the scene signal is taken
+        self.watched = -math.inf  # when the last estimate was taken (monotonic)
         node.status.extra.update(buffered=0, tunings=0, last_reason="", tuning=False,
                                  last_cycle_s=None, skipped=0, every_frame=False)
 
@@ -243,6 +250,7 @@ class AutoTuner:
         self.node.status.observe_ms((time.perf_counter() - t0) * 1e3)
 
     def on_estimate(self, payload: bytes) -> None:
+        self.watched = time.monotonic()
         msg = decode_or_reject(Estimate, payload, self.node, log)
         if msg is None or self.worker is None:
             return
@@ -355,13 +363,17 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     last_announce = 0.0
 
     def tick() -> None:
-        """Between inputs: remind the parameters in force, collect and start tunings."""
+        """Between inputs: remind the parameters in force, collect and start tunings, pace
+        the estimates watched."""
         nonlocal last_announce
         now = time.monotonic()
         if now - last_announce >= REMIND_S:
             tuner.announce()
             last_announce = now
         tuner.tick(now)
+        wait = tuner.watched + ESTIMATE_PERIOD_S - time.monotonic()
+        if wait > 0 and not tuner.every_frame:  # the next estimate no sooner than that
+            node.sleep(wait)
 
     try:
         node.advertise(node.keys.params, reliable=True)

@@ -1,6 +1,7 @@
 """The auto-tuner takes every frame only while a tuning waits for its buffer; between tunings
 it takes one frame every SCENE_SAMPLE_S for the scene signal, and a change seen in those
-samples starts the buffer again from consecutive frames.
+samples starts the buffer again from consecutive frames. It watches at most one estimate every
+ESTIMATE_PERIOD_S (every one at 30 fps).
 
 The auto-tuner's loop runs in-process on a MemoryNode with its real worker process: a frame
 fed while the loop is not subscribed is not delivered (``MemoryNode.feed`` returns False),
@@ -13,9 +14,9 @@ import time
 
 import msgpack
 
-from vistrack.common.messages import Frame
+from vistrack.common.messages import Estimate, Frame
 from vistrack.common.synthetic import Motion, sequence
-from vistrack.services.auto_tuner.service import SCENE_SAMPLE_S
+from vistrack.services.auto_tuner.service import ESTIMATE_PERIOD_S, SCENE_SAMPLE_S
 
 from loops import IDLE_S, Running
 
@@ -78,3 +79,31 @@ def test_the_tuner_takes_every_frame_only_while_a_tuning_waits_for_them():
         reports = [msgpack.unpackb(p) for p in node.published_on(node.keys.report)]
     assert [r["trigger"] for r in reports] == ["initial tuning", "scene change"]
     assert [r["frames_offered"] for r in reports] == [BUFFER, BUFFER]
+
+
+def _estimate(seq: int) -> bytes:
+    return Estimate(seq=seq, stamp_ns=10**9 + seq, npi=0, xc=0.0, yc=0.0, xe=0.0, ye=0.0,
+                    dx=0.0, dy=0.0, scale=1.0, t_ms=0.0, first=False, features=[],
+                    params_id=0, valid=False).encode()
+
+
+def test_the_tuner_watches_every_estimate_at_30_fps_and_paces_a_faster_stream():
+    with Running("auto-tuner", "--no-tune") as tuner:
+        node, key = tuner.node, tuner.node.keys.estimate
+
+        def taken() -> int:  # one publisher, consecutive seq: what was not overwritten
+            return node.status.received - node.status.dropped
+
+        for seq in range(15):  # 30 fps
+            tuner.feed(key, _estimate(seq))
+            time.sleep(1 / 30)
+        assert (taken(), node.status.dropped) == (15, 0)
+        burst = [_estimate(seq) for seq in range(15, 215)]
+        t0 = time.monotonic()
+        for payload in burst:  # 200 at about 500 a second
+            assert node.feed(key, payload)
+            time.sleep(0.002)
+        assert node.wait_idle(IDLE_S)
+        elapsed = time.monotonic() - t0
+        assert node.status.received == 215 and node.status.failed == 0
+        assert taken() - 15 <= elapsed / ESTIMATE_PERIOD_S + 2, (taken(), elapsed)

@@ -21,6 +21,7 @@ import msgpack
 import pytest
 import zenoh
 from forkcli import vistrack
+from malformed import GOOD, malformed
 
 from vistrack.common.messages import Report
 from vistrack.common.synthetic import Motion, sequence
@@ -178,3 +179,32 @@ def test_bad_flags_are_one_line_and_exit_2(flags, message):
     assert run.returncode == 2
     assert run.stderr.startswith("vistrack auto-tuner: error: ") and message in run.stderr
     assert run.stderr.count("\n") == 1, run.stderr
+
+
+def test_frames_taken_for_the_buffer_are_checked_and_bad_ones_counted(free_port):
+    """While its initial tuning waits for frames the tuner takes every one: each malformed
+    frame is refused and counted (not buffered), the process goes on, and a good frame after
+    them is buffered. (With --no-tune, as in test_tools, it takes no frame at all.)"""
+    with router(free_port) as ep, zenoh.open(zenoh_config(ep)) as session, \
+            services(ep, names=("auto-tuner",), extra={"auto-tuner": TUNER}) as procs:
+        status = status_of(session, "auto_tuner")
+        assert status["extra"]["every_frame"] and status["extra"]["buffered"] == 0
+        rejected = status["rejected"]
+        for name, payload in malformed("camera/frame").items():
+            session.put(f"{ROOT}/camera/frame", payload,
+                        congestion_control=zenoh.CongestionControl.BLOCK)
+            deadline = time.monotonic() + 10
+            while status_of(session, "auto_tuner")["rejected"] == rejected:
+                assert time.monotonic() < deadline, f"{name}: not counted"
+                time.sleep(0.01)
+            rejected += 1
+        good = {**GOOD["camera/frame"], "seq": 2, "stamp_ns": 2}
+        session.put(f"{ROOT}/camera/frame", msgpack.packb(good),
+                    congestion_control=zenoh.CongestionControl.BLOCK)
+        deadline = time.monotonic() + 10
+        while (status := status_of(session, "auto_tuner"))["extra"]["buffered"] == 0:
+            assert time.monotonic() < deadline, "the good frame was not buffered"
+            time.sleep(0.01)
+        assert procs["auto-tuner"].p.poll() is None
+    assert status["rejected"] == rejected and status["failed"] == 0
+    assert status["extra"]["buffered"] == 1

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import math
-import random
 import re
 import signal
 import socket
@@ -28,6 +27,7 @@ import msgpack
 import pytest
 import zenoh
 from forkcli import vistrack
+from malformed import GOOD, malformed
 
 from vistrack.common.keys import Keys
 from vistrack.common.messages import Params, pack
@@ -403,52 +403,13 @@ def _params_set_and_get(endpoint: str, est: Collector) -> None:
 
 # -- malformed input -----------------------------------------------------------------------
 
-HUGE = 20 * 1024 * 1024
-
-# A well-formed message of each input key (params_id 0: stale, never applied even if valid).
-GOOD: dict[str, dict] = {
-    "camera/frame": {"v": 1, "seq": 1, "stamp_ns": 1, "width": 64, "height": 48,
-                     "encoding": "mono8", "data": bytes(64 * 48)},
-    "preprocessing/frame": {"v": 1, "seq": 1, "stamp_ns": 1, "width": 64, "height": 48,
-                            "encoding": "mono8", "data": bytes(64 * 48), "candidates": b"",
-                            "strength": b"", "params_id": 0},
-    "tuner/params": {"v": 1, "seq": 1, "stamp_ns": 1, "max_features": 100,
-                     "thres_percent": 2.0, "search_size": 15, "corr_size": 9,
-                     "ungroup_size": 5, "params_id": 0, "source": "user", "reason": "test"},
-    "motion/estimate": {"v": 1, "seq": 1, "stamp_ns": 1, "npi": 0, "xc": 1.0, "yc": 1.0,
-                        "xe": 0.0, "ye": 0.0, "dx": 0.0, "dy": 0.0, "scale": 1.0, "t_ms": 1.0,
-                        "first": False, "features": [], "params_id": 0},
-}
-# (field to mistype, wrong value), (field to make 20 MB)
-WRONG_TYPE = {"camera/frame": ("width", "64"), "preprocessing/frame": ("candidates", [1, 2]),
-              "tuner/params": ("search_size", "21"), "motion/estimate": ("npi", 1.5)}
-HUGE_FIELD = {"camera/frame": "data", "preprocessing/frame": "data", "tuner/params": "reason",
-              "motion/estimate": "features"}
 # services that decode each input key (and so count what they reject)
-CONSUMERS = {"camera/frame": ("preprocessing", "auto_tuner"),
+# (the auto-tuner runs --no-tune here: it takes no frame, so the frames are preprocessing's
+# alone; test_autotune_live sends them to a tuner that takes them)
+CONSUMERS = {"camera/frame": ("preprocessing",),
              "preprocessing/frame": ("motion_estimation",),
              "tuner/params": ("preprocessing", "motion_estimation", "auto_tuner"),
              "motion/estimate": ("fuzzy_controller",)}
-
-
-def malformed(suffix: str) -> dict[str, bytes]:
-    """Name -> bad payload for one input key, built with plain msgpack."""
-    good = GOOD[suffix]
-    pack = msgpack.packb
-    field, wrong = WRONG_TYPE[suffix]
-    missing = dict(good)
-    del missing[list(good)[3]]  # the first field after v, seq, stamp_ns
-    bad = {
-        "random bytes": random.Random(suffix).randbytes(200),
-        "not a map": pack([1, 2, 3]),
-        "version 2": pack({**good, "v": 2}),
-        "missing field": pack(missing),
-        "wrong type": pack({**good, field: wrong}),
-        "huge bin": pack({**good, HUGE_FIELD[suffix]: bytes(HUGE)}),
-    }
-    if "data" in good:
-        bad["data length != width*height"] = pack({**good, "data": bytes(64 * 48 - 1)})
-    return bad
 
 
 def test_malformed_input_is_rejected_counted_and_survived(pipeline, endpoint, session):

@@ -28,8 +28,8 @@ buffer (at start, after a change once the interval has passed) until it starts, 
 holds consecutive frames (taking every frame resumes on an empty buffer); otherwise the
 subscription is undeclared after each frame and declared again SCENE_SAMPLE_S later, so that
 the router forwards, and this process receives, five frames a second for the scene signal
-instead of the camera's rate (at 30 fps the tuner taking every frame cost the unpaced
-pipeline about a quarter of its CPU; at camera resolutions each frame is a megabyte or more).
+instead of the camera's rate (unpaced, the tuner taking every frame cost the pipeline a fifth
+to a quarter of its CPU; at camera resolutions each frame is a megabyte or more).
 
 The parameters in force are published again every second (same ``params_id``) for late
 joiners. ``--no-tune`` keeps only that reminder (no frame is taken). Status ``extra``:

@@ -22,7 +22,7 @@ pytestmark = pytest.mark.bench
 
 def test_bench_pipeline(capsys):
     buf = io.StringIO()
-    fig = bench_pipeline(out=buf, seconds=3.0, paced_seconds=6.0)
+    fig = bench_pipeline(out=buf, seconds=3.0, paced_seconds=6.0, rounds=2)
     with capsys.disabled():
         print("\n" + buf.getvalue())
     for key in ("raw_one_way_ms", "in_process_fps", "skeleton_paced_hop_ms",
@@ -47,6 +47,11 @@ def test_bench_pipeline(capsys):
         fig["free_cpu_us_per_frame"] - fig["free_no_tuner_cpu_us_per_frame"])
     assert "without the auto-tuner" in buf.getvalue()
     assert fig["paced_720_lat_p99_ms"] >= fig["paced_720_lat_p50_ms"] > 0
+    assert fig["cpu_ratio_rounds"] == 2
+    assert fig["cpu_ratio_min"] <= fig["cpu_ratio_median"] <= fig["cpu_ratio_max"]
+    assert fig["cpu_ratio_min"] <= fig["cpu_ratio_skeleton_loop_plus_in_process"] \
+        <= fig["cpu_ratio_max"]  # the first round's is one of them
+    assert "median of 2 interleaved rounds" in buf.getvalue()
     assert fig["cpu_ratio_skeleton_loop_plus_in_process"] == pytest.approx(
         fig["free_cpu_us_per_frame"] / (fig["skeleton_loop_cpu_us_per_frame"]
                                         + 1e6 / fig["in_process_fps"]))

@@ -34,6 +34,7 @@ from ..common.bus import (
     check_connected,
     config_from_args,
     install_signal_handlers,
+    shm_pool_at_open,
 )
 from ..common.keys import key_suffix
 from ..common.messages import MessageError, Params, peek_seq
@@ -67,6 +68,12 @@ def add_service_args(parser: argparse.ArgumentParser, *, tracker_params: bool = 
         add_param_flags(parser)
 
 
+#: The services that publish frames (64 KiB at 256x256, megabytes at camera resolutions):
+#: their Zenoh shared-memory pool is made when their session opens (see
+#: :func:`~vistrack.common.bus.shm_pool_at_open`).
+FRAME_PUBLISHERS = frozenset({"camera", "preprocessing"})
+
+
 def serve(service: str, args: argparse.Namespace,
           loop: Callable[[Node, argparse.Namespace], int | None]) -> NoReturn:
     """Open the service's Zenoh node, run ``loop`` until it returns or SIGINT/SIGTERM, close
@@ -97,6 +104,8 @@ def serve(service: str, args: argparse.Namespace,
         if hasattr(args, "max_features"):  # the tracker parameter flags: check before Zenoh
             params_from_args(args)
         conf = config_from_args(args)
+        if service in FRAME_PUBLISHERS:
+            conf = shm_pool_at_open(conf)
     except (BusError, ParamError) as e:
         print_error(command, e)
         end_process(2)

@@ -37,6 +37,7 @@ from vistrack.common.bus import (
     config_from_args,
     install_signal_handlers,
     query_status,
+    shm_pool_at_open,
 )
 from vistrack.common.keys import Keys
 from vistrack.common.messages import Frame, pack, unpack
@@ -135,6 +136,17 @@ def test_missing_config_file(tmp_path):
     with pytest.raises(BusError, match="not found") as info:
         config_from_args(parse(["-c", str(path)]))
     assert str(path) in str(info.value)
+
+
+def test_frame_publishers_make_their_shared_memory_pool_at_open(tmp_path):
+    conf = shm_pool_at_open(config_from_args(parse([])))
+    assert conf.get_json("transport/shared_memory/mode") == '"init"'
+    # a config that disables shared memory or chose its mode is left alone
+    off = tmp_path / "off.json5"
+    off.write_text('{transport: {shared_memory: {enabled: false}}}')
+    conf = shm_pool_at_open(config_from_args(parse(["--config", str(off)])))
+    assert conf.get_json("transport/shared_memory/mode") == '"lazy"'
+    assert conf.get_json("transport/shared_memory/enabled") == "false"
 
 
 def test_invalid_config_file(tmp_path):

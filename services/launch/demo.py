@@ -202,6 +202,11 @@ def summarise(rec: Recorder, scenario: Any, wall_s: float) -> dict[str, Any]:
     gap_at = (arrivals[int(np.argmax(gap))] - arrivals[0]) * 1e-9 if len(est) > 1 else 0.0
     cam_gap = np.diff([p["stamp_ns"] for p in poses]) * 1e-6 if len(poses) > 1 \
         else np.zeros(1)
+    # the same between the captures the estimates answer: a pipeline that stalls skips
+    # frames (latest only), while a gap in arrivals alone is this process's, late to take
+    # them in (its plots' import, its log forwarding), not the pipeline's
+    stamp_gap = np.diff([m["stamp_ns"] for _, m in est]) * 1e-6 if len(est) > 1 \
+        else np.zeros(1)
     cam = Camera()
     truth = np.array([image_truth(p, cam, scenario.distance_m) for p in poses]) \
         if poses else np.full((1, 2), np.nan)
@@ -233,6 +238,7 @@ def summarise(rec: Recorder, scenario: Any, wall_s: float) -> dict[str, Any]:
         "retunes_at_s": [round((t - int(arrivals[0])) * 1e-9, 3)
                          for t in retuned] if len(est) else [],
         "camera_gap_ms_max": round(float(np.max(cam_gap)), 2),
+        "estimate_stamp_gap_ms_max": round(float(np.max(stamp_gap)), 2),
         "mean_speed_cmd_m_s": round(float(np.mean(effort)), 4) if effort else 0.0,
         "params": {k: rec.params.get(k) for k in ("max_features", "thres_percent",
                                                  "search_size", "corr_size", "ungroup_size",

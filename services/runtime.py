@@ -68,16 +68,13 @@ def add_service_args(parser: argparse.ArgumentParser, *, tracker_params: bool = 
         add_param_flags(parser)
 
 
-#: The services that publish frames (64 KiB at 256x256, megabytes at camera resolutions):
-#: their Zenoh shared-memory pool is made when their session opens (see
-#: :func:`~vistrack.common.bus.shm_pool_at_open`).
-FRAME_PUBLISHERS = frozenset({"camera", "preprocessing"})
-
-
 def serve(service: str, args: argparse.Namespace,
-          loop: Callable[[Node, argparse.Namespace], int | None]) -> NoReturn:
+          loop: Callable[[Node, argparse.Namespace], int | None], *,
+          publishes_frames: bool = False) -> NoReturn:
     """Open the service's Zenoh node, run ``loop`` until it returns or SIGINT/SIGTERM, close
-    the session, and end the process with the loop's exit code.
+    the session, and end the process with the loop's exit code. ``publishes_frames`` (64 KiB
+    at 256x256, megabytes at camera resolutions): Zenoh's shared-memory pool is made when the
+    session opens (:func:`~vistrack.common.bus.shm_pool_at_open`).
 
     The process ends promptly whatever happens (the launcher's restart waits for it):
 
@@ -104,7 +101,7 @@ def serve(service: str, args: argparse.Namespace,
         if hasattr(args, "max_features"):  # the tracker parameter flags: check before Zenoh
             params_from_args(args)
         conf = config_from_args(args)
-        if service in FRAME_PUBLISHERS:
+        if publishes_frames:
             conf = shm_pool_at_open(conf)
     except (BusError, ParamError) as e:
         print_error(command, e)

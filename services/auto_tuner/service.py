@@ -232,25 +232,26 @@ class AutoTuner:
         if not self.every_frame:  # a sample for the scene signal: the next one in a while
             self.node.unsubscribe(self.node.keys.frame)
             self.next_sample = time.monotonic() + SCENE_SAMPLE_S
-            if self.worker is not None:
-                self._changed(self.triggers.frame(msg.data))
-                self.node.status.extra["scene_distance"] = round(self.triggers.distance, 3)
-            self.node.status.observe_ms((time.perf_counter() - t0) * 1e3)
-            return
+        elif not self._buffer(msg):
+            return  # sent again (a camera in lockstep whose estimate was lost): buffered
+        if self.worker is not None:
+            self._changed(self.triggers.frame(msg.data))
+            self.node.status.extra["scene_distance"] = round(self.triggers.distance, 3)
+        self.node.status.observe_ms((time.perf_counter() - t0) * 1e3)
+
+    def _buffer(self, msg: Frame) -> bool:
+        """Append the frame of ``msg`` to the rolling buffer; False if it is the newest one
+        already there (the same ``stamp_ns``)."""
         # a read-only view of the payload, kept as it is: a received payload is bytes,
         # never reused, and a copy of every frame cost the loop 64 KiB a frame
         pixels = msg.data
         if self.frames and self.frames[-1][1] == msg.stamp_ns:
-            return  # sent again (a camera in lockstep whose estimate was lost): buffered
+            return False
         if self.frames and self.frames[-1][0].shape != pixels.shape:
             self.frames.clear()  # another camera: one tuning runs on one frame size
         self.frames.append((pixels, msg.stamp_ns))
-        extra = self.node.status.extra
-        extra["buffered"] = len(self.frames)
-        if self.worker is not None:
-            self._changed(self.triggers.frame(pixels))
-            extra["scene_distance"] = round(self.triggers.distance, 3)
-        self.node.status.observe_ms((time.perf_counter() - t0) * 1e3)
+        self.node.status.extra["buffered"] = len(self.frames)
+        return True
 
     def on_estimate(self, payload: bytes) -> None:
         now = time.monotonic()

@@ -514,6 +514,12 @@ def distributed(session: zenoh.Session, endpoint: str, keys: Keys, *, fps: float
 PACED_S = 20.0
 
 
+def cpu_ratio(ours_us: float, skeleton_loops_us: float, in_process_s: float) -> float:
+    """CPU a frame of ours against what it cannot go below: the bare relay of the same
+    messages (receiving from loops) plus the same work in one process (s a frame)."""
+    return ours_us / (skeleton_loops_us + 1e6 * in_process_s)
+
+
 #: Rounds of the CPU ratio's three runs (ours unpaced, the skeleton's loops, the stages in one
 #: process), interleaved: on this shared VM one round's ratio came out anywhere from 1.2 to
 #: 3.3x within an hour, the peers moving as much as ours; the median of the rounds is the
@@ -546,13 +552,13 @@ def bench_pipeline(out: TextIO = sys.stdout, seconds: float = 5.0,
                                 size="1280x720")
         free = distributed(session, endpoint, keys, fps=0, seconds=seconds)
         free_alone = distributed(session, endpoint, keys, fps=0, seconds=seconds, tuner=False)
-        ratios = [free["cpu_us_per_frame"] / (skel_loop["cpu_us_per_frame"]
-                                              + 1e6 / fig["in_process_fps"])]
+        ratios = [cpu_ratio(free["cpu_us_per_frame"], skel_loop["cpu_us_per_frame"],
+                            1.0 / fig["in_process_fps"])]
         for _ in range(rounds - 1):
             mine = distributed(session, endpoint, keys, fps=0, seconds=seconds)["cpu_us_per_frame"]
             peer = skeleton(session, endpoint, sizes, fps=0, seconds=seconds,
                             handoff=True)["cpu_us_per_frame"]
-            ratios.append(mine / (peer + 1e6 * in_process(frames)))
+            ratios.append(cpu_ratio(mine, peer, in_process(frames)))
     fig.update({f"skeleton_paced_{k}": v for k, v in skel_paced.items()})
     fig.update({f"skeleton_free_{k}": v for k, v in skel_free.items()})
     fig.update({f"skeleton_loop_{k}": v for k, v in skel_loop.items()})
@@ -570,10 +576,7 @@ def bench_pipeline(out: TextIO = sys.stdout, seconds: float = 5.0,
     fig["throughput_ratio_in_process"] = free["rate_hz"] / fig["in_process_fps"]
     fig["throughput_ratio_skeleton"] = free["rate_hz"] / skel_free["rate_hz"]
     fig["throughput_ratio_skeleton_loop"] = free["rate_hz"] / skel_loop["rate_hz"]
-    # the CPU a frame against what it cannot go below: the bare relay of the same messages
-    # (receiving from loops) plus the same work in one process
-    fig["cpu_ratio_skeleton_loop_plus_in_process"] = free["cpu_us_per_frame"] / (
-        skel_loop["cpu_us_per_frame"] + 1e6 / fig["in_process_fps"])
+    fig["cpu_ratio_skeleton_loop_plus_in_process"] = ratios[0]  # the table's round
     fig["cpu_ratio_rounds"] = float(len(ratios))
     fig["cpu_ratio_median"] = float(np.median(ratios))
     fig["cpu_ratio_min"], fig["cpu_ratio_max"] = float(min(ratios)), float(max(ratios))

@@ -342,11 +342,11 @@ def _first_frame_read(frames: Iterator[np.ndarray]) -> Iterator[np.ndarray]:
 
 def main(args: argparse.Namespace) -> int:
     if _is_sim(args) or is_ros2(args.source):
-        return serve("camera", args, loop)
+        return serve("camera", args, loop, publishes_frames=True)
     try:
         frames = _first_frame_read(open_source(args.source, _size(args), args.loop))
     except SourceError as e:
         print_error("camera", e)
         # no such camera is a start-up failure (1); a file that cannot be read, bad input (2)
         return 1 if args.source.startswith("device:") else 2
-    return serve("camera", args, lambda node, a: loop(node, a, frames))
+    return serve("camera", args, lambda node, a: loop(node, a, frames), publishes_frames=True)

@@ -191,4 +191,4 @@ class _AndTopic(dict[str, Callable[[bytes], object]]):
 
 
 def main(args: argparse.Namespace) -> int:
-    return serve("preprocessing", args, loop)
+    return serve("preprocessing", args, loop, publishes_frames=True)

@@ -115,8 +115,9 @@ def test_black_frames_give_invalid_estimates_no_motion_and_tracking_resumes(tmp_
                                                                             free_port):
     """Featureless frames end to end (issue 13): ten textured frames, ten black ones, ten
     textured again, from a file camera through the live services. The black frames give
-    estimates with NPI 0 and valid false, the controller answers them with a stop, no service
-    fails or restarts, and tracking resumes when the texture returns."""
+    estimates with NPI 0 and valid false, the controller answers those it takes (latest-only)
+    with a stop and sends nothing else meanwhile, no service fails or restarts, and tracking
+    resumes when the texture returns."""
     textured = synthetic.builtin_sequence(20)
     frames = [*textured[:10], *([np.zeros((256, 256), np.uint8)] * 10), *textured[10:]]
     folder = tmp_path / "frames"

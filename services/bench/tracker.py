@@ -13,7 +13,9 @@ frame (pre-processing + tracking + estimate) with the default tracker and with t
 are computed only on the frames that select or re-detect features) against
 ``cv2.GaussianBlur`` alone. It prints time per frame, the ratios, and the
 median end-point error of ours (default parameters) and of LK against the Middlebury ground
-truth.
+truth. Last, the default tracker's SSD tracking of one frame pair and LK's (its defaults) after
+an idle gap (:data:`GAPS_S`): a service's frames come after one, and this machine runs work
+after an idle gap slower than back to back, ours and OpenCV's alike.
 Everything runs on one core (OpenCV's threads set to 1; numba kernels are single-threaded).
 """
 
@@ -62,6 +64,30 @@ def _interleaved(fns: dict[str, Callable[[], object]], *, rounds: int = 7,
                 fn()
             best[name] = min(best[name], (time.perf_counter() - t0) / n)
     return best
+
+
+#: Idle gaps before a frame, s: none (back to back, as the table's rows), ~1.1 ms (a service of
+#: the unpaced five-process pipeline, ~900 frames a second) and 33 ms (a service at 30 fps).
+GAPS_S = (0.0, 0.0011, 0.033)
+
+
+def _after_gaps(steps: dict[str, Callable[[int], object]], n: int,
+                gaps: tuple[float, ...] = GAPS_S, rounds: int = 2) -> dict[str, list[float]]:
+    """Median seconds of one call ``step(i)`` (i = 0, 1, ... n - 1, a frame pair) of each of
+    ``steps`` when the thread slept ``gap`` s before it, for each of ``gaps`` in turn (one list
+    per step, in the order of ``gaps``). The steps take turns gap by gap, ``rounds`` times."""
+    times: dict[str, list[list[float]]] = {name: [[] for _ in gaps] for name in steps}
+    for _ in range(rounds):
+        for j, gap in enumerate(gaps):
+            for name, step in steps.items():
+                step(0)  # whatever the step before left, not a gap's first frame
+                for i in range(n):
+                    if gap:
+                        time.sleep(gap)
+                    t0 = time.perf_counter()
+                    step(i)
+                    times[name][j].append(time.perf_counter() - t0)
+    return {name: [float(np.median(t)) for t in by_gap] for name, by_gap in times.items()}
 
 
 def _frames_256() -> tuple[list[np.ndarray], str]:
@@ -174,15 +200,19 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
         wts = window_weights(p.weights, p.corr_half)
 
         def run() -> None:
-            for a, b, pts, pr, hd in pjobs[pairs]:
-                track_pyramid(a, b, pts, pr, corr_half=p.corr_half, search_half=p.search_half,
-                              weights=wts, subpixel=p.subpixel, search=p.search,
-                              uniqueness=p.uniqueness, allowance=allowance,
-                              reject_border=p.reject_border, guided_retry=p.guided_retry,
-                              max_fb_error=p.max_fb_error, consensus=p.consensus,
-                              wide_half=p.refine_half, **wide_tests(p.noise_sigma),
-                              held=hd, follow=p.follow)
+            for job in pjobs[pairs]:
+                track_pair(p, wts, job)
         return run
+
+    def track_pair(p: TrackerParams, wts: np.ndarray, job: tuple) -> None:
+        a, b, pts, pr, hd = job
+        track_pyramid(a, b, pts, pr, corr_half=p.corr_half, search_half=p.search_half,
+                      weights=wts, subpixel=p.subpixel, search=p.search,
+                      uniqueness=p.uniqueness, allowance=allowance,
+                      reject_border=p.reject_border, guided_retry=p.guided_retry,
+                      max_fb_error=p.max_fb_error, consensus=p.consensus,
+                      wide_half=p.refine_half, **wide_tests(p.noise_sigma),
+                      held=hd, follow=p.follow)
 
     def pyramid() -> None:
         for p in pre[1:]:
@@ -192,13 +222,17 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
         for a, b, anc, _ in jobs:
             _matchtemplate_loop(a.filtered, b.filtered, anc, 4, 7)
 
-    def lk(level: int, win: int = 9) -> Callable[[], None]:
-        pts32 = [anc.astype(np.float32).reshape(-1, 1, 2) for _, _, anc in raw]
+    pts32 = [anc.astype(np.float32).reshape(-1, 1, 2) for _, _, anc in raw]
 
+    def lk_pair(i: int, level: int = 3, win: int = 21) -> None:
+        a, b, _ = raw[i]
+        cv2.calcOpticalFlowPyrLK(a, b, pts32[i], None,  # type: ignore[call-overload]
+                                 winSize=(win, win), maxLevel=level)
+
+    def lk(level: int, win: int = 9) -> Callable[[], None]:
         def run() -> None:
-            for (a, b, _), p0 in zip(raw, pts32, strict=True):
-                cv2.calcOpticalFlowPyrLK(a, b, p0, None,  # type: ignore[call-overload]
-                                         winSize=(win, win), maxLevel=level)
+            for i in range(len(raw)):
+                lk_pair(i, level, win)
         return run
 
     def whole(p: TrackerParams = params) -> Callable[[], None]:
@@ -290,6 +324,20 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
           f"tf ratio (50, 30) / (15, 9): {fig['ssd_50_30'] / base:.1f}x pruned, "
           f"{fig['ssd_50_30_exhaustive'] / fig['ssd_15_9_exhaustive']:.1f}x exhaustive (the "
           "paper's search, which scores every displacement in full)", file=out)
+    default_wts = window_weights(params.weights, params.corr_half)
+    gaps = _after_gaps({"ours": lambda i: track_pair(params, default_wts, pjobs[i % k]),
+                        "lk": lambda i: lk_pair(i % k)}, n=8 * k)
+    print("\nafter an idle gap (median of one frame pair; the rows above run back to back):",
+          file=out)
+    print(f"{'gap':>8s} {'ours default tracker':>21s} {'LK defaults':>12s} {'ours / LK':>10s}",
+          file=out)
+    for j, gap in enumerate(GAPS_S):
+        ours, peer = gaps["ours"][j] * 1e6, gaps["lk"][j] * 1e6
+        fig[f"default_ssd_gap_{gap * 1e3:g}ms"] = ours
+        fig[f"lk_default_gap_{gap * 1e3:g}ms"] = peer
+        print(f"{gap * 1e3:6.1f}ms {ours:16.1f} us {peer:9.1f} us {ours / peer:9.2f}x "
+              f"  ({ours / (gaps['ours'][0] * 1e6):.2f}x and {peer / (gaps['lk'][0] * 1e6):.2f}x"
+              " back to back)", file=out)
     acc = _accuracy()
     if acc:
         print("\nmedian end-point error vs Middlebury ground truth (px), same features:",

@@ -123,6 +123,20 @@ def test_a_paced_camera_publishes_latest_only():
     assert len(frames) == N and not any(p.reliable for p in frames)
 
 
+def test_a_file_run_with_two_in_flight_publishes_its_frames_reliable():
+    """--fps 0 --in-flight 2: frames BLOCK as in lockstep (at most two queue), so no frame
+    and no estimate of a file's run is lost uncounted; a frame whose estimate does not come
+    is not sent again (that is lockstep's, one in flight)."""
+    images = synthetic.builtin_sequence(N)
+    with Running("camera", "--in-flight", "2", "--ack-timeout", str(ACK_TIMEOUT_S),
+                 target=camera.loop, extra=(iter(images),)) as cam:
+        cam.thread.join(IDLE_S + (N + 2) * ACK_TIMEOUT_S)  # no answer comes: it ends
+        assert not cam.thread.is_alive()
+    frames = [p for p in cam.node.published if p.key == cam.node.keys.frame]
+    assert [peek_seq(p.payload) for p in frames] == list(range(N))
+    assert all(p.reliable for p in frames)
+
+
 def test_a_frame_that_never_gets_through_is_given_up_and_the_camera_goes_on():
     """A pipeline that stops answering (a service restarted) costs the camera (1 + RESENDS)
     ack timeouts for that frame, then it goes on: every other frame is tracked."""

@@ -20,7 +20,9 @@ only once the other services are.
 ``--in-flight N`` also holds each ``camera/frame`` until motion-estimation has published the
 estimate of the frame N before it (or ``--ack-timeout`` s have passed), as the camera does with
 ``--fps 0``: with ``--fast``, the pipeline's own pace with no frame lost; at the recorded pace,
-never faster than the pipeline. The replay then also waits for the last frame's estimate.
+never faster than the pipeline. The replay then also waits for the last frame's estimate. Its
+frames then go reliable (BLOCK), as a file camera's: at most N queue, and the stages answer
+them BLOCK, so no frame or estimate is dropped on a link.
 
 ``--remap-robot ID`` publishes ``vistrack/<recorded robot>/...`` as ``vistrack/<ID>/...``;
 ``--restamp`` replaces each message's ``stamp_ns`` by the time it is published, for consumers
@@ -232,7 +234,10 @@ class _Player:
         replay's ``seq`` apart from any live publisher's."""
         pub = self._publishers.get(key)
         if pub is None:
-            latest = key_suffix(key) in LATEST_ONLY
+            # with --in-flight the frames go BLOCK, as the camera's of a file run: at most N
+            # queue, the stages answer BLOCK in turn, and none is lost on a link
+            latest = key_suffix(key) in LATEST_ONLY and not (
+                self.args.in_flight and key_suffix(key) == "camera/frame")
             try:
                 pub = SourcedPublisher(self.session.declare_publisher(
                     key, congestion_control=congestion(reliable=not latest)))

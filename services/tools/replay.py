@@ -66,6 +66,8 @@ from .shared import (
 # latest-only streams (bus.LATEST_CONGESTION), as the camera, preprocessing and
 # motion-estimation services do.
 LATEST_ONLY = frozenset({"camera/frame", "preprocessing/frame", "motion/estimate", "sim/pose"})
+#: The stream ``--in-flight`` paces (by its estimates), and sends reliable (BLOCK) then.
+PACED = "camera/frame"
 
 
 def _robot(value: str) -> str:
@@ -236,8 +238,7 @@ class _Player:
         if pub is None:
             # with --in-flight the frames go BLOCK, as the camera's of a file run: at most N
             # queue, the stages answer BLOCK in turn, and none is lost on a link
-            latest = key_suffix(key) in LATEST_ONLY and not (
-                self.args.in_flight and key_suffix(key) == "camera/frame")
+            latest = key_suffix(key) in LATEST_ONLY and not self._paced(key)
             try:
                 pub = SourcedPublisher(self.session.declare_publisher(
                     key, congestion_control=congestion(reliable=not latest)))
@@ -313,11 +314,15 @@ class _Player:
                 self._wait_ack(ack_key, sent[-1], sent)
         return t0 is not None
 
+    def _paced(self, key: str) -> bool:
+        """Whether ``--in-flight`` paces what is published on ``key``."""
+        return self.acks is not None and key_suffix(key) == PACED
+
     def _ack_key(self, key: str) -> str | None:
         """The estimate key that acknowledges a frame published on ``key`` (None: no pacing)."""
-        if self.acks is None or key_suffix(key) != "camera/frame":
+        if self.acks is None or not self._paced(key):
             return None
-        ack_key = key[:-len("camera/frame")] + "motion/estimate"
+        ack_key = key[:-len(PACED)] + "motion/estimate"
         self.acks.watch(ack_key)
         return ack_key
 

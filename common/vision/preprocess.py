@@ -60,22 +60,44 @@ def sample_bits(image: np.ndarray) -> int:
     return next(b for b in SENSOR_BITS if top < 1 << b)
 
 
-def to_gray(image: np.ndarray, *, bits: int = 16) -> np.ndarray:
+def to_gray(image: np.ndarray, *, bits: int = 16, unit: bool | None = None) -> np.ndarray:
     """8-bit grey from a grey, BGR or BGRA image (as the camera service converts frames).
 
     A 16-bit image's samples hold ``bits`` significant bits (8..16, the lowest ones: a
     12-bit sensor's values run 0 to 4095 in a 16-bit container): grey = value >> (bits - 8),
     capped at 255. The default, 16, keeps the top byte; for the samples of a stream
-    :class:`Grey` finds the depth."""
+    :class:`Grey` finds the depth.
+
+    A floating-point image (a 32-bit float TIFF, a frame a user's own code made) is 0 to 1
+    when ``unit`` (OpenCV's convention for float images: grey = 255 value), else 0 to 255;
+    ``None`` takes it as 0 to 1 when none of its values is above 1 (:func:`unit_range`).
+    Rounded to the nearest level and capped to 0..255; NaN is black. Other integer images
+    (8-bit signed, 32-bit) are capped to 0..255."""
     gray = _one_channel(image)
     if gray.dtype != np.uint8:
         if np.issubdtype(gray.dtype, np.integer) and gray.dtype.itemsize == 2:
             if not 8 <= bits <= 16:
                 raise ValueError(f"bits={bits} is out of range: allowed 8..16")
             gray = np.clip(gray >> (bits - 8), 0, 255).astype(np.uint8)  # int16: no wrap
-        else:
+        elif np.issubdtype(gray.dtype, np.floating):
+            if unit is None:
+                unit = unit_range(gray)
+            scaled = gray * np.float32(255.0) if unit else gray
+            # NaN compares false both ways: the clip leaves it, nan_to_num makes it black
+            gray = np.nan_to_num(np.rint(np.clip(scaled, 0, 255)), nan=0.0).astype(np.uint8)
+        elif np.issubdtype(gray.dtype, np.integer) or gray.dtype == np.bool_:
             gray = np.clip(gray, 0, 255).astype(np.uint8)
+        else:
+            raise ValueError(f"image of dtype {gray.dtype} is not a grey or colour image: "
+                             "allowed 8- or 16-bit integers, other integers or floats")
     return np.ascontiguousarray(gray)
+
+
+def unit_range(gray: np.ndarray) -> bool:
+    """Whether a floating-point frame reads as 0 to 1 (OpenCV's convention for float images):
+    none of its finite values is above 1. A frame with any value above 1 reads as 0 to 255."""
+    finite = gray[np.isfinite(gray)]
+    return not finite.size or float(finite.max()) <= 1.0
 
 
 class Grey:
@@ -87,6 +109,10 @@ class Grey:
     0 to 15: a real 12-bit sequence gave 4 features where its 8-bit version gave 100. The
     depth only grows, so a stream that starts dark steps once, when its first bright frame
     comes, rather than changing scale with every frame. 8-bit frames pass as they are.
+
+    Floating-point frames are 0 to 1 (OpenCV's convention for float images) until a frame
+    has a value above 1, and 0 to 255 from then on: like the depth, the range only grows
+    (capping 0..1 frames at 255 made them black and white: no feature at all).
     """
 
     def __init__(self, bits: int | None = None) -> None:
@@ -94,8 +120,11 @@ class Grey:
             raise ValueError(f"bits={bits} is out of range: allowed 8..16")
         self.fixed = bits
         self.bits = 0  # the depth in use (0: no 16-bit frame yet)
+        self.unit: bool | None = None  # float frames: 0 to 1 (None: no float frame yet)
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
+        if np.issubdtype(image.dtype, np.floating):
+            return self._float(image)
         if image.dtype.itemsize != 2 or not np.issubdtype(image.dtype, np.integer):
             return to_gray(image)
         grey16 = _one_channel(image)
@@ -106,12 +135,23 @@ class Grey:
             self.bits = bits
         return to_gray(grey16, bits=bits)
 
+    def _float(self, image: np.ndarray) -> np.ndarray:
+        grey = _one_channel(image)
+        unit = (self.unit is not False) and unit_range(grey)
+        if unit != self.unit:
+            log.info("floating-point frames taken as %s", "0 to 1: grey = 255 value" if unit
+                     else "0 to 255")
+            self.unit = unit
+        return to_gray(grey, unit=unit)
+
 
 def _one_channel(image: np.ndarray) -> np.ndarray:
     """The grey of a grey, BGR or BGRA image, of the image's own depth (OpenCV's luma
     weights)."""
     if image.ndim == 2:
         return image
+    if image.dtype not in (np.uint8, np.uint16, np.float32):  # what cvtColor takes
+        image = image.astype(np.float32)
     if image.ndim == 3 and image.shape[2] == 3:
         return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     if image.ndim == 3 and image.shape[2] == 4:

@@ -1,7 +1,8 @@
 """16-bit frames (machine-vision cameras' Mono10/Mono12, 16-bit PNG and TIFF) to 8-bit grey:
 scaled by the depth of the stream's samples, not by keeping the top byte, which leaves a
 12-bit camera's frames at grey levels 0 to 15 (a texture floor above the noise then finds
-almost nothing to track)."""
+almost nothing to track). Floating-point frames (32-bit float TIFF): 0 to 1 as OpenCV takes
+them, not capped at 255, which left them black and white (no feature at all)."""
 
 from __future__ import annotations
 
@@ -84,13 +85,19 @@ def test_8_bit_frames_pass_as_they_are(picture):
     np.testing.assert_array_equal(grey(picture), picture)
 
 
-def _write_sequence(folder, picture, bits: int | None) -> list[str]:
+def _write_sequence(folder, picture, bits: int | str | None) -> list[str]:
+    """Six shifted frames of ``picture``: 8-bit PNGs (``bits`` None), ``bits``-bit samples in
+    16-bit PNGs, or (``"float"``) 32-bit float TIFFs of 0 to 1."""
     paths = []
     for k in range(6):
         m = np.float32([[1, 0, 2.0 * k], [0, 1, 1.0 * k]])
         frame = cv2.warpAffine(picture, m, picture.shape[::-1], borderMode=cv2.BORDER_REFLECT)
-        path = str(folder / f"f{k:02d}.png")
-        cv2.imwrite(path, frame if bits is None else frame.astype(np.uint16) << (bits - 8))
+        if bits == "float":
+            path = str(folder / f"f{k:02d}.tiff")
+            cv2.imwrite(path, frame.astype(np.float32) / 255)
+        else:
+            path = str(folder / f"f{k:02d}.png")
+            cv2.imwrite(path, frame if bits is None else frame.astype(np.uint16) << (bits - 8))
         paths.append(path)
     return paths
 
@@ -106,10 +113,60 @@ def test_a_folder_of_12_bit_pngs_reads_as_its_8_bit_version(tmp_path, picture):
     np.testing.assert_array_equal(read_image(twelve[0]), read_image(eight[0]))
 
 
-def test_vistrack_track_on_12_bit_pngs_prints_what_it_prints_for_8_bit(tmp_path, picture):
+def test_a_folder_of_float_tiffs_of_0_to_1_reads_as_its_8_bit_version(tmp_path, picture):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    eight = _write_sequence(tmp_path / "a", picture, None)
+    floats = _write_sequence(tmp_path / "b", picture, "float")
+    assert cv2.imread(floats[0], cv2.IMREAD_UNCHANGED).dtype == np.float32
+    for a, b in zip(FileFrames(eight), FileFrames(floats), strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(read_image(floats[0]), read_image(eight[0]))
+
+
+def test_float_frames_of_0_to_255_pass_as_their_values_rounded():
+    a = np.array([[0.0, 2.4, 2.6, 254.5, 300.0]], np.float32)
+    assert to_gray(a).tolist() == [[0, 2, 3, 254, 255]]  # rint: 254.5 to the even 254
+    assert Grey()(a).tolist() == [[0, 2, 3, 254, 255]]
+
+
+def test_float_frames_without_a_number_or_out_of_range_give_finite_grey():
+    a = np.array([[np.nan, np.inf, -np.inf, -0.5, 0.5, 1.0]], np.float32)
+    assert to_gray(a).tolist() == [[0, 255, 0, 0, 128, 255]]
+    assert to_gray(np.full((4, 4), np.nan, np.float32)).tolist() == [[0] * 4] * 4
+
+
+def test_float_colour_and_other_depths_are_converted_to_grey_first(picture):
+    bgr = np.dstack([picture, picture, picture])
+    np.testing.assert_array_equal(to_gray(bgr.astype(np.float64) / 255), picture)
+    np.testing.assert_array_equal(to_gray(bgr.astype(np.float16)), picture)
+    np.testing.assert_array_equal(to_gray(bgr.astype(np.int32)), picture)
+    assert to_gray(np.array([[-7, 9, 70000]], np.int32)).tolist() == [[0, 9, 255]]
+
+
+def test_the_float_range_only_grows_so_a_0_to_255_stream_is_read_as_such(picture):
+    grey = Grey()
+    unit = picture.astype(np.float32) / 255
+    np.testing.assert_array_equal(grey(unit), picture)
+    assert grey.unit is True
+    np.testing.assert_array_equal(grey(picture.astype(np.float32)), picture)  # above 1
+    assert grey.unit is False
+    dark = np.full(picture.shape, 0.8, np.float32)  # would read as 204 in 0..1
+    assert grey(dark).max() == 1  # 0..255 from now on: no flicker to bright
+    assert grey.unit is False
+
+
+def test_a_dtype_that_is_not_a_number_is_a_clear_error():
+    with pytest.raises(ValueError, match=r"dtype <U1 is not a grey or colour image"):
+        to_gray(np.array([["a"]]))
+
+
+@pytest.mark.parametrize("kind", [12, "float"])
+def test_vistrack_track_on_12_bit_and_float_frames_prints_what_it_prints_for_8_bit(
+        tmp_path, picture, kind):
     """The whole offline path, the CLI as a user runs it: the same rows (but for the times)."""
     rows = {}
-    for name, bits in (("eight", None), ("twelve", 12)):
+    for name, bits in (("eight", None), ("other", kind)):
         (tmp_path / name).mkdir()
         _write_sequence(tmp_path / name, picture, bits)
         out = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "track",
@@ -118,5 +175,5 @@ def test_vistrack_track_on_12_bit_pngs_prints_what_it_prints_for_8_bit(tmp_path,
         lines = [line.split(",") for line in out.splitlines() if line]
         t_ms = lines[0].index("t_ms")
         rows[name] = [row[:t_ms] + row[t_ms + 1:] for row in lines]
-    assert rows["twelve"] == rows["eight"]
+    assert rows["other"] == rows["eight"]
     assert min(int(r[1]) for r in rows["eight"][1:]) >= 50  # NPI: a textured picture

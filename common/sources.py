@@ -101,6 +101,9 @@ def _check_images(paths: list[str]) -> None:
     when it is read, naming the file.)"""
     for p in paths:
         if os.path.isfile(p) and not cv2.haveImageReader(p):
+            if p.lower().endswith(VIDEO_EXTS):
+                raise SourceError(f"{p}: a video among {len(paths)} files: give one video "
+                                  "alone, or image files")
             raise SourceError(f"{p}: not a readable image")
 
 

@@ -128,7 +128,14 @@ def test_bad_files_are_one_line_and_exit_2(tmp_path):
     a = np.zeros((40, 50), np.uint8)
     cv2.imwrite(str(tmp_path / "a.png"), a)
     cv2.imwrite(str(tmp_path / "b.png"), np.zeros((40, 60), np.uint8))
+    video = cv2.VideoWriter(str(tmp_path / "v.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10,
+                            (50, 40))
+    video.write(np.zeros((40, 50, 3), np.uint8))
+    video.release()
     cases = [([str(tmp_path / "empty")], "folder holds no image"),
+             ([str(tmp_path / "v.avi"), str(tmp_path / "a.png")],
+              f"{tmp_path / 'v.avi'}: a video among 2 files: give one video alone, or image "
+              "files"),
              ([str(tmp_path / "junk.png")], "not a readable image"),
              ([str(tmp_path / "a.png"), str(tmp_path / "b.png")], "60x40 but the first was 50x40"),
              ([str(tmp_path / "nothing*.png")], "matches no image file")]

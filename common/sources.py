@@ -9,10 +9,12 @@ PNG or TIFF) scaled by the depth of the stream's samples (:class:`.vision.prepro
 from __future__ import annotations
 
 import glob
+import logging
 import math
 import os
 import sys
 import tempfile
+import time
 from collections.abc import Generator, Iterator, Sequence
 from dataclasses import dataclass
 
@@ -29,6 +31,15 @@ BUILTIN = "builtin"
 SIZE_RANGE = (8, 8192)
 #: Camera device indices ``device:N`` accepts (cv2.VideoCapture(-1) crashes the process).
 DEVICE_RANGE = (0, 99)
+#: Seconds a camera device may fail to deliver a frame, read after read, before it is opened
+#: again (once); a USB camera on a busy bus, or V4L2's select() timing out, fails a read now
+#: and then and delivers the next.
+DEVICE_RETRY_S = 1.0
+#: Seconds between two reads of a device that failed (a read of an unplugged camera returns
+#: at once).
+DEVICE_RETRY_PAUSE_S = 0.005
+
+log = logging.getLogger("vistrack.frames")
 
 # OpenCV and its FFmpeg back end print their own warnings on stderr ("moov atom not found",
 # "can't open camera by index") before the one-line error that names the file or device.
@@ -256,24 +267,58 @@ def probe_device(spec: str) -> None:
         frames.close()
 
 
-def open_device(index: int, size: tuple[int, int] | None = None
+def open_device(index: int, size: tuple[int, int] | None = None, *,
+                retry_s: float = DEVICE_RETRY_S, capture=cv2.VideoCapture
                 ) -> Generator[np.ndarray, None, None]:
-    """Frames from a camera device through cv2.VideoCapture, grey, optionally resized."""
+    """Frames from a camera device through cv2.VideoCapture, grey, optionally resized.
+
+    A read that fails is tried again, for up to ``retry_s`` seconds of reads failing in a
+    row; then the device is opened again, once, and only if that brings no frame either
+    does it end with :class:`SourceError` (a camera unplugged: the launcher restarts the
+    camera service by its policy). ``capture``: what opens the device (``cv2.VideoCapture``;
+    a seam for tests)."""
     lo, hi = DEVICE_RANGE
     if not lo <= index <= hi:  # a negative index crashes OpenCV (segmentation fault)
         raise SourceError(f"device:{index}: device index out of range: allowed {lo}..{hi}")
-    cap = cv2.VideoCapture(index)
+    cap = capture(index)
     if not cap.isOpened():
         raise SourceError(f"device:{index}: cannot open the camera device")
     grey = Grey()
     try:
         while True:
-            ok, img = cap.read()
-            if not ok:
-                raise SourceError(f"device:{index}: the camera stopped delivering frames")
+            img = _read_device(cap, index, retry_s)
+            if img is None:
+                log.warning("device:%d: no frame for %g s: opening the device again", index,
+                            retry_s)
+                cap.release()
+                cap = capture(index)
+                img = _read_device(cap, index, retry_s) if cap.isOpened() else None
+                if img is None:
+                    raise SourceError(f"device:{index}: the camera stopped delivering frames "
+                                      f"(none for {retry_s:g} s, nor once opened again)")
+                log.info("device:%d: delivering frames again, opened again", index)
             frame = grey(img)
             if size is not None and frame.shape[::-1] != size:
                 frame = cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
             yield frame
     finally:
         cap.release()
+
+
+def _read_device(cap, index: int, retry_s: float) -> np.ndarray | None:
+    """The next frame of an open device, reads that fail tried again for up to ``retry_s``
+    seconds (logged once each way); None if none came."""
+    ok, img = cap.read()
+    if ok and img is not None:
+        return img
+    log.warning("device:%d: a frame could not be read; trying again", index)
+    deadline = time.monotonic() + retry_s
+    failed = 1
+    while time.monotonic() < deadline:
+        time.sleep(DEVICE_RETRY_PAUSE_S)
+        ok, img = cap.read()
+        if ok and img is not None:
+            log.info("device:%d: a frame read again after %d failed reads", index, failed)
+            return img
+        failed += 1
+    return None

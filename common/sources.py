@@ -14,8 +14,9 @@ import math
 import os
 import sys
 import tempfile
+import threading
 import time
-from collections.abc import Generator, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -268,57 +269,123 @@ def probe_device(spec: str) -> None:
 
 
 def open_device(index: int, size: tuple[int, int] | None = None, *,
-                retry_s: float = DEVICE_RETRY_S, capture=cv2.VideoCapture
-                ) -> Generator[np.ndarray, None, None]:
-    """Frames from a camera device through cv2.VideoCapture, grey, optionally resized.
+                retry_s: float = DEVICE_RETRY_S, capture=cv2.VideoCapture) -> DeviceFrames:
+    """Frames from a camera device through cv2.VideoCapture, grey, optionally resized: the
+    newest the device has delivered each time one is asked for (:class:`DeviceFrames`).
 
-    A read that fails is tried again, for up to ``retry_s`` seconds of reads failing in a
-    row; then the device is opened again, once, and only if that brings no frame either
-    does it end with :class:`SourceError` (a camera unplugged: the launcher restarts the
-    camera service by its policy). ``capture``: what opens the device (``cv2.VideoCapture``;
-    a seam for tests)."""
+    Raises
+    ------
+    SourceError
+        If the index is out of range or the device does not open.
+    """
     lo, hi = DEVICE_RANGE
     if not lo <= index <= hi:  # a negative index crashes OpenCV (segmentation fault)
         raise SourceError(f"device:{index}: device index out of range: allowed {lo}..{hi}")
     cap = capture(index)
     if not cap.isOpened():
         raise SourceError(f"device:{index}: cannot open the camera device")
-    grey = Grey()
-    try:
-        while True:
-            img = _read_device(cap, index, retry_s)
-            if img is None:
-                log.warning("device:%d: no frame for %g s: opening the device again", index,
-                            retry_s)
-                cap.release()
-                cap = capture(index)
-                img = _read_device(cap, index, retry_s) if cap.isOpened() else None
-                if img is None:
-                    raise SourceError(f"device:{index}: the camera stopped delivering frames "
-                                      f"(none for {retry_s:g} s, nor once opened again)")
-                log.info("device:%d: delivering frames again, opened again", index)
-            frame = grey(img)
-            if size is not None and frame.shape[::-1] != size:
-                frame = cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
-            yield frame
-    finally:
-        cap.release()
+    return DeviceFrames(cap, index, size, retry_s, capture)
 
 
-def _read_device(cap, index: int, retry_s: float) -> np.ndarray | None:
-    """The next frame of an open device, reads that fail tried again for up to ``retry_s``
-    seconds (logged once each way); None if none came."""
-    ok, img = cap.read()
-    if ok and img is not None:
-        return img
-    log.warning("device:%d: a frame could not be read; trying again", index)
-    deadline = time.monotonic() + retry_s
-    failed = 1
-    while time.monotonic() < deadline:
-        time.sleep(DEVICE_RETRY_PAUSE_S)
+class DeviceFrames:
+    """The frames of an open camera device, newest first: a thread reads the device as fast as
+    it delivers, and each ``next()`` returns the newest frame not returned before (waiting for
+    one if there is none), grey and resized; ``capture_ns`` is when it was read.
+
+    A device queues its frames (OpenCV's V4L2 back end four): read at a slower pace than the
+    camera's own, as ``--fps 15`` on a 30 fps camera does, every frame read was the oldest of
+    the queue, 4 frames (133 ms at 30 fps) old, for as long as the run lasted, and a robot
+    acting on it steers by where it was. Reading as the device delivers keeps the queue empty.
+
+    A read that fails is tried again, for up to ``retry_s`` seconds of reads failing in a
+    row; then the device is opened again (``capture(index)``, ``cv2.VideoCapture``: a seam
+    for tests), once, and only if that brings no frame either does ``next()`` raise
+    :class:`SourceError` (a camera unplugged: the launcher restarts the camera service by its
+    policy). :meth:`close` stops the thread, which lets the device go.
+    """
+
+    def __init__(self, cap, index: int, size: tuple[int, int] | None, retry_s: float,
+                 capture) -> None:
+        self.index = index
+        self.size = size
+        self.retry_s = retry_s
+        self.capture_ns = 0
+        self._capture = capture
+        self._grey = Grey()
+        self._ready = threading.Condition()
+        self._newest: tuple[np.ndarray, int] | None = None
+        self._error: SourceError | None = None
+        self._stop = threading.Event()
+        self.cap = cap  # the capture being read (another once the device is opened again)
+        self._thread = threading.Thread(target=self._read_all, daemon=True,
+                                        name=f"device:{index}")
+        self._thread.start()
+
+    def __iter__(self) -> DeviceFrames:
+        return self
+
+    def __next__(self) -> np.ndarray:
+        with self._ready:
+            while self._newest is None and self._error is None or self._stop.is_set():
+                if self._stop.is_set():
+                    raise StopIteration
+                self._ready.wait(0.1)
+            if self._newest is None:
+                raise self._error  # type: ignore[misc]
+            img, self.capture_ns = self._newest
+            self._newest = None
+        frame = self._grey(img)
+        if self.size is not None and frame.shape[::-1] != self.size:
+            frame = cv2.resize(frame, self.size, interpolation=cv2.INTER_AREA)
+        return frame
+
+    def close(self) -> None:
+        """Stop reading; the thread lets the device go once its read in progress returns."""
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+
+    def _read_all(self) -> None:
+        index = self.index
+        cap = self.cap
+        try:
+            while not self._stop.is_set():
+                img = self._read(cap)
+                if img is None and not self._stop.is_set():
+                    log.warning("device:%d: no frame for %g s: opening the device again",
+                                index, self.retry_s)
+                    cap.release()
+                    cap = self.cap = self._capture(index)
+                    img = self._read(cap) if cap.isOpened() else None
+                    if img is None:
+                        raise SourceError(f"device:{index}: the camera stopped delivering "
+                                          f"frames (none for {self.retry_s:g} s, nor once "
+                                          "opened again)")
+                    log.info("device:%d: delivering frames again, opened again", index)
+                if img is not None:
+                    with self._ready:
+                        self._newest = (img, time.time_ns())
+                        self._ready.notify()
+        except SourceError as e:
+            with self._ready:
+                self._error = e
+                self._ready.notify()
+        finally:
+            cap.release()
+
+    def _read(self, cap) -> np.ndarray | None:
+        """The next frame the device delivers, reads that fail tried again for up to
+        ``retry_s`` seconds (logged once each way); None if none came (or on close)."""
         ok, img = cap.read()
         if ok and img is not None:
-            log.info("device:%d: a frame read again after %d failed reads", index, failed)
             return img
-        failed += 1
-    return None
+        index = self.index
+        log.warning("device:%d: a frame could not be read; trying again", index)
+        deadline = time.monotonic() + self.retry_s
+        failed = 1
+        while time.monotonic() < deadline and not self._stop.wait(DEVICE_RETRY_PAUSE_S):
+            ok, img = cap.read()
+            if ok and img is not None:
+                log.info("device:%d: a frame read again after %d failed reads", index, failed)
+                return img
+            failed += 1
+        return None

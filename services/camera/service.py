@@ -44,6 +44,7 @@ from ...common.bus import Node
 from ...common.messages import MAX_SIDE, encode_frame, peek_int
 from ...common.sources import (
     BUILTIN,
+    DeviceFrames,
     SourceError,
     device_index,
     open_device,
@@ -259,7 +260,8 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
                 need[keys.pre_frame] = sent[-1]
             if not _wait(node, acks, need, args.ack_timeout, last if lockstep else []):
                 sent.clear()  # lost downstream (a service restarted): go on
-        stamp = time.time_ns()
+        # a device's frame: when it was read from the device (its newest, not when sent)
+        stamp = frames.capture_ns if isinstance(frames, DeviceFrames) else time.time_ns()
         node.status.extra["frames"] = seq + 1
         if not faults.call(keys.frame, seq, _publish, node, image, seq, stamp, last, reliable):
             continue  # skipped (counted in failed): nothing to wait for
@@ -358,9 +360,19 @@ def main(args: argparse.Namespace) -> int:
     if _is_sim(args) or is_ros2(args.source):
         return serve("camera", args, loop, publishes_frames=True)
     try:
-        frames = _first_frame_read(open_source(args.source, _size(args), args.loop))
+        source = open_source(args.source, _size(args), args.loop)
+        frames = _first_frame_read(source)
+        if isinstance(source, DeviceFrames):
+            # a live camera's first frame is stale once the pipeline is up: the device
+            # delivers a fresh one then
+            frames = source
     except SourceError as e:
         print_error("camera", e)
         # no such camera is a start-up failure (1); a file that cannot be read, bad input (2)
         return 1 if args.source.startswith("device:") else 2
-    return serve("camera", args, lambda node, a: loop(node, a, frames), publishes_frames=True)
+    try:
+        return serve("camera", args, lambda node, a: loop(node, a, frames),
+                     publishes_frames=True)
+    finally:
+        if isinstance(source, DeviceFrames):
+            source.close()  # its reading thread lets the device go

@@ -288,9 +288,10 @@ def open_device(index: int, size: tuple[int, int] | None = None, *,
 
 
 class DeviceFrames:
-    """The frames of an open camera device, newest first: a thread reads the device as fast as
-    it delivers, and each ``next()`` returns the newest frame not returned before (waiting for
-    one if there is none), grey and resized; ``capture_ns`` is when it was read.
+    """The frames of an open camera device, each the newest it has delivered: a thread reads
+    the device as fast as it delivers, and each ``next()`` returns the newest frame not
+    returned before (waiting for one if there is none), grey and resized; ``capture_ns`` is
+    when it was read.
 
     A device queues its frames (OpenCV's V4L2 back end four): read at a slower pace than the
     camera's own, as ``--fps 15`` on a 30 fps camera does, every frame read was the oldest of
@@ -326,7 +327,7 @@ class DeviceFrames:
 
     def __next__(self) -> np.ndarray:
         with self._ready:
-            while self._newest is None and self._error is None or self._stop.is_set():
+            while (self._newest is None and self._error is None) or self._stop.is_set():
                 if self._stop.is_set():
                     raise StopIteration
                 self._ready.wait(0.1)

@@ -12,6 +12,7 @@ import glob
 import logging
 import math
 import os
+import re
 import sys
 import tempfile
 import threading
@@ -105,6 +106,17 @@ def _imread_jpeg(path: str) -> tuple[np.ndarray | None, str]:
             os.close(saved)
         caught.seek(0)
         return img, caught.read(4096).decode("utf-8", "replace")
+
+
+_DIGITS = re.compile(r"(\d+)")
+
+
+def name_order(path: str) -> tuple[tuple[tuple[int, int | str], ...], str]:
+    """Sort key of the frames of a folder or glob: by name, the runs of digits by their value
+    (``f2.png`` before ``f10.png``, as a file browser shows them; ``ffmpeg -i v.mp4 f%d.png``
+    writes such names), zero-padded names in the same order as plain text."""
+    parts = _DIGITS.split(path)
+    return tuple((1, int(p)) if i % 2 else (0, p) for i, p in enumerate(parts)), path
 
 
 def _check_images(paths: list[str]) -> None:
@@ -203,7 +215,7 @@ def _is_image(path: str) -> bool:
 
 def open_files(specs: Sequence[str], size: tuple[int, int] | None = None
                ) -> FileFrames | GeneratedFrames:
-    """Resolve FRAMES arguments: a video file, a folder of images (sorted by name), a glob
+    """Resolve FRAMES arguments: a video file, a folder of images (in :func:`name_order`), a glob
     pattern, image files in order, or ``builtin`` (or nothing) for the built-in sequence."""
     specs = list(specs)
     if not specs or specs == [BUILTIN]:
@@ -211,13 +223,14 @@ def open_files(specs: Sequence[str], size: tuple[int, int] | None = None
     if len(specs) == 1:
         spec = specs[0]
         if os.path.isdir(spec):
-            paths = sorted(os.path.join(spec, f) for f in os.listdir(spec) if _is_image(f))
+            paths = sorted((os.path.join(spec, f) for f in os.listdir(spec) if _is_image(f)),
+                           key=name_order)
             if not paths:
                 raise SourceError(f"{spec}: folder holds no image ({', '.join(IMAGE_EXTS)})")
             _check_images(paths)
             return FileFrames(paths, size=size, description=f"{spec} ({len(paths)} images)")
         if any(ch in spec for ch in "*?[") and not os.path.exists(spec):
-            paths = sorted(p for p in glob.glob(spec) if _is_image(p))
+            paths = sorted((p for p in glob.glob(spec) if _is_image(p)), key=name_order)
             if not paths:
                 raise SourceError(f"{spec}: pattern matches no image file")
             _check_images(paths)

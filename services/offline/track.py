@@ -25,8 +25,8 @@ CSV_FIELDS = ["seq", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale", "t_ms",
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("frames", nargs="*", metavar="FRAMES",
-                        help="a video file, a folder of images (sorted by name), a glob, or "
-                             "image files in order; none (or 'builtin') runs the built-in "
+                        help="a video file, a folder of images (by name, f2 before f10), a glob, "
+                             "or image files in order; none (or 'builtin') runs the built-in "
                              "generated sequence")
     add_param_flags(parser)
     parser.add_argument("--resize", metavar="WxH", default=None,

@@ -61,8 +61,8 @@ UNITS = {"t1": "ms", "tf": "ms", "ex": "px", "ey": "px"}
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("frames", nargs="*", metavar="FRAMES",
-                        help="a video file, a folder of images (sorted by name), a glob, or "
-                             "image files in order; none (or 'builtin') runs the built-in "
+                        help="a video file, a folder of images (by name, f2 before f10), a glob, "
+                             "or image files in order; none (or 'builtin') runs the built-in "
                              "generated sequence")
     add_number(parser, "--seed", lo=0, hi=2**63 - 1, integer=True, default=None, metavar="N",
                help="seed of the design's run order, %(allowed)s (default: a fresh one, "

@@ -225,6 +225,10 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
                                "certificates)") from None
             raise BusError(f"cannot connect to {where}: nothing answers there (is "
                            "vistrack up or vistrack router running, on that port?)") from None
+        if "Address already in use" in str(err):
+            raise BusError(f"cannot open zenoh session: {err}: another process listens there "
+                           "(a vistrack up, router or demo already running? join it with "
+                           "-e ENDPOINT, or give -l another port)") from None
         raise BusError(f"cannot open zenoh session: {err}") from None
 
 

@@ -81,6 +81,9 @@ def test_a_taken_port_is_one_line_and_exit_1(taken_port, tmp_path):
         assert code == 1 and err.count("\n") == 1, (name, err)
         assert err.startswith(f"vistrack {name}: error: cannot open zenoh session: "), err
         assert "Address already in use" in err and listen in err, err
+        assert err.endswith("another process listens there (a vistrack up, router or demo "
+                            "already running? join it with -e ENDPOINT, or give -l another "
+                            "port)\n"), err
         assert "[launcher] started" not in out, (name, out)
 
 

@@ -96,8 +96,7 @@ def to_gray(image: np.ndarray, *, bits: int = 16, unit: bool | None = None) -> n
 def unit_range(gray: np.ndarray) -> bool:
     """Whether a floating-point frame reads as 0 to 1 (OpenCV's convention for float images):
     none of its finite values is above 1. A frame with any value above 1 reads as 0 to 255."""
-    finite = gray[np.isfinite(gray)]
-    return not finite.size or float(finite.max()) <= 1.0
+    return float(np.max(gray, where=np.isfinite(gray), initial=-np.inf)) <= 1.0
 
 
 class Grey:

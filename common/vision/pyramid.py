@@ -152,6 +152,18 @@ loop 1.85x slower), and patch rows copied in constant 16-pixel chunks were slowe
 16-bit loop, ``h11 += int32(ddx) * int32(ddx)`` and two more sums over int16 differences, came
 out as 32-bit multiplies (vpmulld), no vpmaddwd, and the 9-sum gradient loop of the 21 x 21
 window in int16 ran as fast as in int32 (1.07 against 1.08 us a call, call included).
+
+Then (issue 12 and 15's speed targets, 2026-12-04): perf on the bench's held frames put 37 % of
+the default tracker's time in numba's runtime, NRT_incref and NRT_decref: every view a kernel
+made (the template's slices in each Gauss-Newton refinement, the tuple of its scratch arrays,
+a pyramid level per feature followed, a row of neighbours per fit) took an atomic increment
+and decrement of its buffer's count, which LLVM cannot remove across the kernels' branches.
+The kernels that neither allocate nor keep an array are now compiled without the runtime
+(:data:`.ssd.NO_NRT`), the per-feature loop of step 0 moved into one (:func:`_follow_each`),
+its levels' views made there (:func:`_refine_at`): 224 -> 143 us a held frame pair, the
+(15, 9) search 41.5 -> 35.9 us, the same outputs bit for bit (every position, id and estimate
+of the bench's frames, the default, paper's and exhaustive trackers and five rendered
+sequences, compared; the scoreboard's table unchanged). What is left of the runtime: ~3 %.
 """
 
 from __future__ import annotations
@@ -175,6 +187,7 @@ from .ssd import (
     DISAGREES,
     FB,
     LEFT,
+    NO_NRT,
     NO_THIRD,
     OK,
     RUNAWAY,
@@ -300,6 +313,22 @@ def _level(data, geo, k):  # pragma: no cover - numba
     return data[o:o + geo[k, 1] * geo[k, 2]].reshape((geo[k, 1], geo[k, 2]))
 
 
+@nb.njit(**NO_NRT)
+def _refine_at(pdata, cdata, geo, k, ax, ay, x0, y0, n, scratch, third):  # pragma: no cover
+    """:func:`.ssd._refine_with` on level k of two pyramids' buffers, its views made here.
+
+    Compiled without numba's runtime (``_nrt=False``), as the kernels it calls: a view that
+    :func:`_level` returns is a new reference, an atomic increment and decrement of its
+    buffer's count, and the two levels' for each feature followed were ~20 % of those a frame
+    made, which in all took a third of the default tracker's time (perf on the bench's held
+    frames). Nothing here allocates or keeps an array."""
+    o = geo[k, 0]
+    size = geo[k, 1] * geo[k, 2]
+    prev = pdata[o:o + size].reshape((geo[k, 1], geo[k, 2]))
+    curr = cdata[o:o + size].reshape((geo[k, 1], geo[k, 2]))
+    return _refine_with(prev, curr, ax, ay, x0, y0, n, scratch, third)
+
+
 @nb.njit(cache=True, nogil=True)
 def _build(frame, data, geo):  # pragma: no cover - numba
     h, w = frame.shape
@@ -400,7 +429,7 @@ def _descend(prev, curr, ax, ay, cx, cy, n, wts, uniform, steps,
     return RUNAWAY, x, y, float(best)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _starting(anchors, pending, n, shape, k):  # pragma: no cover - numba
     """How many ``pending`` features can start at level k of the given shape: at a coarse
     level, those whose template fits it (the others start a level finer; a search for them
@@ -681,15 +710,35 @@ def _follow(pdata, cdata, geo, pts, preds, held, n, wts, fb_bound, scratch, acti
     and the few that converged may have done so onto a lookalike near their prediction, which
     the way back confirms as well (tried: a 9 px jump the other way, 2 of 74 "followed" to a
     wrong place, which only the consensus caught); every feature is then searched."""
-    levels = geo.shape[0]
-    prev = _level(pdata, geo, 0)
-    curr = _level(cdata, geo, 0)
-    h, w = prev.shape
-    pf = prev.ravel()
-    cf = curr.ravel()
     uniform, _, _ = _weights_info(wts)
+    took = np.zeros(pts.shape[0], np.bool_)
+    count, taken = _follow_each(pdata, cdata, geo, pts, preds, held, n, wts, uniform, fb_bound,
+                                scratch, took, out_pos, out_ssd)
+    if 2 * taken <= count:
+        return
+    for f in range(pts.shape[0]):
+        if took[f]:
+            active[f] = False
+            out_status[f] = OK
+
+
+@nb.njit(**NO_NRT)
+def _follow_each(pdata, cdata, geo, pts, preds, held, n, wts, uniform, fb_bound, scratch, took,
+                 out_pos, out_ssd):  # pragma: no cover - numba
+    """:func:`_follow`'s features, each followed and checked: ``took[f]`` set, ``out_pos[f]``
+    and ``out_ssd[f]`` written for each taken. Returns (held features, taken).
+
+    Without numba's runtime (``_nrt=False``): nothing here allocates or keeps an array, and
+    with it each feature's views took atomic reference counts (see :func:`_refine_at`)."""
+    levels = geo.shape[0]
+    o = geo[0, 0]
+    h = geo[0, 1]
+    w = geo[0, 2]
+    pf = pdata[o:o + h * w]
+    cf = cdata[o:o + h * w]
+    prev = pf.reshape((h, w))
+    curr = cf.reshape((h, w))
     n_feat = pts.shape[0]
-    took = np.zeros(n_feat, np.bool_)
     count = 0
     taken = 0
     for f in range(n_feat):
@@ -716,9 +765,8 @@ def _follow(pdata, cdata, geo, pts, preds, held, n, wts, fb_bound, scratch, acti
             else:
                 dx = ox / scale
                 dy = oy / scale
-            have, xk, yk = _refine_with(_level(pdata, geo, k), _level(cdata, geo, k), kx, ky,
-                                        kx + dx, ky + dy, n, scratch,
-                                        THIRD if k == 0 else NO_THIRD)
+            have, xk, yk = _refine_at(pdata, cdata, geo, k, kx, ky, kx + dx, ky + dy, n,
+                                      scratch, THIRD if k == 0 else NO_THIRD)
             if have:
                 dx = xk - kx
                 dy = yk - ky
@@ -757,12 +805,7 @@ def _follow(pdata, cdata, geo, pts, preds, held, n, wts, fb_bound, scratch, acti
         out_pos[f, 0] = px
         out_pos[f, 1] = py
         out_ssd[f] = float(_ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, BIG))
-    if 2 * taken <= count:
-        return
-    for f in range(n_feat):
-        if took[f]:
-            active[f] = False
-            out_status[f] = OK
+    return count, taken
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1162,7 +1205,7 @@ def _grid(xs, ys):  # pragma: no cover - numba
     return cell, start, sx, sy, si, gw, gh, size
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _ring_runs(r, qx, qy, gw, gh, start, reach2, farthest, runs):  # pragma: no cover - numba
     """Into ``runs``: the runs of the grid's sorted points (start, end) of the cells r away
     from cell (qx, qy) (r = 1: the 3 x 3 cells around it, its own row first: the nearest
@@ -1192,7 +1235,7 @@ def _ring_runs(r, qx, qy, gw, gh, start, reach2, farthest, runs):  # pragma: no 
     return m
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _dev2(dxs, dys, n, mx, my):  # pragma: no cover - numba
     """The squared distance of displacement n (dxs[n], dys[n]) from (mx, my)."""
     ex = dxs[n] - mx
@@ -1200,7 +1243,7 @@ def _dev2(dxs, dys, n, mx, my):  # pragma: no cover - numba
     return ex * ex + ey * ey
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _middle_of_six(v0, v1, v2, v3, v4, v5):  # pragma: no cover - numba
     """The third and fourth smallest of six values (the two that make their median): an
     optimal sorting network (12 compare-exchanges in 5 layers, one a line), branch-free; what
@@ -1299,7 +1342,7 @@ def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform, b
     cx = np.zeros(c, np.float64)
     cy = np.zeros(c, np.float64)
     for a in range(c):
-        sa[a], sb[a], _ = _similarity(xs, ys, dxs, dys, near[a])
+        sa[a], sb[a], _ = _similarity_of(xs, ys, dxs, dys, near, a)
         f = idx[a]
         if took[f]:
             cx[a] = cen[f, 0]
@@ -1315,14 +1358,21 @@ def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform, b
     for a in range(c):
         if cx[a] == 0.0 and cy[a] == 0.0:
             continue
-        ka, kb, rms = _similarity(xs, ys, ex, ey, near[a])
+        ka, kb, rms = _similarity_of(xs, ys, ex, ey, near, a)
         if rms <= bound and ka * ka + kb * kb <= AFFINE_MAX * AFFINE_MAX:
             f = idx[a]
             out_pos[f, 0] -= ka * cx[a] - kb * cy[a]
             out_pos[f, 1] -= kb * cx[a] + ka * cy[a]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
+def _similarity_of(xs, ys, dxs, dys, near, a):  # pragma: no cover - numba
+    """:func:`_similarity` of the points ``near[a]``: the row's view made here, without
+    numba's reference counts (an atomic increment and decrement a view where it runs)."""
+    return _similarity(xs, ys, dxs, dys, near[a])
+
+
+@nb.njit(**NO_NRT)
 def _similarity(xs, ys, dxs, dys, near):  # pragma: no cover - numba
     """The least-squares similarity of the displacements (dxs, dys) of the points ``near``:
     d = t + a (p - m) + b R (p - m), R the quarter turn, m their mean. Returns (a, b, the rms
@@ -1364,7 +1414,7 @@ def _similarity(xs, ys, dxs, dys, near):  # pragma: no cover - numba
     return a, b, np.sqrt(r2 / (2 * k))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _centroid(img, ax, ay, half, wts, uniform):  # pragma: no cover - numba
     """The texture-weighted centroid (cx, cy) of the (2 half + 1)^2 window at (ax, ay) of
     ``img``, relative to its centre: (sum W H)^-1 sum W H q, H the outer product of the
@@ -1399,7 +1449,7 @@ def _centroid(img, ax, ay, half, wts, uniform):  # pragma: no cover - numba
             (float(hxx) * vy - float(hxy) * vx) / det)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _ring_fit(prev, curr, ax, ay, x, y, n, wide, sq, cols):  # pragma: no cover - numba
     """Mean squared residuals of the template of frame t centred at (ax, ay), (2 wide + 1)^2,
     against frame t+1 sampled bilinearly at (x, y): over its central (2 n + 1)^2, and the

@@ -50,6 +50,8 @@ codes below); :mod:`.pyramid` builds the coarse-to-fine tracker on it.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba as nb
 import numpy as np
 from numba.core import cgutils, types
@@ -57,6 +59,16 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 from numba.extending import intrinsic
 
 from ..params import SEARCH_KINDS
+
+#: ``nb.njit`` options of the kernels that neither allocate nor keep an array: cached, without
+#: the GIL, and without numba's runtime (NRT). With it, every view a kernel makes (a slice, a
+#: row, a level of a pyramid, an element of a tuple of arrays) takes a reference: an atomic
+#: increment and decrement of its buffer's count, that LLVM cannot remove across the kernels'
+#: branches. perf on the bench's frames put 32 % of the (15, 9) search's time and 37 % of the
+#: default tracker's in NRT_incref and NRT_decref; without them, 41.5 -> 35.9 us and 224 ->
+#: 143 us a frame pair, the same outputs bit for bit. A kernel compiled so must not call one
+#: that returns an array (its reference would never be released).
+NO_NRT: dict[str, Any] = {"cache": True, "nogil": True, "_nrt": False}
 
 WEIGHT_SCALE = 64  # Gaussian weights are integers with this peak, so sums stay exact
 
@@ -236,7 +248,7 @@ def _row_sums(curr, n, s, centers, out, bufs):  # pragma: no cover - numba
     out[total:] = 0
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(**NO_NRT)
 def _bounds(rs, w, trs, wmin, caps, unit, lo_x, lo_y, nrow, ncol, width, n, blk,
             bnd):  # pragma: no cover - numba
     """Lower bounds (times m) of S for every displacement of one search.
@@ -258,9 +270,10 @@ def _bounds(rs, w, trs, wmin, caps, unit, lo_x, lo_y, nrow, ncol, width, n, blk,
     so unlike the template that no best match comes near). With ``unit`` (uniform weights, no
     term able to reach its cap) the terms are summed as they are.
 
-    Inlined into :func:`_search_level`, which allocates ``blk`` and ``bnd``: the (15, 9)
-    search took ~1 us a frame more with it called (67.5 against 66.5 us, LK level 0 in the
-    same runs ~103 us).
+    Called by :func:`_search_level`, which allocates ``blk`` and ``bnd``. It was inlined
+    there (called, the (15, 9) search took ~1 us a frame more: 67.5 against 66.5 us); inlined,
+    its slices took numba's atomic reference counts in the search's loop, and called without
+    numba's runtime (:data:`NO_NRT`) they take none.
     """
     m = 2 * n + 1
     # width is a multiple of LANES: the rows are copied LANES entries at a time, each a
@@ -420,7 +433,7 @@ def _ssd_inline(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound):  # pragma: n
     return acc
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound):  # pragma: no cover - numba
     """:func:`_ssd_inline`, called."""
     return _ssd_inline(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound)
@@ -448,7 +461,7 @@ def _count(bnd, lanes, total, lim):  # pragma: no cover - numba
     return passing
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _search(pf, cf, w, ax, ay, cx, cy, lo_x, lo_y, nrow, ncol, width, total, n, wts, uniform,
             bnd, mscale, lanes, mask, btype, bmax):  # pragma: no cover - numba
     """The first (row-major) minimum of S over the search, pruned by the bounds ``bnd``.
@@ -602,7 +615,7 @@ STATUS_NAMES = ("ok", "left", "cut", "border", "ambiguous", "runaway", "fb", "di
                 "residual")
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _ambiguous_pruned(pf, cf, w, ax, ay, lo_x, lo_y, nrow, ncol, width, total, n, wts, uniform,
                       bnd, mscale, lanes, mask, best_k, lim):  # pragma: no cover - numba
     """Whether a displacement outside the 3x3 neighbourhood of the minimum (rank ``best_k``)
@@ -636,7 +649,7 @@ def _ambiguous_pruned(pf, cf, w, ax, ay, lo_x, lo_y, nrow, ncol, width, total, n
     return False
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _ambiguous_full(acc, nrow, ncol, stride, best_k, lim):  # pragma: no cover - numba
     """:func:`_ambiguous_pruned` over the sums of an exhaustive search (``acc``, displacement
     (r, k) at ``r * stride + k``)."""
@@ -871,7 +884,7 @@ _REFINE_TERM = 520200.0
 _CENTROID_TERM = 260100.0
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _patch(img, x0, y0, rows, cols, out, stride):  # pragma: no cover - numba
     """Copy img[y0:y0 + rows, x0:x0 + cols] into ``out`` (int32, rows ``stride`` apart), the
     image's edge repeated where it leaves the image."""
@@ -889,7 +902,7 @@ def _patch(img, x0, y0, rows, cols, out, stride):  # pragma: no cover - numba
             out[j * stride + i] = img[yy, min(max(x0 + i, 0), w - 1)]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _corners(gx, gy, cp, off, stride, acc):  # pragma: no cover - numba
     """Correlations of ``gx`` and ``gy`` with ``cp`` at the four corners of a pixel, in one
     pass: offsets off, off + 1, off + stride, off + stride + 1; summed in the integer type
@@ -954,7 +967,7 @@ def refine_acc(*windows: np.ndarray) -> np.ndarray:
     return np.empty(0, np.int32)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
             cen):  # pragma: no cover
     """Minimise Eq. (1) over a continuous position of the window of the template centred at
@@ -1125,7 +1138,7 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
     return True, x, y
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _refine_with(prev, curr, ax, ay, x0, y0, n, scratch, third):  # pragma: no cover - numba
     """:func:`_refine` with the scratch of :func:`_refine_scratch`; ``third``: 1.0 or 0.0
     (:data:`THIRD`, :data:`NO_THIRD`)."""
@@ -1133,7 +1146,7 @@ def _refine_with(prev, curr, ax, ay, x0, y0, n, scratch, third):  # pragma: no c
     return _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g[0], g[1], third, qs, cen)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_NRT)
 def _parabola(pf, cf, w, h, ax, ay, qx, qy, n, wts, uniform, best):  # pragma: no cover
     """The sub-pixel offsets (ox, oy), each within +-0.5, of a parabola per axis through S at
     the integer minimum (qx, qy) and its two neighbours, where both neighbours' windows fit

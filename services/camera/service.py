@@ -243,6 +243,7 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
     reliable = _reliable(args)
     last: list[bytes] = []
     faults = Faults(node, log)
+    device = frames if isinstance(frames, DeviceFrames) else None
     for seq, image in enumerate(frames):
         if node.stop.is_set():
             log.info("stopped after %d frames", seq)
@@ -261,7 +262,7 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
             if not _wait(node, acks, need, args.ack_timeout, last if lockstep else []):
                 sent.clear()  # lost downstream (a service restarted): go on
         # a device's frame: when it was read from the device (its newest, not when sent)
-        stamp = frames.capture_ns if isinstance(frames, DeviceFrames) else time.time_ns()
+        stamp = device.capture_ns if device is not None else time.time_ns()
         node.status.extra["frames"] = seq + 1
         if not faults.call(keys.frame, seq, _publish, node, image, seq, stamp, last, reliable):
             continue  # skipped (counted in failed): nothing to wait for

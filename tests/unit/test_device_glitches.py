@@ -117,6 +117,19 @@ def _same_picture(frame: np.ndarray, picture: np.ndarray) -> bool:
     return bool(np.array_equal(a, picture))
 
 
+def _take(device: Device, count: int, frames: list[np.ndarray]) -> list[np.ndarray]:
+    """The first ``count`` frames of device:3 (retries within RETRY_S), the device let go
+    after; each must be the video's picture its id names."""
+    source = open_device(3, retry_s=RETRY_S, capture=device)
+    try:
+        got = list(itertools.islice(source, count))
+    finally:
+        source.close()
+    for f in got:
+        assert _same_picture(f, frames[_id(f) % 8])
+    return got
+
+
 def test_a_camera_read_slower_than_it_delivers_gives_its_newest_frame(video):
     """At --fps 10 on a camera of 50 fps: each frame is the newest the camera has delivered
     (or the one before, if it delivered one meanwhile), not the oldest of its queue of four
@@ -141,15 +154,9 @@ def test_reads_that_fail_now_and_then_keep_frames_coming(video, caplog):
     path, frames = video
     device = Device(path, 0.01, lambda n: n in (0, 3, 4, 9))
     caplog.set_level(logging.INFO, "vistrack.frames")
-    source = open_device(3, retry_s=RETRY_S, capture=device)
-    try:
-        got = list(itertools.islice(source, 8))
-    finally:
-        source.close()
+    got = _take(device, 8, frames)
     ids = [_id(f) for f in got]
     assert ids == sorted(set(ids)), ids  # in order, none twice
-    for f in got:
-        assert _same_picture(f, frames[_id(f) % 8])
     assert device.opened == 1  # never opened again
     assert "device:3: a frame could not be read; trying again" in caplog.text
     assert "device:3: a frame read again after 2 failed reads" in caplog.text
@@ -159,15 +166,9 @@ def test_a_device_silent_for_longer_is_opened_again_and_goes_on(video, caplog):
     path, frames = video
     device = Device(path, 0.01, lambda n: n >= 2 and device.opened == 1)
     caplog.set_level(logging.INFO, "vistrack.frames")
-    source = open_device(3, retry_s=RETRY_S, capture=device)
-    try:
-        got = list(itertools.islice(source, 4))
-    finally:
-        source.close()
+    got = _take(device, 4, frames)
     assert device.opened == 2
     assert [_id(f) for f in got[:2]] == [0, 1]
-    for f in got:
-        assert _same_picture(f, frames[_id(f) % 8])
     assert "device:3: no frame for 0.2 s: opening the device again" in caplog.text
     assert "device:3: delivering frames again, opened again" in caplog.text
 

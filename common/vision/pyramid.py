@@ -183,6 +183,7 @@ from .ssd import (
     AMBIGUOUS,
     BIG,
     BORDER,
+    CENTROID,
     CUT,
     DISAGREES,
     FB,
@@ -1288,7 +1289,7 @@ def _widen(prev, curr, pts, n, wide, acc, ok, out_pos, agree, straddle, floor, t
         ay = int(np.rint(pts[f, 1]))
         x = ax + (out_pos[f, 0] - pts[f, 0])
         y = ay + (out_pos[f, 1] - pts[f, 1])
-        good, xw, yw = _refine_with(prev, curr, ax, ay, x, y, wide, scratch, THIRD)
+        good, xw, yw = _refine_with(prev, curr, ax, ay, x, y, wide, scratch, CENTROID)
         if not good:
             continue
         take = (xw - x) * (xw - x) + (yw - y) * (yw - y) <= agree * agree

@@ -54,6 +54,7 @@ from typing import Any
 
 import numba as nb
 import numpy as np
+from llvmlite import ir
 from numba.core import cgutils, types
 from numba.cpython.unsafe.numbers import trailing_zeros
 from numba.extending import intrinsic
@@ -335,6 +336,22 @@ def _add_capped(acc, total, t0, t1, t2, r0, r1, r2, w0, w1, w2, c0, c1,
         acc[q] += w0 * min(d0 * d0, c0) + w1 * min(d1 * d1, c1) + w2 * min(d2 * d2, c2)
 
 
+def _lanes_typed(dst, doff, src, soff) -> bool:
+    """Whether the arguments of a lane copy (dst, doff, src, soff) are typed as it needs: C
+    arrays, ``dst`` 1-D, integer offsets."""
+    return (isinstance(dst, types.Array) and isinstance(src, types.Array) and dst.ndim == 1
+            and dst.layout == "C" and src.layout == "C" and isinstance(doff, types.Integer)
+            and isinstance(soff, types.Integer))
+
+
+def _lanes_at(context, builder, signature, args):
+    """A lane copy's destination and source pointers: &dst[doff], &src.flat[soff]."""
+    dty, _, sty, _ = signature.args
+    dary = context.make_array(dty)(context, builder, args[0])
+    sary = context.make_array(sty)(context, builder, args[2])
+    return builder.gep(dary.data, [args[1]]), builder.gep(sary.data, [args[3]])
+
+
 @intrinsic
 def _copy_lanes(typingctx, dst, doff, src, soff):  # pragma: no cover - numba
     """``dst[doff:doff + LANES] = src[soff:soff + LANES]`` (1-D C arrays of one dtype, the
@@ -343,21 +360,39 @@ def _copy_lanes(typingctx, dst, doff, src, soff):  # pragma: no cover - numba
     unrolls a loop of a known short length fully before its loop vectoriser sees it, and numba
     has no SLP vectoriser; a loop of a run-time length this short is shorter than the vector
     loop's trip): the 23 rows of a (15, 9) search's bounds took ~85 ns to copy, now ~9."""
-    if not (isinstance(dst, types.Array) and isinstance(src, types.Array)
-            and dst.ndim == 1 and src.ndim == 1 and dst.layout == "C" and src.layout == "C"
-            and dst.dtype == src.dtype and isinstance(doff, types.Integer)
-            and isinstance(soff, types.Integer)):
+    if not (_lanes_typed(dst, doff, src, soff) and src.ndim == 1 and dst.dtype == src.dtype):
         return None
     sig = types.void(dst, doff, src, soff)
 
     def codegen(context, builder, signature, args):
-        dty, _, sty, _ = signature.args
-        dary = context.make_array(dty)(context, builder, args[0])
-        sary = context.make_array(sty)(context, builder, args[2])
-        dptr = builder.gep(dary.data, [args[1]])
-        sptr = builder.gep(sary.data, [args[3]])
+        dty = signature.args[0]
+        dptr, sptr = _lanes_at(context, builder, signature, args)
         item = context.get_abi_sizeof(context.get_data_type(dty.dtype))
         cgutils.raw_memcpy(builder, dptr, sptr, context.get_constant(types.intp, LANES), item)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def _widen_lanes(typingctx, dst, doff, src, soff):  # pragma: no cover - numba
+    """``dst[doff:doff + LANES] = src.flat[soff:soff + LANES]``, uint8 widened to int32 (``dst``
+    1-D C int32, ``src`` a C uint8 array of any dimension, the ranges inside them: unchecked),
+    as one vector load, zero extension and store. A row of a Gauss-Newton patch (13 or 25
+    pixels) copied by a loop ran as LLVM's run-time overlap check, a scalar remainder and a
+    vector body: :func:`_patch` was 15 % of the default tracker's time on held frames."""
+    if not (_lanes_typed(dst, doff, src, soff) and dst.dtype == types.int32
+            and src.dtype == types.uint8):
+        return None
+    sig = types.void(dst, doff, src, soff)
+
+    def codegen(context, builder, signature, args):
+        narrow = ir.VectorType(ir.IntType(8), LANES)
+        wide = ir.VectorType(ir.IntType(32), LANES)
+        dptr, sptr = _lanes_at(context, builder, signature, args)
+        sptr = builder.bitcast(sptr, narrow.as_pointer())
+        dptr = builder.bitcast(dptr, wide.as_pointer())
+        builder.store(builder.zext(builder.load(sptr, align=1), wide), dptr, align=4)
         return context.get_dummy_value()
 
     return sig, codegen
@@ -874,6 +909,9 @@ GN_STEP_PX = 1e-3
 THIRD = 1.0
 #: ... or not
 NO_THIRD = 0.0
+#: ... and also puts the window's centroid into its scratch (the wide window's, which
+#: :func:`.pyramid._affine_correction` reads; no other refinement's centroid is read)
+CENTROID = 2.0
 GN_ITERATIONS = 10
 #: the largest |W (2 gradient)| * |second difference| term of the sums of :func:`_refine`, per
 #: unit of weight (2 * 255 * 4 * 255): with a term of the centroid's sums (below), what
@@ -889,6 +927,17 @@ def _patch(img, x0, y0, rows, cols, out, stride):  # pragma: no cover - numba
     """Copy img[y0:y0 + rows, x0:x0 + cols] into ``out`` (int32, rows ``stride`` apart), the
     image's edge repeated where it leaves the image."""
     h, w = img.shape
+    chunks = (cols + LANES - 1) // LANES
+    if (x0 >= 0 and y0 >= 0 and x0 + cols <= w and y0 + rows <= h
+            and (y0 + rows - 1) * w + x0 + chunks * LANES <= h * w
+            and (rows - 1) * stride + chunks * LANES <= out.shape[0]):
+        # whole vectors: a row's last one runs on into the image's next row and the patch's
+        # next row (written after it) or its tail, both inside their arrays
+        for j in range(rows):
+            src = (y0 + j) * w + x0
+            for c in range(chunks):
+                _widen_lanes(out, j * stride + c * LANES, img, src + c * LANES)
+        return
     if x0 >= 0 and y0 >= 0 and x0 + cols <= w and y0 + rows <= h:
         for j in range(rows):
             dst = out[j * stride:j * stride + cols]
@@ -994,10 +1043,11 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
     steady sub-pixel speed that term's error is the same every frame and adds up: real frames
     shifted by exact band-limited shifts of (3.3, 1.2) px a frame, 16 frames, on Venus: +0.43
     / +0.44 px without it, +0.23 / +0.20 with it (RubberWhale +0.19 / +0.21 -> +0.07 / +0.07).
-    That pass also puts into ``cen`` the window's texture-weighted centroid relative to its
-    centre, (sum W H)^-1 sum W H q (H the gradient's outer product at pixel q; ``qs`` the
-    pixels' (i, j)): the point whose motion the estimate measures where the neighbourhood
-    also scales or turns (:func:`.pyramid._affine_correction`).
+    That pass, where ``third`` is 2.0 (:data:`CENTROID`), also puts into ``cen`` the window's
+    texture-weighted centroid relative to its centre, (sum W H)^-1 sum W H q (H the
+    gradient's outer product at pixel q; ``qs`` the pixels' (i, j)): the point whose motion
+    the estimate measures where the neighbourhood also scales or turns
+    (:func:`.pyramid._affine_correction`).
 
     The gradient-weighted sum of the bilinear samples splits into four integer correlations of
     the gradient with frame t+1 at the corners of the pixel holding the estimate, so an
@@ -1042,10 +1092,13 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
     mid = tp[c:c + size]
     h11 = h12 = h22 = tx = ty = axx = axy = ayx = ayy = bxx = bxy = byx = byy = acc(0)
     for q in range(size):
-        ddx = right[q] - left[q]
-        ddy = down[q] - up[q]
-        dxx = right[q] + left[q] - 2 * mid[q]
-        dyy = down[q] + up[q] - 2 * mid[q]
+        # int32, each step (numba types int32 - int32 as int64, and LLVM narrowed only the
+        # single differences back): 16 lanes a vector, not 8 widened to 64 bits
+        ddx = np.int32(right[q] - left[q])
+        ddy = np.int32(down[q] - up[q])
+        twice = np.int32(mid[q] + mid[q])
+        dxx = np.int32(np.int32(right[q] + left[q]) - twice)
+        dyy = np.int32(np.int32(down[q] + up[q]) - twice)
         gxq = wpad[q] * ddx
         gyq = wpad[q] * ddy
         gx[q] = gxq
@@ -1064,10 +1117,13 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
     # sum everything in int64, kernels of their own that no start-up warm-up compiled (a cold
     # first tuning cycle took 28 s, 25 of them compiling)
     vx = vy = np.int64(0)
+    centroid = third > 1.0
     if third > 0.0:
         # twice the third differences are right2 - left2 - 2 (right - left) and their y twin:
         # the gradients' products with the differences 4 px wide, less twice the normal
-        # matrix's sums (below); and the centroid's sums, of W (2 g) (2 g . q)
+        # matrix's sums (below); and with ``centroid`` the centroid's sums, of W (2 g)
+        # (2 g . q), in int64 (half this pass's time where they were summed for every
+        # refinement; LLVM makes the loop twice, one without them)
         qx = qs[0]
         qy = qs[1]
         for q in range(size):
@@ -1077,9 +1133,10 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
             bxy = acc(bxy + gx[q] * wide_y)
             byx = acc(byx + gy[q] * wide_x)
             byy = acc(byy + gy[q] * wide_y)
-            along = (right[q] - left[q]) * qx[q] + (down[q] - up[q]) * qy[q]
-            vx += np.int64(acc(gx[q] * along))
-            vy += np.int64(acc(gy[q] * along))
+            if centroid:
+                along = (right[q] - left[q]) * qx[q] + (down[q] - up[q]) * qy[q]
+                vx += np.int64(acc(gx[q] * along))
+                vy += np.int64(acc(gy[q] * along))
     # the sums of the gradients' products with twice the third differences
     gxx3 = float(bxx) - 2.0 * h11 if third > 0.0 else 0.0
     gxy3 = float(bxy) - 2.0 * h12 if third > 0.0 else 0.0
@@ -1092,7 +1149,7 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
     det = f11 * f22 - f12 * f12
     if det <= 1e-6 * (f11 + f22) * (f11 + f22) or det <= 0.0:
         return False, x0, y0
-    if third > 0.0:
+    if centroid:
         cen[0] = 0.25 * (f22 * vx - f12 * vy) / det
         cen[1] = 0.25 * (f11 * vy - f12 * vx) / det
     x = x0

@@ -75,7 +75,12 @@ def test_the_refinements_centroid_is_the_windows(real_image):
     wide = np.ones((21, 21), np.int32)
     scratch = ssd._refine_scratch(wide, ssd.refine_acc(wide))
     for ax, ay in ((60, 70), (128, 128), (190, 40)):
+        # a refinement whose centroid nobody reads leaves it alone
+        scratch[5][:] = np.nan
         good, _, _ = ssd._refine_with(img, img, ax, ay, ax + 0.3, ay - 0.2, 10, scratch, ssd.THIRD)
+        assert good and np.isnan(scratch[5]).all()
+        good, _, _ = ssd._refine_with(img, img, ax, ay, ax + 0.3, ay - 0.2, 10, scratch,
+                                      ssd.CENTROID)
         assert good
         np.testing.assert_allclose(scratch[5], pyramid._centroid(img, ax, ay, 10, wide, True),
                                    atol=1e-9)

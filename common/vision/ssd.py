@@ -398,6 +398,49 @@ def _widen_lanes(typingctx, dst, doff, src, soff):  # pragma: no cover - numba
     return sig, codegen
 
 
+@intrinsic
+def _row_squares(typingctx, pf, poff, cf, coff, count):  # pragma: no cover - numba
+    """The sum, int64, of ``(pf[poff + i] - cf[coff + i])^2`` for i < ``count`` (at most
+    LANES): 1-D C uint8 arrays, LANES bytes read from each offset (inside the arrays:
+    unchecked), the lanes from ``count`` on masked out. One vector load of each row,
+    widening, subtraction, multiplication and a horizontal add, where a loop over the 9 pixels
+    of a (15, 9) window's row ran pixel by pixel (LLVM leaves so short a loop scalar)."""
+    if not (isinstance(pf, types.Array) and isinstance(cf, types.Array) and pf.ndim == 1
+            and cf.ndim == 1 and pf.layout == "C" and cf.layout == "C"
+            and pf.dtype == types.uint8 and cf.dtype == types.uint8
+            and all(isinstance(t, types.Integer) for t in (poff, coff, count))):
+        return None
+    sig = types.int64(pf, poff, cf, coff, count)
+
+    def codegen(context, builder, signature, args):
+        narrow = ir.VectorType(ir.IntType(8), LANES)
+        i32 = ir.IntType(32)
+        wide = ir.VectorType(i32, LANES)
+        rows = []
+        for arr, off, ty in ((args[0], args[1], signature.args[0]),
+                             (args[2], args[3], signature.args[2])):
+            data = context.make_array(ty)(context, builder, arr).data
+            ptr = builder.bitcast(builder.gep(data, [off]), narrow.as_pointer())
+            rows.append(builder.zext(builder.load(ptr, align=1), wide))
+        d = builder.sub(rows[0], rows[1])
+        sq = builder.mul(d, d)
+        n32 = builder.trunc(args[4], i32) if signature.args[4].bitwidth > 32 \
+            else builder.sext(args[4], i32) if signature.args[4].bitwidth < 32 else args[4]
+        splat = builder.shuffle_vector(
+            builder.insert_element(ir.Constant(wide, None), n32, ir.Constant(i32, 0)),
+            ir.Constant(wide, None), ir.Constant(wide, [0] * LANES))
+        lanes = ir.Constant(wide, list(range(LANES)))
+        kept = builder.select(builder.icmp_unsigned("<", lanes, splat), sq,
+                              ir.Constant(wide, [0] * LANES))
+        fnty = ir.FunctionType(i32, [wide])
+        fn = cgutils.get_or_insert_function(builder.module, fnty,
+                                            f"llvm.vector.reduce.add.v{LANES}i32")
+        # at most LANES * 255^2: positive in int32
+        return builder.zext(builder.call(fn, [kept]), ir.IntType(64))
+
+    return sig, codegen
+
+
 @nb.njit(cache=True, nogil=True, inline="always")
 def _copy_block(src, w, x0, y0, rows, cols, dst):  # pragma: no cover - numba
     """Copy ``rows`` rows of ``cols`` entries from ``src`` (flat, rows ``w`` long), starting at
@@ -451,6 +494,19 @@ def _ssd_inline(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound):  # pragma: n
     t0 = np.uint64((ay - n) * w + ax - n)
     c0 = np.uint64((qy - n) * w + qx - n)
     step = np.uint64(w)
+    # whole vectors of LANES pixels a row where the last row's run-on stays in the frames
+    chunks = (m + LANES - 1) // LANES
+    last = np.uint64((m - 1) * w + chunks * LANES)
+    if uniform and t0 + last <= np.uint64(pf.shape[0]) and c0 + last <= np.uint64(cf.shape[0]):
+        for _ in range(m):
+            for c in range(chunks):
+                off = np.uint64(c * LANES)
+                acc += _row_squares(pf, t0 + off, cf, c0 + off, min(m - c * LANES, LANES))
+            if acc > bound:
+                return acc
+            t0 += step
+            c0 += step
+        return acc
     for j in range(m):
         if uniform:
             for i in range(m):

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from vistrack.common.vision import ssd
 from vistrack.common.vision.ssd import ssd_surface, track_ssd, window_weights
 
 
@@ -349,3 +350,31 @@ def test_row_sums_are_the_window_rows_sums(corr_size, searches):
                     assert out[q] == flat[q:q + m].sum()
                     checked += 1
     assert checked > 0
+
+
+@pytest.mark.parametrize("n", [0, 4, 7, 8, 12, 15])
+def test_window_sum_equals_numpy_everywhere_in_the_frame(real_image, n):
+    """S of Eq. (1) at one displacement (the rows read as vectors of LANES pixels where the
+    last one's run-on stays inside the frames, else pixel by pixel) equals numpy's sum, for
+    windows of 1 to 31 px (one or two vectors a row) anywhere: at the top-left corner, the
+    middle, and the bottom-right corner, where no vector can be read."""
+    prev = real_image
+    curr = np.ascontiguousarray(np.roll(real_image, (3, -2), axis=(0, 1)))
+    h, w = prev.shape
+    pf, cf = prev.ravel(), curr.ravel()
+    m = 2 * n + 1
+    uniform = window_weights("uniform", n)
+    gaussian = window_weights("gaussian", n)
+    spots = [(n, n), (w // 2, h // 2), (w - 1 - n, h - 1 - n), (w - 1 - n, n), (n, h - 1 - n)]
+    for ax, ay in spots:
+        for qx, qy in spots:
+            d = (prev[ay - n:ay + n + 1, ax - n:ax + n + 1].astype(np.int64)
+                 - curr[qy - n:qy + n + 1, qx - n:qx + n + 1])
+            for wts, flag in ((uniform, True), (gaussian, False)):
+                want = int((wts * d * d).sum())
+                got = ssd._ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, flag, ssd.BIG)
+                assert got == want, (m, ax, ay, qx, qy, flag)
+            # the sum stops at the first row that takes it above the bound, and says so
+            bound = int((d * d).sum()) // 2
+            assert ssd._ssd_at(pf, cf, w, ax, ay, qx, qy, n, uniform, True, bound) > bound \
+                or bound == 0

@@ -7,9 +7,10 @@ filtered by the binomial [1 4 6 4 1]^2 / 256 and halved k times, as ``cv2.pyrDow
 pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked coarse to fine
 (:func:`track_pyramid`):
 
-0. **follow** (``follow``): a feature tracked into frame t (``held``) is first refined by
-   Gauss-Newton from its prediction alone, at the frame's level and, where that does not
-   converge within a pixel, coarse to fine (:func:`_follow`); it is taken when its way back
+0. **follow** (``follow``): a feature tracked into frame t, or re-detected in it and
+   predicted by the frame's motion (``held``: all but a track's first frame's), is first
+   refined by Gauss-Newton from its prediction alone, at the frame's level and, where that
+   does not converge within a pixel, coarse to fine (:func:`_follow`); it is taken when its way back
    returns to within ``FOLLOW_FB`` ``max_fb_error`` of its start, unless most held features
    fail to follow (the frame broke the prediction). Steps 1 to 4 then run for the others
    only; steps 5 and 6 for all. With steady motion the prediction is good to a few hundredths

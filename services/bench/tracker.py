@@ -156,19 +156,16 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
     anchors, centers, points, preds, helds = [], [], [], [], []
     est = tracker.update(pre[0])
     vel = np.zeros_like(est.points)
-    held = np.zeros(len(est.points), np.bool_)
     for p in pre[1:]:
         anchors.append(np.rint(est.points).astype(np.int64))
         centers.append(np.rint(est.points + vel).astype(np.int64))
         points.append(est.points.copy())
         preds.append(est.points + vel)
-        helds.append(held)
+        helds.append(tracker.held)  # what the tracker follows first
         prev_pts = dict(zip(est.ids.tolist(), est.points, strict=True))
         est = tracker.update(p)
         vel = np.array([pt - prev_pts.get(i, pt)
                         for i, pt in zip(est.ids.tolist(), est.points, strict=True)])
-        # tracked from the frame before (not chosen in this one): what the tracker follows
-        held = np.array([i in prev_pts for i in est.ids.tolist()], np.bool_)
     n_feat = int(np.mean([len(a) for a in anchors]))
     jobs = list(zip(pre[:-1], pre[1:], anchors, centers, strict=True))
     raw = list(zip(frames[:-1], frames[1:], anchors, strict=True))

@@ -10,7 +10,7 @@ from vistrack.common import groundtruth, synthetic
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker, centroid_scatter, incremental_motion, motion, to_gray
 
-from conftest import load_pair
+from conftest import load_pair, rendered_sequences
 
 
 def two_frame_run(a, b, params):
@@ -180,3 +180,33 @@ def test_both_searches_give_identical_estimates_over_a_real_sequence(params):
                {k: v for k, v in b.as_dict().items() if k != "t_ms"}
     assert runs["pruned lost"] == runs["exhaustive lost"]
     assert min(e.npi for e in runs["pruned"]) >= 50  # the run tracks something
+
+
+def test_features_redetected_mid_track_are_followed_like_the_others():
+    """Features chosen at a re-detection are predicted by the frame's motion and, on the next
+    frame, followed from there as the features tracked through it are (step 0 of .pyramid),
+    not searched: most of the re-detected ones that survive count among the followed
+    matches, and they land where the rendered sequence's exact motion puts them."""
+    seq, = rendered_sequences(40, ("RubberWhale",))
+    tracker = Tracker(TrackerParams())
+    est = tracker.process(seq.frames[0])
+    for k in range(1, len(seq.frames) - 1):
+        ids_before = set(est.ids.tolist())
+        redetections = tracker.redetections
+        est = tracker.process(seq.frames[k])
+        if tracker.redetections == redetections:
+            continue
+        new = set(est.ids.tolist()) - ids_before
+        start = dict(zip(est.ids.tolist(), est.points, strict=True))
+        followed = tracker.followed
+        est = tracker.process(seq.frames[k + 1])
+        kept_new = [j for j, i in enumerate(est.ids.tolist()) if i in new]
+        kept_old = est.npi - len(kept_new)
+        assert len(kept_new) >= 10, (len(new), len(kept_new))
+        assert tracker.followed - followed >= kept_old + 0.5 * len(kept_new), \
+            (tracker.followed - followed, kept_old, len(kept_new))
+        starts = np.array([start[i] for i in est.ids[kept_new].tolist()])
+        errors = np.hypot(*(est.points[kept_new] - seq.map(starts, k, k + 1)).T)
+        assert np.median(errors) <= 0.1 and errors.max() <= 0.5, np.sort(errors)[-5:]
+        return
+    pytest.fail("no re-detection in the sequence")

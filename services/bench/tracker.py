@@ -91,6 +91,32 @@ def _after_gaps(steps: dict[str, Callable[[int], object]], n: int,
     return {name: [float(np.median(t)) for t in by_gap] for name, by_gap in times.items()}
 
 
+def _whole_after_first(frames: list[np.ndarray], params: TrackerParams,
+                       rounds: int = 100) -> tuple[float, float]:
+    """(ours, peer) seconds a frame, the best of ``rounds``: a fresh tracker's whole frame
+    (pre-processing, tracking, estimate) on the frames after its first pair, the first two
+    processed untimed (a run selects its features and searches them all once, then follows
+    them), and in the same rounds OpenCV's LK with its defaults on the same frame pairs from
+    the same features (a reference run's)."""
+    ref = Tracker(params)
+    starts = [ref.process(f).points.astype(np.float32).reshape(-1, 1, 2) for f in frames]
+    pairs = list(zip(frames[1:-1], frames[2:], starts[1:-1], strict=True))
+    ours = peer = float("inf")
+    for _ in range(rounds):
+        tracker = Tracker(params)
+        tracker.process(frames[0])
+        tracker.process(frames[1])
+        t0 = time.perf_counter()
+        for f in frames[2:]:
+            tracker.process(f)
+        ours = min(ours, (time.perf_counter() - t0) / len(pairs))
+        t0 = time.perf_counter()
+        for a, b, pts in pairs:
+            cv2.calcOpticalFlowPyrLK(a, b, pts, None)  # type: ignore[call-overload]
+        peer = min(peer, (time.perf_counter() - t0) / len(pairs))
+    return ours, peer
+
+
 def _frames_256() -> tuple[list[np.ndarray], str]:
     folder = groundtruth.middlebury("RubberWhale")
     if folder is None:
@@ -322,6 +348,11 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
           f"tf ratio (50, 30) / (15, 9): {fig['ssd_50_30'] / base:.1f}x pruned, "
           f"{fig['ssd_50_30_exhaustive'] / fig['ssd_15_9_exhaustive']:.1f}x exhaustive (the "
           "paper's search, which scores every displacement in full)", file=out)
+    ours, peer = _whole_after_first(frames, params)
+    fig["whole_frame_steady"], fig["lk_default_steady"] = ours * 1e6, peer * 1e6
+    print(f"ours whole frame after a run's first pair: {ours * 1e6:.1f} us a frame (its "
+          f"{len(frames) - 2} frames, best of 100 runs), {ours / peer:.2f}x OpenCV's LK with "
+          f"its defaults on the same pairs in the same rounds ({peer * 1e6:.1f} us)", file=out)
     default_wts = window_weights(params.weights, params.corr_half)
     gaps = _after_gaps({"ours": lambda i: track_pair(params, default_wts, pjobs[i % k]),
                         "lk": lambda i: lk_pair(i % k)}, n=8 * k)

@@ -25,6 +25,7 @@ def test_bench_tracker(capsys):
                 "default_ssd_no_wide", "default_ssd_no_consensus", "default_ssd_no_uniqueness",
                 "pyramid_build", "ssd_50_30", "ssd_15_9_exhaustive", "ssd_50_30_exhaustive",
                 "whole_frame", "whole_frame_paper", "preprocess", "gaussian_blur",
+                "whole_frame_steady", "lk_default_steady",
                 "default_ssd_gap_0ms", "default_ssd_gap_1.1ms", "default_ssd_gap_33ms",
                 "lk_default_gap_0ms", "lk_default_gap_1.1ms", "lk_default_gap_33ms"):
         assert math.isfinite(fig[key]) and fig[key] > 0

@@ -622,7 +622,8 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
         offset[f, 1] = preds[f, 1] - pts[f, 1]
         found += out_status[f] == OK
     gx = gy = 0.0
-    if guided_retry and found >= MIN_GUIDES:
+    if guided_retry and MIN_GUIDES <= found < n_feat:
+        # the guide, only where some feature may be retried around it (most frames none)
         gx, gy = _dominant(pts, out_pos, out_status)
     retries = 0
     retry = np.zeros(n_feat, np.bool_)

@@ -344,12 +344,16 @@ def _lanes_typed(dst, doff, src, soff) -> bool:
             and isinstance(soff, types.Integer))
 
 
+def _flat_at(context, builder, ty, arr, off):
+    """A pointer to ``arr.flat[off]`` (``arr`` a C array of numba type ``ty``)."""
+    return builder.gep(context.make_array(ty)(context, builder, arr).data, [off])
+
+
 def _lanes_at(context, builder, signature, args):
     """A lane copy's destination and source pointers: &dst[doff], &src.flat[soff]."""
     dty, _, sty, _ = signature.args
-    dary = context.make_array(dty)(context, builder, args[0])
-    sary = context.make_array(sty)(context, builder, args[2])
-    return builder.gep(dary.data, [args[1]]), builder.gep(sary.data, [args[3]])
+    return (_flat_at(context, builder, dty, args[0], args[1]),
+            _flat_at(context, builder, sty, args[2], args[3]))
 
 
 @intrinsic
@@ -417,15 +421,13 @@ def _row_squares(typingctx, pf, poff, cf, coff, count):  # pragma: no cover - nu
         i32 = ir.IntType(32)
         wide = ir.VectorType(i32, LANES)
         rows = []
-        for arr, off, ty in ((args[0], args[1], signature.args[0]),
-                             (args[2], args[3], signature.args[2])):
-            data = context.make_array(ty)(context, builder, arr).data
-            ptr = builder.bitcast(builder.gep(data, [off]), narrow.as_pointer())
+        for k in (0, 2):
+            ptr = _flat_at(context, builder, signature.args[k], args[k], args[k + 1])
+            ptr = builder.bitcast(ptr, narrow.as_pointer())
             rows.append(builder.zext(builder.load(ptr, align=1), wide))
         d = builder.sub(rows[0], rows[1])
         sq = builder.mul(d, d)
-        n32 = builder.trunc(args[4], i32) if signature.args[4].bitwidth > 32 \
-            else builder.sext(args[4], i32) if signature.args[4].bitwidth < 32 else args[4]
+        n32 = context.cast(builder, args[4], signature.args[4], types.int32)
         splat = builder.shuffle_vector(
             builder.insert_element(ir.Constant(wide, None), n32, ir.Constant(i32, 0)),
             ir.Constant(wide, None), ir.Constant(wide, [0] * LANES))

@@ -348,10 +348,11 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
           f"tf ratio (50, 30) / (15, 9): {fig['ssd_50_30'] / base:.1f}x pruned, "
           f"{fig['ssd_50_30_exhaustive'] / fig['ssd_15_9_exhaustive']:.1f}x exhaustive (the "
           "paper's search, which scores every displacement in full)", file=out)
-    ours, peer = _whole_after_first(frames, params)
+    rounds = 100
+    ours, peer = _whole_after_first(frames, params, rounds)
     fig["whole_frame_steady"], fig["lk_default_steady"] = ours * 1e6, peer * 1e6
     print(f"ours whole frame after a run's first pair: {ours * 1e6:.1f} us a frame (its "
-          f"{len(frames) - 2} frames, best of 100 runs), {ours / peer:.2f}x OpenCV's LK with "
+          f"{len(frames) - 2} frames, best of {rounds} runs), {ours / peer:.2f}x OpenCV's LK with "
           f"its defaults on the same pairs in the same rounds ({peer * 1e6:.1f} us)", file=out)
     default_wts = window_weights(params.weights, params.corr_half)
     gaps = _after_gaps({"ours": lambda i: track_pair(params, default_wts, pjobs[i % k]),

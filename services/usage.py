@@ -144,12 +144,22 @@ def add_param_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def add_tracker_flags(parser: argparse.ArgumentParser) -> None:
-    """``--levels N`` and ``--paper``: the coarse-to-fine search, or the paper's tracker."""
+    """``--levels N``, ``--refine-size N`` and ``--paper``: the coarse-to-fine search, the wide
+    sub-pixel window, or the paper's tracker."""
     lo, hi = BOUNDS["levels"]
     add_number(parser, "--levels", dest="levels", lo=lo, hi=hi, integer=True, default=None,
                metavar="N",
                help=f"pyramid levels of the coarse-to-fine search (%(allowed)s, default "
                     f"{TrackerParams().levels}; 1: the paper's single-level search)")
+    lo, hi = BOUNDS["refine_size"]
+    add_number(parser, "--refine-size", dest="refine_size", lo=lo, hi=hi, integer=True,
+               default=None, metavar="N",
+               help=f"width of the wide sub-pixel window, px (%(allowed)s, default "
+                    f"{TrackerParams().refine_size}; 0, or not wider than the correlation "
+                    f"window: that window only). The wide window's estimate is taken where it "
+                    f"agrees with the correlation window's: more pixels, less noise and "
+                    f"motion blur, but on scenes with depth it averages the neighbourhood's "
+                    f"motions (see the README's Known limits)")
     parser.add_argument("--paper", action="store_true",
                         help="the paper's tracker: single-level search, integer positions, no "
                              "test of a match (flags given with it still apply)")
@@ -167,8 +177,8 @@ def add_search_flag(parser: argparse.ArgumentParser) -> None:
 def params_from_args(args: argparse.Namespace, base: TrackerParams | None = None
                      ) -> TrackerParams:
     """TrackerParams from the parameter flags; a bad value raises ParamError naming the flag."""
-    changes = {name: getattr(args, name) for name in (*PARAM_FLAGS, "levels", "subpixel",
-                                                        "search")
+    changes = {name: getattr(args, name) for name in (*PARAM_FLAGS, "levels", "refine_size",
+                                                        "subpixel", "search")
                if getattr(args, name, None) is not None}
     if base is None:
         base = TrackerParams.paper() if getattr(args, "paper", False) else TrackerParams()
@@ -177,7 +187,7 @@ def params_from_args(args: argparse.Namespace, base: TrackerParams | None = None
     except ParamError as e:
         text = str(e)
         flags = {**{name: flag for name, (flag, _, _) in PARAM_FLAGS.items()},
-                 "levels": "--levels"}
+                 "levels": "--levels", "refine_size": "--refine-size"}
         for name, flag in flags.items():
             if text.startswith(name + "="):
                 text = flag + " " + text[len(name) + 1:]

@@ -31,3 +31,5 @@ def test_bench_accuracy(capsys):
             for what in ("median", "lk_median", "gross"):
                 assert math.isfinite(fig[f"{name}_{kind}_{what}"]), (name, kind, what)
         assert 0 <= fig[f"{name}_long_survival"] <= 1
+        for what in ("dense_median", "dense_narrow_median", "dense_lk_median"):
+            assert math.isfinite(fig[f"{name}_{what}"]), (name, what)

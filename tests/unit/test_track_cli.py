@@ -74,7 +74,8 @@ def test_levels_paper_and_subpixel_flags(rubberwhale):
                           (["--paper"], TrackerParams.paper()),
                           (["--paper", "--subpixel", "--levels", "2"],
                            TrackerParams.paper(subpixel=True, levels=2)),
-                          (["--no-subpixel"], TrackerParams(subpixel=False))):
+                          (["--no-subpixel"], TrackerParams(subpixel=False)),
+                          (["--refine-size", "0"], TrackerParams(refine_size=0))):
         out = vistrack("track", *files, "--format", "jsonl", *flags, check=True).stdout
         rows = [json.loads(line) for line in out.splitlines()]
         tracker = Tracker(params)
@@ -83,6 +84,8 @@ def test_levels_paper_and_subpixel_flags(rubberwhale):
             assert row["features"] == e["features"], flags
     table = vistrack("track", *files, "--paper", check=True).stdout
     assert "levels=1" in table and "subpixel=False" in table
+    table = vistrack("track", *files, "--refine-size", "13", check=True).stdout
+    assert "refine_size=13" in table.splitlines()[0]
 
 
 def test_video_file_and_builtin(tmp_path):
@@ -114,6 +117,8 @@ def test_video_file_and_builtin(tmp_path):
     (["--search", "full"], "invalid choice"),
     (["--levels", "0"], "--levels 0 is out of range: allowed 1..6"),
     (["--levels", "2.5"], "--levels '2.5' is not an integer: allowed 1..6"),
+    (["--refine-size", "65"], "--refine-size 65 is out of range: allowed 0..64"),
+    (["--refine-size", "-1"], "--refine-size -1 is out of range: allowed 0..64"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, needle):
     r = vistrack("track", *args)

@@ -123,10 +123,6 @@ class Tracker:
         self._pos = np.empty((0, 2), np.float64)
         self._vel = np.empty((0, 2), np.float64)
         self._ids = np.empty(0, np.int64)
-        # whether each feature's next step is first followed from its prediction (step 0 of
-        # .pyramid): every feature but those of a track's first frame, whose prediction (no
-        # motion) is no more than a guess
-        self._held = np.empty(0, np.bool_)
         self._next_id = 0
         self._acc_dx = 0.0
         self._acc_dy = 0.0
@@ -182,8 +178,8 @@ class Tracker:
     @property
     def held(self) -> np.ndarray:
         """Which of the current features the next frame first follows from its prediction
-        (step 0 of :mod:`.pyramid`), a copy: all but a track's first frame's."""
-        return self._held.copy()
+        (step 0 of :mod:`.pyramid`): every one (see :meth:`_add_features`)."""
+        return np.ones(len(self._pos), np.bool_)
 
     def process(self, gray: np.ndarray, seq: int | None = None) -> Estimate:
         """Pre-process and track one (H, W) uint8 frame; t_ms covers both."""
@@ -268,7 +264,7 @@ class Tracker:
                 search=p.search, uniqueness=p.uniqueness, allowance=allowance,
                 reject_border=p.reject_border, guided_retry=p.guided_retry,
                 max_fb_error=p.max_fb_error, consensus=p.consensus, wide_half=p.refine_half,
-                **wide_tests(max(p.noise_sigma, self.noise)), held=self._held,
+                **wide_tests(max(p.noise_sigma, self.noise)), held=self.held,
                 follow=p.follow, followed=taken)
             self.followed += int(np.count_nonzero(taken))
         pos, vel, ids, lost, moved, dx, dy, scale = _advance(
@@ -284,7 +280,6 @@ class Tracker:
         self._pos = pos
         self._vel = vel
         self._ids = ids
-        self._held = np.ones(len(ids), np.bool_)
 
     def _add_features(self, pre: Preprocessed, shape: tuple[int, int]) -> None:
         p = self._params
@@ -309,14 +304,17 @@ class Tracker:
         self._vel = np.concatenate([self._vel, vel])
         self._ids = np.concatenate([self._ids, np.arange(self._next_id,
                                                          self._next_id + len(new))])
-        # re-detected mid-track, it is predicted as the features tracked through the frame
-        # moved, and followed from there as they are (a search where it does not follow); on
-        # the scoreboard's rendered sequences that lost fewer features to the checks (e.g.
-        # RubberWhale with exposure changes: 31 and 40 to ambiguity and the way back, against
-        # 48 and 57) and took the approaches' gross errors from 0.80, 0.60 and 0.43 % to 0.63,
-        # 0.00 and 0.14 %. A first frame's features are searched: followed from no motion in
-        # the first pair, Dimetrodon's rendered sequences lost 3 to 5 % of their tracked pairs
-        self._held = np.concatenate([self._held, np.full(len(new), self._frame > 0)])
+        # a new feature is followed from its prediction as the tracked ones are (a search
+        # where it does not follow). Re-detected mid-track, it is predicted as the features
+        # tracked through the frame moved: on the scoreboard's rendered sequences that lost
+        # fewer features to the checks (e.g. RubberWhale with exposure changes: 31 and 40 to
+        # ambiguity and the way back, against 48 and 57) and took the approaches' gross errors
+        # from 0.80, 0.60 and 0.43 % to 0.63, 0.00 and 0.14 %. A first frame's, from no motion
+        # (Bouguet's coarse to fine from the prediction, as LK starts): on the bench's first
+        # pair 97 of 100 features tracked instead of 86, the 11 more on a small object moving
+        # -1.37 px against the background, which the coarse search's window straddled. A first
+        # pair taken in motion, which most do not follow, is searched, and tracked again
+        # around the frame-wide shift where its matches moved beyond the search's reach
         self._next_id += len(new)
         if self._frame > 0:
             self.redetections += 1

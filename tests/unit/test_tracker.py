@@ -210,3 +210,22 @@ def test_features_redetected_mid_track_are_followed_like_the_others():
         assert np.median(errors) <= 0.1 and errors.max() <= 0.5, np.sort(errors)[-5:]
         return
     pytest.fail("no re-detection in the sequence")
+
+
+@pytest.mark.parametrize("sequence", ["RubberWhale", "Dimetrodon"])
+def test_a_first_frames_features_follow_from_no_motion(sequence):
+    """A track's first pair has no prediction but no motion, which is close on a camera that
+    moves little between frames: its features are followed from there (Bouguet's coarse to
+    fine, as LK starts) rather than searched, and land where Middlebury's ground truth puts
+    them."""
+    a, b, flow = load_pair(sequence)
+    tracker = Tracker(TrackerParams())
+    e0 = tracker.process(a)
+    e1 = tracker.process(b)
+    assert tracker.followed >= 0.8 * e0.npi, (tracker.followed, e0.npi)
+    start = dict(zip(e0.ids.tolist(), e0.points, strict=True))
+    before = np.array([start[i] for i in e1.ids.tolist()])
+    err = groundtruth.endpoint_errors(before, e1.points, flow)
+    assert e1.npi >= 0.9 * e0.npi and len(err) >= 0.8 * e0.npi  # some flow is unknown
+    assert np.median(err) <= 0.05 and np.mean(err <= 0.5) >= 0.9, (np.median(err),
+                                                                    np.mean(err <= 0.5))

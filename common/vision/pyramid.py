@@ -7,15 +7,15 @@ filtered by the binomial [1 4 6 4 1]^2 / 256 and halved k times, as ``cv2.pyrDow
 pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked coarse to fine
 (:func:`track_pyramid`):
 
-0. **follow** (``follow``): a feature tracked into frame t, or re-detected in it and
-   predicted by the frame's motion (``held``: all but a track's first frame's), is first
-   refined by Gauss-Newton from its prediction alone, at the frame's level and, where that
-   does not converge within a pixel, coarse to fine (:func:`_follow`); it is taken when its way back
-   returns to within ``FOLLOW_FB`` ``max_fb_error`` of its start, unless most held features
-   fail to follow (the frame broke the prediction). Steps 1 to 4 then run for the others
-   only; steps 5 and 6 for all. With steady motion the prediction is good to a few hundredths
-   of a pixel, and a search finds what Gauss-Newton from the prediction finds, at several times
-   the cost;
+0. **follow** (``follow``): a feature tracked into frame t, or chosen in it and predicted by
+   the frame's motion or, in a track's first frame, by no motion (``held``; the tracker holds
+   every feature), is first refined by Gauss-Newton from its prediction alone, at the frame's
+   level and, where that does not converge within a pixel, coarse to fine (:func:`_follow`);
+   it is taken when its way back returns to within ``FOLLOW_FB`` ``max_fb_error`` of its
+   start, unless most held features fail to follow (the frame broke the prediction). Steps 1
+   to 4 then run for the others only; steps 5 and 6 for all. With steady motion the
+   prediction is good to a few hundredths of a pixel, and a search finds what Gauss-Newton
+   from the prediction finds, at several times the cost;
 1. **start**: Eq. (1) is searched with the paper's windows at the coarsest level whose pixels
    hold the feature's template, around its prediction: SEARCH_SIZE // 2 px of that level reach
    2^k times as far in the frame, and the correlation window sees 2^k times as much of the
@@ -1608,7 +1608,7 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
     straddle, floor : where the two disagree by more, the wide estimate is still taken when
         the mean squared residual of the wide window's ring is at most ``straddle`` times that
         of its centre plus ``floor`` (grey levels^2; see :func:`_widen`); ``straddle`` 0: never.
-    held : (N,) bool, the features tracked into frame t (not chosen in it); None: none.
+    held : (N,) bool, the features to follow first (step 0; the tracker: all); None: none.
     follow : follow the held features from their prediction by Gauss-Newton first (step 0 of
         the module notes); needs ``subpixel`` and ``max_fb_error`` > 0.
     followed : (N,) bool, set where the feature was taken by step 0 (the others were searched

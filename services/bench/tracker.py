@@ -95,9 +95,9 @@ def _whole_after_first(frames: list[np.ndarray], params: TrackerParams,
                        rounds: int = 100) -> tuple[float, float]:
     """(ours, peer) seconds a frame, the best of ``rounds``: a fresh tracker's whole frame
     (pre-processing, tracking, estimate) on the frames after its first pair, the first two
-    processed untimed (a run selects its features and searches them all once, then follows
-    them), and in the same rounds OpenCV's LK with its defaults on the same frame pairs from
-    the same features (a reference run's)."""
+    processed untimed (a run selects its features, then the first pair follows them from no
+    motion and searches those that do not follow), and in the same rounds OpenCV's LK with
+    its defaults on the same frame pairs from the same features (a reference run's)."""
     ref = Tracker(params)
     starts = [ref.process(f).points.astype(np.float32).reshape(-1, 1, 2) for f in frames]
     pairs = list(zip(frames[1:-1], frames[2:], starts[1:-1], strict=True))

@@ -89,12 +89,14 @@ TOLERANCE_RANGE = (0.0, 100.0)
 BUFFER_RANGE = (2, 1000)
 #: The buffer's work budget: the pixels of all the frames a cycle runs on, in megapixels. A
 #: cycle pre-processes every frame once per distinct pre-processing (13 of them), so that part
-#: of its cost grows with frames x pixels; 30 frames of 640x480 (9.2 MP) fit, larger frames
-#: keep fewer (the latest): 21 at 1280x720, 9 at 1920x1080, down to MIN_FRAMES. With all 30
-#: frames of 1280x720 a cycle took 7.0 to 7.7 s of CPU on this machine, too near the 8 s it
-#: may take; with 21, 4.9 to 5.3 s, and its optimum's ex on all 30 frames was 0.53 px in one
-#: run of ``vistrack bench tuner``, 0.03 px over the tolerance (28 keeps all 30 frames).
-DEFAULT_MEGAPIXELS = 20.0
+#: of its cost grows with frames x pixels; 30 frames of 1280x720 (27.6 MP) fit, larger frames
+#: keep fewer (the latest): 15 at 1920x1080, down to MIN_FRAMES. It was 20 when a cycle on
+#: all 30 frames of 1280x720 took 7.0 to 7.7 s of CPU here; with the tracker's and the
+#: pre-processing's speed-ups since, that cycle takes 2.6 s (``vistrack bench tuner``,
+#: 2026-12-04), and the 21 frames 20 MP kept chose windows whose ex on all 30 frames was
+#: 0.53 to 1.00 px, beyond the 0.5 px tolerance, in some runs: the budget is the cost, not
+#: the frames that give the right answer.
+DEFAULT_MEGAPIXELS = 32.0
 MEGAPIXELS_RANGE = (0.1, 1000.0)
 #: The fewest frames the budget leaves: t1, and three frames of tf and motion.
 MIN_FRAMES = 4
@@ -425,7 +427,7 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
         design's time, and analysed against pure error; the sweep is not replicated.
     max_megapixels : the work budget (:func:`frames_within`): the cycle runs on the latest
         frames whose pixels fit it, at least :data:`MIN_FRAMES`; None runs on all. Default
-        :data:`DEFAULT_MEGAPIXELS` (30 frames of 640x480, 21 of 1280x720).
+        :data:`DEFAULT_MEGAPIXELS` (30 frames of 1280x720, 15 of 1920x1080).
 
     Raises
     ------

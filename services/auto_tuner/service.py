@@ -113,7 +113,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                default=DEFAULT_MEGAPIXELS, metavar="MP",
                help="work budget of a tuning: it runs on the latest buffered frames whose "
                     f"pixels fit, at least {MIN_FRAMES}; %(allowed)s (default "
-                    f"{DEFAULT_MEGAPIXELS:g}: 30 frames of 640x480, 21 of 1280x720)")
+                    f"{DEFAULT_MEGAPIXELS:g}: 30 frames of 1280x720, 15 of 1920x1080)")
     parser.add_argument("--no-tune", action="store_true",
                         help="never tune (no frame is taken): only remind the parameters in force")
     add_number(parser, "--tune-sweep-step", lo=STEP_RANGE[0], hi=STEP_RANGE[1], integer=True,

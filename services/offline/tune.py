@@ -85,7 +85,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                default=DEFAULT_MEGAPIXELS, metavar="MP",
                help="work budget: the experiment runs on the latest frames of the buffer whose "
                     f"pixels fit, at least {MIN_FRAMES}; %(allowed)s (default "
-                    f"{DEFAULT_MEGAPIXELS:g}: 30 frames of 640x480, 21 of 1280x720, as the "
+                    f"{DEFAULT_MEGAPIXELS:g}: 30 frames of 1280x720, 15 of 1920x1080, as the "
                     "service)")
     parser.add_argument("--bounce", action="store_true",
                         help="fill the buffer by playing a shorter sequence back and forth")

@@ -32,6 +32,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
+import cv2
 import numba as nb
 import numpy as np
 from numba.core import event as numba_event
@@ -49,6 +50,9 @@ from .ssd import BORDER, LEFT, OK, RESIDUAL, STATUS_NAMES, track_ssd, window_wei
 #: an approach of up to 25 % a frame either way (the tests run 15 %); beyond, the frame's
 #: incremental motion is more likely wrong than the camera that fast.
 ZOOM_RANGE = (0.8, 1.25)
+#: frame t is scaled by the zoom of the frame before (:func:`_zoomed`) where that zoom departs
+#: from 1 by more than this
+ZOOM_WARP = 0.02
 #: Frames between two estimates of the camera's noise (:mod:`.noise`, ~0.2 ms at 256 x 256):
 #: a camera's noise changes with its gain, not from frame to frame.
 NOISE_EVERY = 30
@@ -129,6 +133,8 @@ class Tracker:
         self._acc_scale = 1.0
         self._motion = (0.0, 0.0)  # the image motion of the last frame, px
         self._zoom = 1.0  # its scale step, about the features' centroid in frame t+1
+        #: frames whose frame t was scaled by the zoom of the frame before (:func:`_zoomed`)
+        self.zoom_warps = 0
         self._frame = 0
         self._lost = np.zeros(len(STATUS_NAMES), np.int64)
         self.redetections = 0
@@ -250,6 +256,13 @@ class Tracker:
             if p.subpixel and p.refine_half and self._frame - self._noise_at >= NOISE_EVERY:
                 self.noise = noise_level(frame, p.blur_sigma)
                 self._noise_at = self._frame
+            pts = self._pos
+            if abs(self._zoom - 1.0) > ZOOM_WARP:
+                # an approach (or a retreat): frame t scaled by the zoom of the frame before,
+                # about the features' centroid, so that each template shows its patch at the
+                # size it has in frame t+1; the features where that puts them
+                prev, pts = _zoomed(self._prev, pts, self._zoom, p.levels)
+                self.zoom_warps += 1
             if p.exposure:  # frame t in frame t+1's exposure, where it changed
                 mapped = compensate(prev, pyr, self._motion, p.noise_sigma)
                 self.exposure_steps += mapped is not prev
@@ -259,7 +272,7 @@ class Tracker:
             allowance = 2.0 * p.noise_sigma ** 2 * self._wsum
             taken = np.zeros(len(self._pos), np.bool_)
             found, ssd, status = track_pyramid(
-                prev, pyr, self._pos, self._pos + self._vel, corr_half=p.corr_half,
+                prev, pyr, pts, self._pos + self._vel, corr_half=p.corr_half,
                 search_half=p.search_half, weights=self._weights, subpixel=p.subpixel,
                 search=p.search, uniqueness=p.uniqueness, allowance=allowance,
                 reject_border=p.reject_border, guided_retry=p.guided_retry,
@@ -338,6 +351,42 @@ def _predict(pos, vel):  # pragma: no cover - numba
             anchors[i, c] = int(np.rint(pos[i, c]))
             centers[i, c] = int(np.rint(pos[i, c] + vel[i, c]))
     return anchors, centers
+
+
+def _zoomed(frame: np.ndarray, pts: np.ndarray, zoom: float, levels: int
+            ) -> tuple[Pyramid, np.ndarray]:
+    """The pyramid of ``frame`` (frame t) scaled by ``zoom`` about (near) the centroid of
+    ``pts``, and the points where that puts them.
+
+    A translation's template taken from frame t does not fit frame t+1 when the view zooms
+    between them: at 10 % a frame the SSD's valley is broad and low everywhere, the
+    uniqueness test rejects most features as ambiguous, and those far from the centre are
+    missed. Scaled by the zoom measured in the frame before (a robot's approach changes
+    slowly), each template shows its patch at the size it has in frame t+1; the search and
+    the sub-pixel refinement then measure the rest of the motion as before.
+
+    Bicubic: bilinear blurred the templates, and the approaches' drift over 12 frames rose
+    from 0.09 to 0.30 px to 0.16 to 0.63. By ``cv2.resize`` and a cut at a whole offset (the
+    centre of the scaling is any point near the features: the search finds the translation),
+    5 times faster than ``cv2.warpAffine``'s bicubic (54 against 266 us at 256 x 256, 0.63
+    against 3.6 ms at 1280 x 720)."""
+    h, w = frame.shape
+    big_w, big_h = max(1, round(w * zoom)), max(1, round(h * zoom))
+    sx, sy = big_w / w, big_h / h
+    big = cv2.resize(frame, (big_w, big_h), interpolation=cv2.INTER_CUBIC)
+    # the resized frame holds frame t's point u at s u + (s - 1) / 2 (pixel centres); it is
+    # cut at the whole offset k that keeps the centroid c where it was, k ~ (s - 1)(c + 1/2)
+    c = pts.mean(axis=0)
+    kx = int(round((sx - 1.0) * (c[0] + 0.5)))
+    ky = int(round((sy - 1.0) * (c[1] + 0.5)))
+    left, top = max(0, -kx), max(0, -ky)
+    right, bottom = max(0, kx + w - big_w), max(0, ky + h - big_h)
+    if left or top or right or bottom:
+        big = cv2.copyMakeBorder(big, top, bottom, left, right, cv2.BORDER_REPLICATE)
+    scaled = np.ascontiguousarray(big[ky + top:ky + top + h, kx + left:kx + left + w])
+    moved = np.column_stack([sx * pts[:, 0] + 0.5 * (sx - 1.0) - kx,
+                             sy * pts[:, 1] + 0.5 * (sy - 1.0) - ky])
+    return build_pyramid(scaled, levels), moved
 
 
 @nb.njit(cache=True, nogil=True)

@@ -224,7 +224,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         return dict(
             npi=last_npi, valid=last_valid, lost=tracker.lost_total,
             rejected_features=tracker.rejected_total, redetections=tracker.redetections,
-            exposure_steps=tracker.exposure_steps, noise=round(tracker.noise, 2),
+            exposure_steps=tracker.exposure_steps, zoom_warps=tracker.zoom_warps,
+            noise=round(tracker.noise, 2),
             rejected_by={k: v for k, v in lost_by.items() if k not in ("left", "cut")})
 
     def recover() -> None:

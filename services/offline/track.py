@@ -84,7 +84,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
               f"lost={tracker.lost_total} (rejected {tracker.rejected_total}"
               + (f": {reasons}" if reasons else "")
               + f") redetections={tracker.redetections} followed={tracker.followed} "
-              f"exposure_steps={tracker.exposure_steps}",
+              f"exposure_steps={tracker.exposure_steps} zoom_warps={tracker.zoom_warps}",
               file=out)
     return 0
 

@@ -53,6 +53,12 @@ ZOOM_RANGE = (0.8, 1.25)
 #: frame t is scaled by the zoom of the frame before (:func:`_zoomed`) where that zoom departs
 #: from 1 by more than this
 ZOOM_WARP = 0.02
+#: a frame pair searched without a zoom is searched again with one (:func:`_zoom_retry`) where
+#: fewer than this share of its features were found, at least ZOOM_FOUND of them, and they
+#: zoom (ZOOM_WARP); their distances to their median point are taken from ZOOM_RADIUS px on
+ZOOM_RETRY_SHARE = 0.75
+ZOOM_FOUND = 8
+ZOOM_RADIUS = 10.0
 #: Frames between two estimates of the camera's noise (:mod:`.noise`, ~0.2 ms at 256 x 256):
 #: a camera's noise changes with its gain, not from frame to frame.
 NOISE_EVERY = 30
@@ -257,7 +263,8 @@ class Tracker:
                 self.noise = noise_level(frame, p.blur_sigma)
                 self._noise_at = self._frame
             pts = self._pos
-            if abs(self._zoom - 1.0) > ZOOM_WARP:
+            zoomed = abs(self._zoom - 1.0) > ZOOM_WARP
+            if zoomed:
                 # an approach (or a retreat): frame t scaled by the zoom of the frame before,
                 # about the features' centroid, so that each template shows its patch at the
                 # size it has in frame t+1; the features where that puts them
@@ -270,15 +277,34 @@ class Tracker:
             # what noise alone adds to S at a perfect match: both frames' noise, over the
             # window
             allowance = 2.0 * p.noise_sigma ** 2 * self._wsum
-            taken = np.zeros(len(self._pos), np.bool_)
-            found, ssd, status = track_pyramid(
-                prev, pyr, pts, self._pos + self._vel, corr_half=p.corr_half,
-                search_half=p.search_half, weights=self._weights, subpixel=p.subpixel,
-                search=p.search, uniqueness=p.uniqueness, allowance=allowance,
-                reject_border=p.reject_border, guided_retry=p.guided_retry,
-                max_fb_error=p.max_fb_error, consensus=p.consensus, wide_half=p.refine_half,
-                **wide_tests(max(p.noise_sigma, self.noise)), held=self.held,
-                follow=p.follow, followed=taken)
+
+            def search(prev: Pyramid, pts: np.ndarray, preds: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                taken = np.zeros(len(self._pos), np.bool_)
+                found, ssd, status = track_pyramid(
+                    prev, pyr, pts, preds, corr_half=p.corr_half,
+                    search_half=p.search_half, weights=self._weights, subpixel=p.subpixel,
+                    search=p.search, uniqueness=p.uniqueness, allowance=allowance,
+                    reject_border=p.reject_border, guided_retry=p.guided_retry,
+                    max_fb_error=p.max_fb_error, consensus=p.consensus,
+                    wide_half=p.refine_half, **wide_tests(max(p.noise_sigma, self.noise)),
+                    held=self.held, follow=p.follow, followed=taken)
+                return found, ssd, status, taken
+
+            found, ssd, status, taken = search(prev, pts, self._pos + self._vel)
+            retry = None if zoomed else _zoom_retry(self._pos, found, status)
+            if retry is not None:
+                # a zoom no frame before measured (a track's first pair taken in an approach):
+                # searched again with frame t scaled by the zoom of the matches found, each
+                # feature predicted by it; kept if it finds more
+                zoom, preds = retry
+                again, pts = _zoomed(self._prev, self._pos, zoom, p.levels)
+                if p.exposure:
+                    again = compensate(again, pyr, self._motion, p.noise_sigma)
+                second = search(again, pts, preds)
+                if np.count_nonzero(second[2] == OK) > np.count_nonzero(status == OK):
+                    found, ssd, status, taken = second
+                    self.zoom_warps += 1
             self.followed += int(np.count_nonzero(taken))
         pos, vel, ids, lost, moved, dx, dy, scale = _advance(
             self._pos, found, ssd, status, self._ids, self._wsum, float(p.max_residual))
@@ -351,6 +377,31 @@ def _predict(pos, vel):  # pragma: no cover - numba
             anchors[i, c] = int(np.rint(pos[i, c]))
             centers[i, c] = int(np.rint(pos[i, c] + vel[i, c]))
     return anchors, centers
+
+
+def _zoom_retry(pos: np.ndarray, found: np.ndarray, status: np.ndarray
+                ) -> tuple[float, np.ndarray] | None:
+    """Where a frame pair searched without a zoom lost most of its features and the matches
+    found zoom by more than ZOOM_WARP: (that zoom, every feature's position predicted by it);
+    else None.
+
+    The zoom is robust to a few wrong matches: the median of the ratios of the matches'
+    distances to their median point, in frame t+1 and in frame t, over those at least
+    ZOOM_RADIUS px from it (nearer, a pixel's error is a large ratio)."""
+    ok = status == OK
+    found_ok = int(np.count_nonzero(ok))
+    if found_ok < ZOOM_FOUND or found_ok >= ZOOM_RETRY_SHARE * len(pos):
+        return None
+    a, b = pos[ok], found[ok]
+    c0, c1 = np.median(a, axis=0), np.median(b, axis=0)
+    ra, rb = np.hypot(*(a - c0).T), np.hypot(*(b - c1).T)
+    far = ra >= ZOOM_RADIUS
+    if np.count_nonzero(far) < ZOOM_FOUND:
+        return None
+    zoom = float(np.median(rb[far] / ra[far]))
+    if not ZOOM_RANGE[0] <= zoom <= ZOOM_RANGE[1] or abs(zoom - 1.0) <= ZOOM_WARP:
+        return None
+    return zoom, c1 + zoom * (pos - c0)
 
 
 def _zoomed(frame: np.ndarray, pts: np.ndarray, zoom: float, levels: int

@@ -139,7 +139,8 @@ class Tracker:
         self._acc_scale = 1.0
         self._motion = (0.0, 0.0)  # the image motion of the last frame, px
         self._zoom = 1.0  # its scale step, about the features' centroid in frame t+1
-        #: frames whose frame t was scaled by the zoom of the frame before (:func:`_zoomed`)
+        #: frames whose frame t was scaled by the zoom of the frame before (:func:`_zoomed`),
+        #: or (a track's first pair in an approach) by that of its own matches (:func:`_zoom_retry`)
         self.zoom_warps = 0
         self._frame = 0
         self._lost = np.zeros(len(STATUS_NAMES), np.int64)

@@ -271,10 +271,14 @@ class Tracker:
                 # size it has in frame t+1; the features where that puts them
                 prev, pts = _zoomed(self._prev, pts, self._zoom, p.levels)
                 self.zoom_warps += 1
-            if p.exposure:  # frame t in frame t+1's exposure, where it changed
-                mapped = compensate(prev, pyr, self._motion, p.noise_sigma)
-                self.exposure_steps += mapped is not prev
-                prev = mapped
+            def exposed(prev: Pyramid) -> Pyramid:
+                """Frame t in frame t+1's exposure, where it changed."""
+                return compensate(prev, pyr, self._motion, p.noise_sigma) if p.exposure \
+                    else prev
+
+            mapped = exposed(prev)
+            self.exposure_steps += mapped is not prev
+            prev = mapped
             # what noise alone adds to S at a perfect match: both frames' noise, over the
             # window
             allowance = 2.0 * p.noise_sigma ** 2 * self._wsum
@@ -300,9 +304,7 @@ class Tracker:
                 # feature predicted by it; kept if it finds more
                 zoom, preds = retry
                 again, pts = _zoomed(self._prev, self._pos, zoom, p.levels)
-                if p.exposure:
-                    again = compensate(again, pyr, self._motion, p.noise_sigma)
-                second = search(again, pts, preds)
+                second = search(exposed(again), pts, preds)
                 if np.count_nonzero(second[2] == OK) > np.count_nonzero(status == OK):
                     found, ssd, status, taken = second
                     self.zoom_warps += 1

@@ -798,6 +798,8 @@ def _follow_each(pdata, cdata, geo, pts, preds, held, n, wts, uniform, fb_bound,
             if have:
                 dx *= 2.0
                 dy *= 2.0
+            elif k == 0 and not first:
+                break  # no coarse level helped: the first attempt's own call, which failed
             else:
                 dx = ox / scale
                 dy = oy / scale

@@ -271,32 +271,10 @@ class Tracker:
                 # size it has in frame t+1; the features where that puts them
                 prev, pts = _zoomed(self._prev, pts, self._zoom, p.levels)
                 self.zoom_warps += 1
-            def exposed(prev: Pyramid) -> Pyramid:
-                """Frame t in frame t+1's exposure, where it changed."""
-                return compensate(prev, pyr, self._motion, p.noise_sigma) if p.exposure \
-                    else prev
-
-            mapped = exposed(prev)
+            mapped = self._exposed(prev, pyr)
             self.exposure_steps += mapped is not prev
             prev = mapped
-            # what noise alone adds to S at a perfect match: both frames' noise, over the
-            # window
-            allowance = 2.0 * p.noise_sigma ** 2 * self._wsum
-
-            def search(prev: Pyramid, pts: np.ndarray, preds: np.ndarray
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-                taken = np.zeros(len(self._pos), np.bool_)
-                found, ssd, status = track_pyramid(
-                    prev, pyr, pts, preds, corr_half=p.corr_half,
-                    search_half=p.search_half, weights=self._weights, subpixel=p.subpixel,
-                    search=p.search, uniqueness=p.uniqueness, allowance=allowance,
-                    reject_border=p.reject_border, guided_retry=p.guided_retry,
-                    max_fb_error=p.max_fb_error, consensus=p.consensus,
-                    wide_half=p.refine_half, **wide_tests(max(p.noise_sigma, self.noise)),
-                    held=self.held, follow=p.follow, followed=taken)
-                return found, ssd, status, taken
-
-            found, ssd, status, taken = search(prev, pts, self._pos + self._vel)
+            found, ssd, status, taken = self._search(prev, pyr, pts, self._pos + self._vel)
             retry = None if zoomed else _zoom_retry(self._pos, found, status)
             if retry is not None:
                 # a zoom no frame before measured (a track's first pair taken in an approach):
@@ -304,7 +282,7 @@ class Tracker:
                 # feature predicted by it; kept if it finds more
                 zoom, preds = retry
                 again, pts = _zoomed(self._prev, self._pos, zoom, p.levels)
-                second = search(exposed(again), pts, preds)
+                second = self._search(self._exposed(again, pyr), pyr, pts, preds)
                 if np.count_nonzero(second[2] == OK) > np.count_nonzero(status == OK):
                     found, ssd, status, taken = second
                     self.zoom_warps += 1
@@ -322,6 +300,28 @@ class Tracker:
         self._pos = pos
         self._vel = vel
         self._ids = ids
+
+    def _exposed(self, prev: Pyramid, pyr: Pyramid) -> Pyramid:
+        """Frame t's pyramid in frame t+1's exposure, where it changed (``exposure``)."""
+        p = self._params
+        return compensate(prev, pyr, self._motion, p.noise_sigma) if p.exposure else prev
+
+    def _search(self, prev: Pyramid, pyr: Pyramid, pts: np.ndarray, preds: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The features at ``pts`` of frame t (``prev``) tracked into frame t+1 (``pyr``) from
+        ``preds``: positions, S, status, and which step 0 took (:func:`.track_pyramid`)."""
+        p = self._params
+        taken = np.zeros(len(self._pos), np.bool_)
+        # what noise alone adds to S at a perfect match: both frames' noise, over the window
+        allowance = 2.0 * p.noise_sigma ** 2 * self._wsum
+        found, ssd, status = track_pyramid(
+            prev, pyr, pts, preds, corr_half=p.corr_half, search_half=p.search_half,
+            weights=self._weights, subpixel=p.subpixel, search=p.search,
+            uniqueness=p.uniqueness, allowance=allowance, reject_border=p.reject_border,
+            guided_retry=p.guided_retry, max_fb_error=p.max_fb_error, consensus=p.consensus,
+            wide_half=p.refine_half, **wide_tests(max(p.noise_sigma, self.noise)),
+            held=self.held, follow=p.follow, followed=taken)
+        return found, ssd, status, taken
 
     def _add_features(self, pre: Preprocessed, shape: tuple[int, int]) -> None:
         p = self._params

@@ -119,7 +119,17 @@ def _explains(prev: np.ndarray, curr: np.ndarray, shift: tuple[float, float], ga
     both = _overlap(prev, curr, shift)
     if both is None:
         return False
-    a, b = (v.astype(np.float64) for v in both)
+    a: np.ndarray = both[0].astype(np.float32)
+    b: np.ndarray = both[1]
+    # the part of the shift the overlap's whole pixels leave out (up to half a pixel of the
+    # coarsest level, 2 px of the frame's), applied to frame t bilinearly: its blocks' means
+    # then see the scene frame t+1's do
+    fx, fy = shift[0] - round(shift[0]), shift[1] - round(shift[1])
+    if fx or fy:
+        a = cv2.warpAffine(a, np.array([[1.0, 0.0, fx], [0.0, 1.0, fy]], np.float32),
+                           (a.shape[1], a.shape[0]), flags=cv2.INTER_LINEAR,
+                           borderMode=cv2.BORDER_REPLICATE)
+    a, b = a.astype(np.float64), b.astype(np.float64)
     bh, bw = a.shape[0] // BLOCKS, a.shape[1] // BLOCKS
     if bh < 1 or bw < 1:
         return False

@@ -1215,7 +1215,7 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
     cbx = cby = -(1 << 30)  # the pixel whose corner correlations are in sx.., sy..
     sx00 = sx01 = sx10 = sx11 = sy00 = sy01 = sy10 = sy11 = 0
     for _ in range(GN_ITERATIONS):
-        if x - n < 0 or y - n < 0 or x + n + 1 >= w - 1 or y + n + 1 >= h - 1:
+        if x - n < 0 or y - n < 0 or x + n + 1 >= w or y + n + 1 >= h:
             return False, x0, y0
         bx0 = int(np.floor(x))
         by0 = int(np.floor(y))

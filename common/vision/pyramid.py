@@ -224,6 +224,15 @@ from .ssd import (
 DESCENT_STEPS = 3
 #: fewest features found for a frame's dominant motion to guide a retry
 MIN_GUIDES = 3
+#: Pixels the way back (step 4) searches beyond the way there's SEARCH_SIZE // 2 where its
+#: minimum fell on that border: each way's window is centred on a whole pixel, so a right
+#: match's minimum one way within the reach lies up to a pixel further the other way (on a
+#: fast first pair, three right matches 33 px away were rejected for it).
+BACK_MARGIN = 1
+#: A coarse level's minimum on the way back (step 4) that lands more than a pixel but at most
+#: this many of that level from the start is tried again a level finer (:func:`_back_check`);
+#: further off, the match fails its check there
+BACK_LANDING = 2.0
 #: a frame in which fewer than this share of its features were found broke their
 #: predictions (a jerk, a first frame pair taken in motion): with ``guided_retry`` it is
 #: tracked again around the frame-wide shift (:func:`frame_shift`)
@@ -655,12 +664,9 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
         st2 = np.empty(n_feat, np.int8)
         _match(pdata, cdata, geo, pts, guided, retry, n, s, wts, exhaustive, ratio, allowance,
                reject_border, subpixel, scratch, seen, pos2, ssd2, st2)
+        _take(retry, st2, ssd2, pos2, out_status, out_ssd, out_pos)
         for f in range(n_feat):
             if retry[f]:
-                out_status[f] = st2[f]
-                out_ssd[f] = ssd2[f]
-                out_pos[f, 0] = pos2[f, 0]
-                out_pos[f, 1] = pos2[f, 1]
                 offset[f, 0] = gx
                 offset[f, 1] = gy
     prev = _level(pdata, geo, 0)
@@ -851,6 +857,17 @@ def _follow_each(pdata, cdata, geo, pts, preds, held, n, wts, uniform, fb_bound,
     return count, taken
 
 
+@nb.njit(**NO_NRT)
+def _take(which, status, ssd, pos, out_status, out_ssd, out_pos):  # pragma: no cover - numba
+    """The results (``status``, ``ssd``, ``pos``) of a second search where ``which``."""
+    for f in range(which.shape[0]):
+        if which[f]:
+            out_status[f] = status[f]
+            out_ssd[f] = ssd[f]
+            out_pos[f, 0] = pos[f, 0]
+            out_pos[f, 1] = pos[f, 1]
+
+
 @nb.njit(cache=True, nogil=True)
 def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaustive, ratio,
                 allowance, reject_border, scratch, bound,
@@ -866,7 +883,15 @@ def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaus
     the start: the refinements in between (at most a pixel each) are skipped, and Gauss-Newton
     at the frame's level runs from the start itself. It leaves the start by more than a pixel
     only where the way back misses it by more than ``bound`` (<= 1 px): then, or where it
-    cannot run (the window at the image's edge, no texture), the full way back decides."""
+    cannot run (the window at the image's edge, no texture), the full way back decides.
+
+    A coarse level whose minimum lands more than a pixel but at most :data:`BACK_LANDING` from
+    the start counts as failed, and the way back starts again a level finer (rotation, zoom
+    and blur between the frames put a right match's coarse integer minimum a pixel or so off;
+    failing it at once rejected right matches that the way there, refined level by level, had
+    found); further off, the check fails. A minimum on the search's border is searched again
+    :data:`BACK_MARGIN` px wider: each way's window is centred on a whole pixel of its frame,
+    so a match near the edge of the reach one way lies up to a pixel beyond it the other."""
     levels = geo.shape[0]
     n_feat = pts.shape[0]
     pending = np.empty(n_feat, np.bool_)
@@ -876,6 +901,9 @@ def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaus
     lq = np.zeros((n_feat, 2), np.int64)
     lssd = np.empty(n_feat, np.float64)
     lstatus = np.empty(n_feat, np.int8)
+    eq = np.zeros((n_feat, 2), np.int64)
+    essd = np.empty(n_feat, np.float64)
+    estatus = np.empty(n_feat, np.int8)
     left = 0
     for f in range(n_feat):
         pending[f] = check[f]
@@ -893,23 +921,37 @@ def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaus
         _search_level(_level(cdata, geo, k), _level(pdata, geo, k), anchors, centers, pending,
                       n, s, wts, exhaustive, ratio, allowance * NOISE_GAIN ** k, lq, lssd,
                       lstatus)
+        if reject_border:
+            # a minimum on the border: searched again a pixel wider (see BACK_MARGIN)
+            edge = np.zeros(n_feat, np.bool_)
+            edges = 0
+            for f in range(n_feat):
+                edge[f] = pending[f] and lstatus[f] == BORDER
+                edges += edge[f]
+            if edges:
+                _search_level(_level(cdata, geo, k), _level(pdata, geo, k), anchors, centers,
+                              edge, n, s + BACK_MARGIN, wts, exhaustive, ratio,
+                              allowance * NOISE_GAIN ** k, eq, essd, estatus)
+                _take(edge, estatus, essd, eq, lstatus, lssd, lq)
         for f in range(n_feat):
             if not pending[f]:
                 continue
             st = lstatus[f]
             good = st == OK or (st == BORDER and not reject_border)
-            if not good and k > 0:
-                continue
-            pending[f] = False
-            left -= 1
             # where the way back lands at level k, against the start there
             ex = (back[f, 0] - pts[f, 0]) / scale + (lq[f, 0] - anchors[f, 0])
             ey = (back[f, 1] - pts[f, 1]) / scale + (lq[f, 1] - anchors[f, 1])
-            if not good or abs(ex) > 1.0 or abs(ey) > 1.0:
+            near = good and abs(ex) <= 1.0 and abs(ey) <= 1.0
+            if k > 0 and (not good or (not near and abs(ex) <= BACK_LANDING
+                                       and abs(ey) <= BACK_LANDING)):
+                continue  # failed here, or landed a pixel or two off: a level finer
+            pending[f] = False
+            left -= 1
+            if near:
+                fine[f] = True
+            else:
                 out_status[f] = FB
                 check[f] = False
-            else:
-                fine[f] = True
     prev = _level(cdata, geo, 0)
     curr = _level(pdata, geo, 0)
     full = 0

@@ -224,6 +224,9 @@ from .ssd import (
 DESCENT_STEPS = 3
 #: fewest features found for a frame's dominant motion to guide a retry
 MIN_GUIDES = 3
+#: the largest |x| or |y| of a point or prediction :func:`track_pyramid` takes, px: far beyond
+#: any frame (a point outside the frame is simply not found), and within the kernels' integers
+MAX_COORD = 2.0 ** 30
 #: Pixels the way back (step 4) searches beyond the way there's SEARCH_SIZE // 2 where its
 #: minimum fell on that border: each way's window is centred on a whole pixel, so a right
 #: match's minimum one way within the reach lies up to a pixel further the other way (on a
@@ -1694,6 +1697,12 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
     preds = np.ascontiguousarray(predictions, np.float64).reshape(-1, 2)
     if pts.shape != preds.shape:
         raise ValueError(f"points {pts.shape} and predictions {preds.shape} differ in shape")
+    for name, xy in (("points", pts), ("predictions", preds)):
+        # NaN fails the comparison too; a kernel given one indexed memory at random (SIGSEGV)
+        if xy.size and not np.abs(xy).max() <= MAX_COORD:
+            bad = xy[~(np.abs(xy) <= MAX_COORD).all(axis=1)][0]
+            raise ValueError(f"{name} must be finite x, y px within +-{MAX_COORD:g}: got "
+                             f"({bad[0]:g}, {bad[1]:g})")
     n_feat = len(pts)
     pos = np.empty((n_feat, 2), np.float64)
     ssd = np.empty(n_feat, np.float64)

@@ -429,6 +429,22 @@ def test_track_pyramid_checks_its_input(real_image):
     pos, ssd, status = track_pyramid(p1, p1, np.empty((0, 2)), np.empty((0, 2)), corr_half=4,
                                      search_half=7, weights=wts)
     assert pos.shape == (0, 2) and ssd.shape == (0,) and status.shape == (0,)
+    # a NaN, an infinity or a coordinate past the kernels' integers once crashed the process
+    # (SIGSEGV): refused, naming the value and the range
+    full = dict(corr_half=4, search_half=7, weights=wts, subpixel=True, uniqueness=1.25,
+                max_fb_error=1.0, consensus=2.0, guided_retry=True, wide_half=10, follow=True,
+                held=np.ones(2, bool))
+    for bad in (np.nan, np.inf, -1e300):
+        pts = np.array([[60.0, 60.0], [bad, 80.0]])
+        with pytest.raises(ValueError, match=r"points must be finite .* within \+-1\.07374e\+09"):
+            track_pyramid(p1, p1, pts, [[60.0, 60.0], [70.0, 80.0]], **full)
+        with pytest.raises(ValueError, match=r"predictions .*: got \((nan|inf|-1e\+300), 80\)"):
+            track_pyramid(p1, p1, [[60.0, 60.0], [70.0, 80.0]], pts, **full)
+    # far outside the frame but within the range: not found, the other feature tracked
+    _, _, status = track_pyramid(p1, p1, [[60.0, 60.0], [-1e8, 80.0]],
+                                 [[60.0, 60.0], [-1e8, 80.0]], **full)
+    assert status[0] == OK and status[1] != OK
+
 
 
 def _steady_run(image, step, frames, follow, occlude=None):

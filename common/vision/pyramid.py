@@ -232,10 +232,6 @@ MAX_COORD = 2.0 ** 30
 #: match's minimum one way within the reach lies up to a pixel further the other way (on a
 #: fast first pair, three right matches 33 px away were rejected for it).
 BACK_MARGIN = 1
-#: A coarse level's minimum on the way back (step 4) that lands more than a pixel but at most
-#: this many of that level from the start is tried again a level finer (:func:`_back_check`);
-#: further off, the match fails its check there
-BACK_LANDING = 2.0
 #: a frame in which fewer than this share of its features were found broke their
 #: predictions (a jerk, a first frame pair taken in motion): with ``guided_retry`` it is
 #: tracked again around the frame-wide shift (:func:`frame_shift`)
@@ -888,13 +884,19 @@ def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaus
     only where the way back misses it by more than ``bound`` (<= 1 px): then, or where it
     cannot run (the window at the image's edge, no texture), the full way back decides.
 
-    A coarse level whose minimum lands more than a pixel but at most :data:`BACK_LANDING` from
-    the start counts as failed, and the way back starts again a level finer (rotation, zoom
-    and blur between the frames put a right match's coarse integer minimum a pixel or so off;
-    failing it at once rejected right matches that the way there, refined level by level, had
-    found); further off, the check fails. A minimum on the search's border is searched again
-    :data:`BACK_MARGIN` px wider: each way's window is centred on a whole pixel of its frame,
-    so a match near the edge of the reach one way lies up to a pixel beyond it the other."""
+    A coarse level whose minimum lands more than a pixel from the start counts as failed, as
+    one that fails the tests does, and the way back starts again a level finer; only the
+    frame's level decides. A coarse level is where a right match's way back goes wrong:
+    rotation, zoom and blur between the frames put its integer minimum a pixel or so off, and
+    on smooth texture a lookalike several pixels away can be its unique minimum (the way
+    there, refined level by level or started again a level finer where its coarse level was
+    ambiguous, had found the match). A level finer, the template must still land within one of
+    its pixels of the start, searched around the same mirrored prediction with the same tests,
+    and Gauss-Newton at the frame's level must bring it within ``bound``: a wrong match passes
+    only where frame t holds its template at the start, which is what the check asks. A
+    minimum on the search's border is searched again :data:`BACK_MARGIN` px wider: each way's
+    window is centred on a whole pixel of its frame, so a match near the edge of the reach one
+    way lies up to a pixel beyond it the other."""
     levels = geo.shape[0]
     n_feat = pts.shape[0]
     pending = np.empty(n_feat, np.bool_)
@@ -945,9 +947,8 @@ def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaus
             ex = (back[f, 0] - pts[f, 0]) / scale + (lq[f, 0] - anchors[f, 0])
             ey = (back[f, 1] - pts[f, 1]) / scale + (lq[f, 1] - anchors[f, 1])
             near = good and abs(ex) <= 1.0 and abs(ey) <= 1.0
-            if k > 0 and (not good or (not near and abs(ex) <= BACK_LANDING
-                                       and abs(ey) <= BACK_LANDING)):
-                continue  # failed here, or landed a pixel or two off: a level finer
+            if not near and k > 0:
+                continue  # failed here, or landed off the start: starts again a level finer
             pending[f] = False
             left -= 1
             if near:

@@ -906,6 +906,8 @@ def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaus
     lq = np.zeros((n_feat, 2), np.int64)
     lssd = np.empty(n_feat, np.float64)
     lstatus = np.empty(n_feat, np.int8)
+    # the second search's, for the border minima: one set a call, not one a level
+    edge = np.empty(n_feat, np.bool_)
     eq = np.zeros((n_feat, 2), np.int64)
     essd = np.empty(n_feat, np.float64)
     estatus = np.empty(n_feat, np.int8)
@@ -928,7 +930,6 @@ def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaus
                       lstatus)
         if reject_border:
             # a minimum on the border: searched again a pixel wider (see BACK_MARGIN)
-            edge = np.zeros(n_feat, np.bool_)
             edges = 0
             for f in range(n_feat):
                 edge[f] = pending[f] and lstatus[f] == BORDER

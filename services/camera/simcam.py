@@ -5,8 +5,9 @@ Writes  ``vistrack/<robot>/camera/frame``, ``vistrack/<robot>/sim/pose`` (ground
 
 Real time (default): a frame every 1/fps s of wall time, the robot driven by the latest command.
 Lockstep (``--lockstep``): frame k+1 is rendered only once the command answering frame k is in
-(matched by ``stamp_ns``), or, with ``--no-control``, its estimate; the simulated clock advances
-1/fps per frame whatever the wall clock does, so a run is deterministic.
+(the one stamped as frame k: ``stamp_ns`` equal), or, with ``--no-control``, its estimate; the
+simulated clock advances 1/fps per frame whatever the wall clock does, so a run is
+deterministic.
 """
 
 from __future__ import annotations
@@ -43,9 +44,12 @@ def make_simulator(args: argparse.Namespace) -> Simulator:
 
 def _wait_answer(node: Node, stamp_ns: int, want_cmd: bool, timeout: float
                  ) -> tuple[bool, CmdVel | None]:
-    """Wait for the command (or estimate) of the frame stamped ``stamp_ns``; returns whether
-    it came (False: ``timeout`` s passed, or the node stopped) and the newest command seen
-    meanwhile."""
+    """Wait for the command (or estimate) of the frame stamped ``stamp_ns``: the one stamped
+    exactly so. A command stamped otherwise is not the frame's answer: a controller's
+    watchdog stamps its stops on its host's clock, which a lockstep run's simulated clock
+    may be behind (taken for the answer, a stop sent before the frame's command had stopped
+    the robot for the whole run). Returns whether the answer came (False: ``timeout`` s
+    passed, or the node stopped) and the newest command seen meanwhile."""
     deadline = time.monotonic() + timeout
     latest: CmdVel | None = None
     while not node.stop.is_set():
@@ -56,9 +60,9 @@ def _wait_answer(node: Node, stamp_ns: int, want_cmd: bool, timeout: float
         try:
             if key == node.keys.cmd_vel:
                 latest = CmdVel.decode(payload)
-                if want_cmd and latest.stamp_ns >= stamp_ns:
+                if want_cmd and latest.stamp_ns == stamp_ns:
                     return True, latest
-            elif not want_cmd and Estimate.decode(payload).stamp_ns >= stamp_ns:
+            elif not want_cmd and Estimate.decode(payload).stamp_ns == stamp_ns:
                 return True, latest
         except MessageError as e:
             node.status.reject(e)

@@ -9,8 +9,10 @@ Writes  ``vistrack/<robot>/control/cmd_vel``  (reliable; zero with ``stale: true
         tracked)
 
 The set point (centroid and scale) is captured from the first estimate of each track, unless
-``--x-ref`` fixes it. The law is the fuzzy rule base of ``rules.py`` compiled into a control surface
-(``--law fuzzy``, default) or a plain proportional law (``--law proportional``).
+``--x-ref`` fixes it. A track begins with ``first``, or where ``seq`` goes back (the camera
+restarted; its first estimate may have been overwritten at the latest-only input). The law is
+the fuzzy rule base of ``rules.py`` compiled into a control surface (``--law fuzzy``, default)
+or a plain proportional law (``--law proportional``).
 """
 
 from __future__ import annotations
@@ -64,8 +66,11 @@ class CameraClock:
             return time.time()
         return self._stamp + (time.monotonic() - self._at)
 
-    def arrived(self, stamp_s: float) -> None:
-        if self._stamp is None or stamp_s > self._stamp:
+    def arrived(self, stamp_s: float, restart: bool = False) -> None:
+        """An estimate stamped ``stamp_s`` came in. ``restart``: the camera started again (a
+        new track), its clock possibly from an earlier time: the clock follows it back. Else
+        the clock only moves forward."""
+        if restart or self._stamp is None or stamp_s > self._stamp:
             self._stamp, self._at = stamp_s, time.monotonic()
 
 # Full command at a quarter image width off centre (~32 px at 256) and at a 20 % size error:
@@ -118,6 +123,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     clock = time.time if camera_clock is None else camera_clock.now
     xc0: float | None = None  # xc of the track's first estimate
     used = (-1, -1)  # (seq, stamp_ns) of the last estimate turned into a command
+    last = (-1, -1)  # (seq, stamp_ns) of the last estimate not refused for its stamp
 
     def send(stamp_ns: int, vx: float, vy: float, wz: float, stale: bool) -> None:
         nonlocal seq
@@ -137,7 +143,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             last_stop = now
 
     def on_estimate(payload: bytes) -> None:
-        nonlocal last_stop, xc0, used
+        nonlocal last_stop, xc0, used, last
         t0 = time.perf_counter()
         now = clock()
         est = decode_or_reject(Estimate, payload, node, log)
@@ -146,8 +152,16 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         if (est.seq, est.stamp_ns) == used:  # published again: its command has been sent
             node.status.extra["repeated"] = node.status.extra.get("repeated", 0) + 1
             return
+        # A new track: its first estimate, or seq going back without it. Estimates keep the
+        # camera's seq, so seq goes back when the camera restarted (motion-estimation starts
+        # a new track then), and the input is latest-only: the first estimate may have been
+        # overwritten before it was read. The old track's set point and time go with it: a
+        # lockstep simulator's clock, ahead of the host's, starts again from the host's time,
+        # below the old track's stamps.
+        new_track = est.first or est.seq < last[0] or (est.seq == last[0]
+                                                        and est.stamp_ns != last[1])
         if camera_clock is not None:
-            camera_clock.arrived(est.stamp_ns * 1e-9)
+            camera_clock.arrived(est.stamp_ns * 1e-9, restart=new_track)
             now = camera_clock.now()
         ahead = est.stamp_ns * 1e-9 - now
         if ahead > MAX_AHEAD_S:
@@ -155,7 +169,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                    f"of this host's clock (allowed: {MAX_AHEAD_S:g} s): clocks out of step, "
                    "or a bad stamp")
             return
-        if est.first or xc0 is None:  # a new track: new features, so a new set point
+        last = (est.seq, est.stamp_ns)
+        if new_track or xc0 is None:  # new features, so a new set point
             ctrl.reset()
             # from the track's first valid estimate: an invalid one's xc is no target's
             xc0 = est.xc if est.valid else None

@@ -129,3 +129,98 @@ def test_watchdog_stops_the_robot(free_port):
     stops = [m for m in msgs if m["stale"]]
     assert all(m["vx"] == m["vy"] == m["wz"] == 0.0 for m in stops)
     assert t_stop - t_last < 0.3 + 0.3  # the bound plus one repeat period and delivery
+
+
+def _estimate(seq: int, stamp_ns: int, first: bool) -> bytes:
+    """A valid estimate of a target drifting right by 1 px a frame from x = 128."""
+    return msgpack.packb({"v": 1, "seq": seq, "stamp_ns": stamp_ns, "npi": 50,
+                          "xc": 128.0 + seq, "yc": 128.0, "xe": 900.0, "ye": 900.0,
+                          "dx": float(seq), "dy": 0.0, "scale": 1.0, "t_ms": 1.0,
+                          "first": first, "features": [], "params_id": 0})
+
+
+@pytest.mark.parametrize("first_lost", [False, True])
+def test_a_camera_restarted_on_an_earlier_clock_is_followed(free_port, first_lost):
+    """A lockstep simulator's clock runs ahead of the host's, and starts again from the host's
+    time when the camera restarts: the second run's stamps are below the first run's last.
+    With ``--clock camera`` the controller answers each of the second run's estimates with a
+    command stamped as that estimate, and never sends a stale stop while they keep coming;
+    also when the run's first estimate (``first: true``) was lost from its latest-only input,
+    the camera's restart being told by ``seq`` going back."""
+    with router(free_port) as ep, zenoh.open(zenoh_config(ep)) as session:
+        ctrl = Proc(["fuzzy-controller", "-e", ep, "--no-multicast-scouting",
+                     "--clock", "camera"])
+        try:
+            ctrl.wait_for("ready")
+            cmds = Collector(session, "vistrack/robot/control/cmd_vel")
+            pub = session.declare_publisher("vistrack/robot/motion/estimate",
+                                            congestion_control=zenoh.CongestionControl.BLOCK)
+
+            def answered(seq: int, stamp: int, first: bool) -> dict:
+                pub.put(_estimate(seq, stamp, first))
+                items = cmds.wait(lambda it: any(msgpack.unpackb(p)["stamp_ns"] == stamp
+                                                 for _, p in it), timeout=5.0)
+                return next(m for m in map(msgpack.unpackb, (p for _, p in items))
+                            if m["stamp_ns"] == stamp)
+
+            frame_ns = round(1e9 / 30)
+            t0 = time.time_ns()
+            for k in range(150):  # 5 s of simulated time, run in well under that
+                answered(k, t0 + k * frame_ns, k == 0)
+            t1 = time.time_ns()  # the camera restarts: its clock from the host's time again
+            assert t1 < t0 + 149 * frame_ns
+            start = len(cmds.items)
+            second = [answered(k, t1 + k * frame_ns, k == 0 and not first_lost)
+                      for k in range(1 if first_lost else 0, 60)]
+            during = [msgpack.unpackb(p) for _, p in cmds.items[start:]]
+        finally:
+            ctrl.stop()
+    assert all(not m["stale"] for m in second)
+    assert any(abs(m["vy"]) > 0.05 for m in second)  # following the drift
+    assert [m for m in during if m["stale"]] == []
+    assert "rejected" not in "\n".join(ctrl.lines)
+
+
+def _drive(endpoint: str, session: zenoh.Session, stops_after: bool) -> list[dict]:
+    """A lockstep 'still' run answered from here: each frame's command (vx 0.3 m/s, stamped
+    as the frame) and, with ``stops_after``, before it a stop stamped 1 ns after the frame
+    (a watchdog's stop sent meanwhile on a clock ahead of the camera's). The poses in order."""
+    poses = Collector(session, "vistrack/robot/sim/pose")
+    frames = session.declare_subscriber("vistrack/robot/camera/frame")
+    pub = session.declare_publisher("vistrack/robot/control/cmd_vel",
+                                    congestion_control=zenoh.CongestionControl.BLOCK)
+    cam = service("camera", endpoint, "--source", "sim:still", "--lockstep", "--ack-timeout", "5")
+    try:
+        seq = 0
+        while cam.p.poll() is None:
+            sample = frames.try_recv()
+            if sample is None:
+                time.sleep(0.0005)
+                continue
+            stamp = msgpack.unpackb(sample.payload.to_bytes())["stamp_ns"]
+            for vx, at, stale in ([(0.0, stamp + 1, True)] if stops_after else []) \
+                    + [(0.3, stamp, False)]:
+                pub.put(msgpack.packb({"v": 1, "seq": seq, "stamp_ns": at, "vx": vx,
+                                       "vy": 0.0, "wz": 0.0, "stale": stale}))
+                seq += 1
+        assert cam.p.wait(60) == 0, "\n".join(cam.lines[-20:])
+    finally:
+        cam.stop()
+        frames.undeclare()
+    assert cam.wait_for("finished after").rstrip().endswith("(0 answered late: --ack-timeout)")
+    time.sleep(0.2)  # the last pose is in flight
+    poses.sub.undeclare()
+    return [msgpack.unpackb(p) for _, p in poses.items]
+
+
+def test_in_lockstep_a_frame_is_answered_by_its_own_command_only(free_port):
+    """The simulator steps each frame with the command stamped as that frame: a stop that
+    comes first, stamped later, is not taken for the answer, so the robot's path is the same
+    with and without such stops."""
+    with router(free_port) as ep, zenoh.open(zenoh_config(ep)) as session:
+        plain = _drive(ep, session, stops_after=False)
+        stopped = _drive(ep, session, stops_after=True)
+    assert len(plain) == len(stopped) > 100
+    x_plain = [p["x"] for p in plain]
+    assert x_plain[-1] > 0.5  # the commands did drive the robot
+    assert [p["x"] for p in stopped] == x_plain

@@ -37,7 +37,7 @@ from ..common.bus import (
     shm_pool_at_open,
 )
 from ..common.keys import key_suffix
-from ..common.messages import MessageError, Params, peek_seq
+from ..common.messages import Estimate, MessageError, Params, peek_seq
 from ..common.params import ParamError, TrackerParams
 from . import threads
 from .usage import add_param_flags, params_from_args, print_error
@@ -298,6 +298,24 @@ def decode_or_reject(cls: type[M], payload: bytes, node: Node, logger: logging.L
     except MessageError as e:
         reject(node, logger, getattr(cls, "KEY", cls.__name__), e)
         return None
+
+
+#: ``(seq, stamp_ns)`` before any estimate: for :func:`starts_track`
+NO_ESTIMATE = (-1, -1)
+
+
+def starts_track(est: Estimate, last: tuple[int, int]) -> bool:
+    """Whether ``est`` begins a new track, ``last`` being ``(seq, stamp_ns)`` of the estimate
+    taken before it (:data:`NO_ESTIMATE`: none).
+
+    ``first`` says so, but an input that keeps only the latest estimate can lose it (written
+    over before it was read, or not watched then). Estimates keep the camera's ``seq``, and
+    motion-estimation starts a new track when it goes back (the camera restarted): so ``seq``
+    going back, or the same ``seq`` with another stamp, begins one too. The same estimate
+    again (``seq`` and ``stamp_ns``: published again for a frame sent again) does not.
+    """
+    seq, stamp = last
+    return est.first or est.seq < seq or (est.seq == seq and est.stamp_ns != stamp)
 
 
 def ready(node: Node) -> None:

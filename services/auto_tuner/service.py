@@ -66,12 +66,14 @@ from ...common.messages import (
     pack,
 )
 from ..runtime import (
+    NO_ESTIMATE,
     ParamsInForce,
     add_service_args,
     decode_or_reject,
     dispatch,
     ready,
     serve,
+    starts_track,
 )
 from ..usage import add_number
 from . import triggers as tr
@@ -163,6 +165,7 @@ class AutoTuner:
         self.worker: Worker | None = None
         self.params_seq, self.report_seq = itertools.count(), itertools.count()  # per key
         self.seen_id = 0  # largest params_id seen in estimates (a restarted tuner lags)
+        self.last_estimate = NO_ESTIMATE  # (seq, stamp_ns) of the last estimate watched
         self.started = 0.0
         self.reason = ""
         self.id_at_start = 0
@@ -260,7 +263,10 @@ class AutoTuner:
         if msg is None or self.worker is None:
             return
         self.seen_id = max(self.seen_id, msg.params_id)
-        self._changed(self.triggers.estimate(first=msg.first, npi=msg.npi, scale=msg.scale,
+        # one estimate in ESTIMATE_PERIOD_S is watched: a new track's first may not be
+        first = starts_track(msg, self.last_estimate)
+        self.last_estimate = (msg.seq, msg.stamp_ns)
+        self._changed(self.triggers.estimate(first=first, npi=msg.npi, scale=msg.scale,
                                              ids={f[0] for f in msg.features}))
         self.node.status.extra["scale_ratio"] = round(self.triggers.ratio, 4)
 

@@ -23,7 +23,16 @@ import time
 
 from ...common.bus import Node
 from ...common.messages import MAX_SIDE, Estimate, encode_cmd_vel
-from ..runtime import add_service_args, decode_or_reject, dispatch, ready, reject, serve
+from ..runtime import (
+    NO_ESTIMATE,
+    add_service_args,
+    decode_or_reject,
+    dispatch,
+    ready,
+    reject,
+    serve,
+    starts_track,
+)
 from ..usage import add_number
 from .control import (
     MIN_NPI_RANGE,
@@ -123,7 +132,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     clock = time.time if camera_clock is None else camera_clock.now
     xc0: float | None = None  # xc of the track's first estimate
     used = (-1, -1)  # (seq, stamp_ns) of the last estimate turned into a command
-    last = (-1, -1)  # (seq, stamp_ns) of the last estimate not refused for its stamp
+    last = NO_ESTIMATE  # (seq, stamp_ns) of the last estimate not refused for its stamp
 
     def send(stamp_ns: int, vx: float, vy: float, wz: float, stale: bool) -> None:
         nonlocal seq
@@ -152,14 +161,9 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         if (est.seq, est.stamp_ns) == used:  # published again: its command has been sent
             node.status.extra["repeated"] = node.status.extra.get("repeated", 0) + 1
             return
-        # A new track: its first estimate, or seq going back without it. Estimates keep the
-        # camera's seq, so seq goes back when the camera restarted (motion-estimation starts
-        # a new track then), and the input is latest-only: the first estimate may have been
-        # overwritten before it was read. The old track's set point and time go with it: a
-        # lockstep simulator's clock, ahead of the host's, starts again from the host's time,
-        # below the old track's stamps.
-        new_track = est.first or est.seq < last[0] or (est.seq == last[0]
-                                                        and est.stamp_ns != last[1])
+        # The old track's set point and time go with it: a lockstep simulator's clock, ahead
+        # of the host's, starts again from the host's time, below the old track's stamps.
+        new_track = starts_track(est, last)
         if camera_clock is not None:
             camera_clock.arrived(est.stamp_ns * 1e-9, restart=new_track)
             now = camera_clock.now()

@@ -107,3 +107,32 @@ def test_the_tuner_watches_every_estimate_at_30_fps_and_paces_a_faster_stream():
         elapsed = time.monotonic() - t0
         assert node.status.received == 215 and node.status.failed == 0
         assert taken() - 15 <= elapsed / ESTIMATE_PERIOD_S + 2, (taken(), elapsed)
+
+
+def _tracked(seq: int, stamp_ns: int, scale: float, first: bool) -> bytes:
+    """A valid estimate of 50 features (ids 0 to 49) at ``scale`` since its track began."""
+    return Estimate(seq=seq, stamp_ns=stamp_ns, npi=50, xc=128.0, yc=128.0, xe=900.0, ye=900.0,
+                    dx=0.0, dy=0.0, scale=scale, t_ms=1.0, first=first,
+                    features=[[i, 10.0 + i, 20.0] for i in range(50)], params_id=0).encode()
+
+
+def test_a_restarted_camera_starts_the_distance_watch_again_without_its_first_estimate():
+    """The distance watch compares each estimate's accumulated scale with the scale when the
+    last tuning started; a new track's scale starts again from 1, and so does the reference.
+    The tuner reads one estimate in ESTIMATE_PERIOD_S, so a new track's first estimate
+    (``first: true``) may not be read: ``seq`` going back (the camera restarted) tells it."""
+    images = sequence(BUFFER, motion=Motion(dx=1.0), seed=1)
+    with Running("auto-tuner", "--buffer", str(BUFFER), "--min-interval", "0",
+                 "--tune-sweep-step", "5") as tuner:
+        node, extra = tuner.node, tuner.node.status.extra
+        for seq, scale in ((0, 1.0), (1, 1.25), (2, 1.25)):  # track A: 25 % nearer
+            tuner.feed(node.keys.estimate, _tracked(seq, 10**9 + seq, scale, seq == 0))
+            time.sleep(2 * ESTIMATE_PERIOD_S)
+        assert extra["scale_ratio"] == 1.25
+        for seq, image in enumerate(images):
+            tuner.feed(node.keys.frame, Frame.from_image(image, seq=seq,
+                                                         stamp_ns=10**9 + seq).encode())
+        _until(lambda: extra["tunings"] == 1, "the initial tuning")  # its reference: 1.25
+        # track B: the camera restarted, seq 0 (first) not read; no nearer than it began
+        tuner.feed(node.keys.estimate, _tracked(1, 2 * 10**9, 1.0, False))
+        assert extra["scale_ratio"] == 1.0

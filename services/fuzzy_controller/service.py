@@ -131,7 +131,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     camera_clock = CameraClock() if args.clock == "camera" else None
     clock = time.time if camera_clock is None else camera_clock.now
     xc0: float | None = None  # xc of the track's first estimate
-    used = (-1, -1)  # (seq, stamp_ns) of the last estimate turned into a command
+    used = NO_ESTIMATE  # (seq, stamp_ns) of the last estimate turned into a command
     last = NO_ESTIMATE  # (seq, stamp_ns) of the last estimate not refused for its stamp
 
     def send(stamp_ns: int, vx: float, vy: float, wz: float, stale: bool) -> None:

@@ -100,6 +100,14 @@ def test_a_step_settles(loop_services):
         assert last_out < 45, f"step at frame {start} still outside the band at +{last_out}"
 
 
+def _estimate(seq: int, stamp_ns: int, first: bool) -> bytes:
+    """A valid estimate of a target drifting right by 1 px a frame from x = 128."""
+    return msgpack.packb({"v": 1, "seq": seq, "stamp_ns": stamp_ns, "npi": 50,
+                          "xc": 128.0 + seq, "yc": 128.0, "xe": 900.0, "ye": 900.0,
+                          "dx": float(seq), "dy": 0.0, "scale": 1.0, "t_ms": 1.0,
+                          "first": first, "features": [], "params_id": 0})
+
+
 def test_watchdog_stops_the_robot(free_port):
     """Estimates stop: the controller commands zero with stale=true within its 0.3 s bound."""
     with router(free_port) as ep, zenoh.open(zenoh_config(ep)) as session:
@@ -111,11 +119,7 @@ def test_watchdog_stops_the_robot(free_port):
                                             congestion_control=zenoh.CongestionControl.BLOCK)
             t_last = 0.0
             for k in range(45):  # 1.5 s of estimates with the target drifting right
-                stamp = time.time_ns()
-                pub.put(msgpack.packb({"v": 1, "seq": k, "stamp_ns": stamp, "npi": 50,
-                                       "xc": 128.0 + k, "yc": 128.0, "xe": 900.0, "ye": 900.0,
-                                       "dx": float(k), "dy": 0.0, "scale": 1.0, "t_ms": 1.0,
-                                       "first": k == 0, "features": [], "params_id": 0}))
+                pub.put(_estimate(k, time.time_ns(), k == 0))
                 t_last = time.time()
                 time.sleep(1 / 30)  # the estimate rate being simulated
             items = cmds.wait(lambda it: any(msgpack.unpackb(p)["stale"] for _, p in it),
@@ -129,14 +133,6 @@ def test_watchdog_stops_the_robot(free_port):
     stops = [m for m in msgs if m["stale"]]
     assert all(m["vx"] == m["vy"] == m["wz"] == 0.0 for m in stops)
     assert t_stop - t_last < 0.3 + 0.3  # the bound plus one repeat period and delivery
-
-
-def _estimate(seq: int, stamp_ns: int, first: bool) -> bytes:
-    """A valid estimate of a target drifting right by 1 px a frame from x = 128."""
-    return msgpack.packb({"v": 1, "seq": seq, "stamp_ns": stamp_ns, "npi": 50,
-                          "xc": 128.0 + seq, "yc": 128.0, "xe": 900.0, "ye": 900.0,
-                          "dx": float(seq), "dy": 0.0, "scale": 1.0, "t_ms": 1.0,
-                          "first": first, "features": [], "params_id": 0})
 
 
 @pytest.mark.parametrize("first_lost", [False, True])

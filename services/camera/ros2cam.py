@@ -25,13 +25,13 @@ import os
 import threading
 import time
 
-import cv2
 import zenoh
 
 from ...common import rmw_zenoh as rmw
 from ...common import ros2types as r2
 from ...common.bus import Node
 from ...common.messages import Frame
+from ...common.sources import resize
 from ...common.vision.preprocess import Grey
 from ..runtime import ready, wait_for_consumers
 
@@ -116,8 +116,7 @@ def frame_of_payload(payload: bytes, typename: str, seq: int,
     frame = r2.frame_of_camera(r2.deserialize(payload, typename), seq=seq, grey=grey)
     if (size is not None and (frame.width, frame.height) != size) \
             or not frame.stamp_ns:  # resized, or from a driver that does not stamp
-        image = frame.data if size is None else cv2.resize(
-            frame.data, size, interpolation=cv2.INTER_AREA)
+        image = frame.data if size is None else resize(frame.data, size)
         frame = Frame.from_image(image, seq=seq, stamp_ns=frame.stamp_ns or time.time_ns())
     return frame
 

@@ -37,6 +37,16 @@ def rendered_sequences(n: int, names: tuple[str, ...]) -> list[rendered.Rendered
     return seqs
 
 
+def source_image(name: str) -> np.ndarray:
+    """The grey frame10 of the Middlebury sequence ``name``, as the rendered sequences start
+    from (:func:`rendered.middlebury_sources`), or skip."""
+    found = dict(rendered.middlebury_sources((name,)))
+    if name not in found:
+        pytest.skip(f"Middlebury {name} not found: set VISTRACK_DATA or put the shared data at "
+                    "../shared/data")
+    return found[name]
+
+
 @pytest.fixture(scope="session")
 def sources() -> list[tuple[str, np.ndarray]]:
     """(name, grey frame10) of every Middlebury sequence the rendered ones start from

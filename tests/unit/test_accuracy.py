@@ -13,6 +13,8 @@ from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker
 from vistrack.services.bench.accuracy import PAIRS, one_motion, run_sequence, scoreboard
 
+from conftest import source_image
+
 
 @pytest.fixture(scope="module")
 def sequences():
@@ -99,7 +101,7 @@ def test_harder_paths_hold_the_same_targets(sequences, path):
     LK's, at most 2 % of pairs off by more than 2 px, survival at least half LK's."""
     for seq in sequences:
         source = seq.name.removesuffix(" rendered")
-        hard = rendered.sequence(seq_source(source), f"{source} {path}", n=40,
+        hard = rendered.sequence(source_image(source), f"{source} {path}", n=40,
                                  **HARDER[path])
         ours, theirs, _ = run_sequence(hard.frames, lambda p, k, s=hard: s.map(p, k, k + 1),
                                        TrackerParams(),
@@ -119,7 +121,7 @@ def blurred(sequences):
     for exposure in (0.5, 1.0):
         for seq in sequences:
             source = seq.name.removesuffix(" rendered")
-            blur = rendered.motion_blurred(seq_source(source), source, exposure=exposure)
+            blur = rendered.motion_blurred(source_image(source), source, exposure=exposure)
             ours, theirs, _ = run_sequence(
                 blur.frames, lambda p, k, s=blur: s.map(p, k, k + 1), TrackerParams(),
                 end_truth=lambda p, s=blur: s.map(p, 0, len(s) - 1))
@@ -150,11 +152,6 @@ def test_motion_blur_of_the_whole_frame_interval_stays_near_lk(blurred):
         if exposure == 1.0:
             assert ours.median_epe <= 1.1 * theirs.median_epe, (source, ours, theirs)
             assert ours.gross <= 0.02, (source, ours)
-
-
-def seq_source(name):
-    """The grey frame10 of the Middlebury sequence ``name``, as the rendered ones start from."""
-    return dict(rendered.middlebury_sources((name,)))[name]
 
 
 def test_the_paper_tracker_cannot_follow_the_large_motion(sequences):
@@ -200,7 +197,7 @@ def _approach(source, zoom_warp, monkeypatch):
     frames scaled)."""
     from vistrack.common.vision import tracker as tracker_module
 
-    seq = rendered.approach(seq_source(source), f"{source} rendered")
+    seq = rendered.approach(source_image(source), f"{source} rendered")
     monkeypatch.setattr(tracker_module, "ZOOM_WARP", zoom_warp)
     ours, _, rejected = run_sequence(seq.frames, lambda p, k: seq.map(p, k, k + 1),
                                      TrackerParams(),
@@ -243,7 +240,7 @@ def _first_pair(source, retry_share, monkeypatch):
     from vistrack.common.vision import tracker as tracker_module
 
     monkeypatch.setattr(tracker_module, "ZOOM_RETRY_SHARE", retry_share)
-    seq = rendered.approach(seq_source(source), f"{source} rendered", n=2, size=(1241, 376))
+    seq = rendered.approach(source_image(source), f"{source} rendered", n=2, size=(1241, 376))
     tracker = Tracker(TrackerParams())
     first = tracker.process(seq.frames[0])
     second = tracker.process(seq.frames[1])

@@ -15,7 +15,7 @@ from vistrack.common.vision import tracker as tracker_module
 from vistrack.common.vision.pyramid import NEIGHBOURS, _consensus, build_pyramid, track_pyramid
 from vistrack.common.vision.ssd import AMBIGUOUS, BORDER, DISAGREES, FB, OK, STATUS_NAMES
 
-from conftest import load_pair
+from conftest import load_pair, source_image
 
 
 def shifted(image, dx, dy, interpolation=cv2.INTER_CUBIC):
@@ -374,11 +374,7 @@ def test_the_way_back_keeps_the_right_matches_of_a_fast_first_pair(seed):
     edge that search is cut short, and the levels below do not reach as far)."""
     from vistrack.common import rendered
 
-    sources = dict(rendered.middlebury_sources(("Venus",)))
-    if not sources:
-        pytest.skip("Middlebury Venus not found: set VISTRACK_DATA or put the shared data at "
-                    "../shared/data")
-    big = cv2.resize(sources["Venus"], None, fx=3, fy=3, interpolation=cv2.INTER_CUBIC)
+    big = cv2.resize(source_image("Venus"), None, fx=3, fy=3, interpolation=cv2.INTER_CUBIC)
     size = (640, 480)
     hs = rendered.homographies((big.shape[1], big.shape[0]), size, 30, max_step=40.0,
                                seed=seed)
@@ -565,7 +561,7 @@ def test_a_tracks_first_pair_checks_the_way_back_of_what_it_follows(monkeypatch)
     every match step 0 takes in that pair lies where the scene moved it."""
     from vistrack.common import rendered
 
-    seq = rendered.jerk(dict(rendered.middlebury_sources(("Urban2",)))["Urban2"], "Urban2")
+    seq = rendered.jerk(source_image("Urban2"), "Urban2")
     seen = {}
 
     def spy(*args, **kwargs):  # the real track_pyramid; what step 0 took, feature by feature

@@ -4,12 +4,17 @@ selection, the SSD search of Eq. (1), the tracker and the position estimate of E
 import sys as _sys
 from pathlib import Path as _Path
 
-from .features import select_features
-from .kernelcache import refresh as _refresh
-from .motion import centroid_scatter, incremental_motion
-from .preprocess import Preprocessed, preprocess, to_gray
-from .ssd import track_ssd, window_weights
-from .tracker import Estimate, Tracker, kernel_cache_dir, timing, track_frames, warm_up
+from .kernelcache import prefer_full_vectors as _prefer_full_vectors
+
+# before numba compiles or loads a kernel: 512-bit vectors on AVX-512 cores (see kernelcache)
+_prefer_full_vectors()
+
+from .features import select_features  # noqa: E402
+from .kernelcache import refresh as _refresh  # noqa: E402
+from .motion import centroid_scatter, incremental_motion  # noqa: E402
+from .preprocess import Preprocessed, preprocess, to_gray  # noqa: E402
+from .ssd import track_ssd, window_weights  # noqa: E402
+from .tracker import Estimate, Tracker, kernel_cache_dir, timing, track_frames, warm_up  # noqa: E402
 
 __all__ = ["Estimate", "Preprocessed", "Tracker", "centroid_scatter", "incremental_motion",
            "kernel_cache_dir", "preprocess", "select_features", "timing", "to_gray",

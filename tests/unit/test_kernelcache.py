@@ -99,3 +99,47 @@ def test_the_package_stamps_its_cache_and_drops_kernels_of_other_sources(tmp_pat
     stale[0].write_bytes(b"kept")
     subprocess.run(run, env=env, capture_output=True, text=True, timeout=120, check=True)
     assert stale[0].exists()
+
+
+TARGET = """\
+import os, sys
+if sys.argv[1] == "numba-first":
+    import numba  # numba imported (its settings read) before the package
+import vistrack.common.vision  # noqa: F401
+from numba.core.registry import cpu_target
+features = cpu_target.target_context.codegen().magic_tuple()[2].split(",")
+print("-prefer-256-bit" in features, os.environ.get("NUMBA_CPU_FEATURES") is not None)
+"""
+
+
+def _host_features() -> list[str]:
+    import llvmlite.binding as ll
+
+    return ll.get_host_cpu_features().flatten().split(",")
+
+
+def _target(order: str, **env: str) -> tuple[bool, bool]:
+    """In a new interpreter (numba imported before the package if ``order`` says so) with the
+    environment less numba's target variables plus ``env``: whether numba's code generator
+    has ``prefer-256-bit`` turned off, and whether NUMBA_CPU_FEATURES is set."""
+    base = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CPU_FEATURES",
+                                                             "NUMBA_CPU_NAME")}
+    out = subprocess.run([sys.executable, "-c", TARGET, order], capture_output=True, text=True,
+                         timeout=120, env={**base, **env}, check=True).stdout.split()
+    return out[0] == "True", out[1] == "True"
+
+
+def test_kernels_are_compiled_for_the_full_vector_width_of_an_avx512_core():
+    """On an AVX-512 core, the code generator numba starts for the package's kernels has LLVM's
+    ``prefer-256-bit`` tuning turned off (kernelcache.prefer_full_vectors), whether numba
+    was imported before the package or not; elsewhere numba's defaults stay."""
+    avx512 = "+avx512bw" in _host_features()
+    for order in ("package-first", "numba-first"):
+        assert _target(order) == (avx512, avx512), order
+
+
+def test_a_users_numba_cpu_features_win():
+    """``NUMBA_CPU_FEATURES`` set by the user (here the host's own, which keeps 256 bits) is
+    left as it is."""
+    assert _target("package-first",
+                   NUMBA_CPU_FEATURES=",".join(_host_features())) == (False, True)

@@ -5,12 +5,12 @@ import sys as _sys
 from pathlib import Path as _Path
 
 from .kernelcache import prefer_full_vectors as _prefer_full_vectors
+from .kernelcache import refresh as _refresh
 
 # before numba compiles or loads a kernel: 512-bit vectors on AVX-512 cores (see kernelcache)
 _prefer_full_vectors()
 
 from .features import select_features  # noqa: E402
-from .kernelcache import refresh as _refresh  # noqa: E402
 from .motion import centroid_scatter, incremental_motion  # noqa: E402
 from .preprocess import Preprocessed, preprocess, to_gray  # noqa: E402
 from .ssd import track_ssd, window_weights  # noqa: E402

@@ -40,9 +40,11 @@ def prefer_full_vectors() -> str | None:
     held took 233 us against 253 (the wide sub-pixel window 81 us against 102; the bench's
     frames, interleaved, best of 40 rounds, 2026-12-05); the integer sums are exact and no
     kernel uses fastmath, so every output is the same bit for bit. Nothing is changed where
-    the core has no AVX-512BW, where numba's code generator already started (numba used
-    before this package was imported), or where ``NUMBA_CPU_FEATURES`` or ``NUMBA_CPU_NAME``
-    is set (yours wins: ``NUMBA_CPU_FEATURES`` set to the host's features keeps 256 bits)."""
+    the core has no AVX-512BW or where ``NUMBA_CPU_FEATURES`` or ``NUMBA_CPU_NAME`` is set
+    (yours wins: ``NUMBA_CPU_FEATURES`` set to the host's features keeps 256 bits). Where
+    numba's code generator already started (numba compiled something before this package was
+    imported), its target stays as it was in this process; processes started from it get the
+    setting."""
     if "NUMBA_CPU_FEATURES" in os.environ or "NUMBA_CPU_NAME" in os.environ:
         return None
     try:

@@ -57,7 +57,7 @@ import numpy as np
 from llvmlite import ir
 from numba.core import cgutils, types
 from numba.cpython.unsafe.numbers import trailing_zeros
-from numba.extending import intrinsic
+from numba.extending import intrinsic, overload
 
 from ..params import SEARCH_KINDS
 
@@ -364,7 +364,7 @@ def _copy_lanes(typingctx, dst, doff, src, soff):  # pragma: no cover - numba
     unrolls a loop of a known short length fully before its loop vectoriser sees it, and numba
     has no SLP vectoriser; a loop of a run-time length this short is shorter than the vector
     loop's trip): the 23 rows of a (15, 9) search's bounds took ~85 ns to copy, now ~9."""
-    if not (_lanes_typed(dst, doff, src, soff) and src.ndim == 1 and dst.dtype == src.dtype):
+    if not (_lanes_typed(dst, doff, src, soff) and dst.dtype == src.dtype):
         return None
     sig = types.void(dst, doff, src, soff)
 
@@ -373,30 +373,6 @@ def _copy_lanes(typingctx, dst, doff, src, soff):  # pragma: no cover - numba
         dptr, sptr = _lanes_at(context, builder, signature, args)
         item = context.get_abi_sizeof(context.get_data_type(dty.dtype))
         cgutils.raw_memcpy(builder, dptr, sptr, context.get_constant(types.intp, LANES), item)
-        return context.get_dummy_value()
-
-    return sig, codegen
-
-
-@intrinsic
-def _widen_lanes(typingctx, dst, doff, src, soff):  # pragma: no cover - numba
-    """``dst[doff:doff + LANES] = src.flat[soff:soff + LANES]``, uint8 widened to int32 (``dst``
-    1-D C int32, ``src`` a C uint8 array of any dimension, the ranges inside them: unchecked),
-    as one vector load, zero extension and store. A row of a Gauss-Newton patch (13 or 25
-    pixels) copied by a loop ran as LLVM's run-time overlap check, a scalar remainder and a
-    vector body: :func:`_patch` was 15 % of the default tracker's time on held frames."""
-    if not (_lanes_typed(dst, doff, src, soff) and dst.dtype == types.int32
-            and src.dtype == types.uint8):
-        return None
-    sig = types.void(dst, doff, src, soff)
-
-    def codegen(context, builder, signature, args):
-        narrow = ir.VectorType(ir.IntType(8), LANES)
-        wide = ir.VectorType(ir.IntType(32), LANES)
-        dptr, sptr = _lanes_at(context, builder, signature, args)
-        sptr = builder.bitcast(sptr, narrow.as_pointer())
-        dptr = builder.bitcast(dptr, wide.as_pointer())
-        builder.store(builder.zext(builder.load(sptr, align=1), wide), dptr, align=4)
         return context.get_dummy_value()
 
     return sig, codegen
@@ -982,7 +958,7 @@ _CENTROID_TERM = 260100.0
 
 @nb.njit(**NO_NRT)
 def _patch(img, x0, y0, rows, cols, out, stride):  # pragma: no cover - numba
-    """Copy img[y0:y0 + rows, x0:x0 + cols] into ``out`` (int32, rows ``stride`` apart), the
+    """Copy img[y0:y0 + rows, x0:x0 + cols] into ``out`` (uint8, rows ``stride`` apart), the
     image's edge repeated where it leaves the image."""
     h, w = img.shape
     chunks = (cols + LANES - 1) // LANES
@@ -994,7 +970,7 @@ def _patch(img, x0, y0, rows, cols, out, stride):  # pragma: no cover - numba
         for j in range(rows):
             src = (y0 + j) * w + x0
             for c in range(chunks):
-                _widen_lanes(out, j * stride + c * LANES, img, src + c * LANES)
+                _copy_lanes(out, j * stride + c * LANES, img, src + c * LANES)
         return
     if x0 >= 0 and y0 >= 0 and x0 + cols <= w and y0 + rows <= h:
         for j in range(rows):
@@ -1021,16 +997,16 @@ def _corners(gx, gy, cp, off, stride, acc):  # pragma: no cover - numba
     c11 = cp[off + stride + 1:off + stride + 1 + size]
     sx00 = sx01 = sx10 = sx11 = sy00 = sy01 = sy10 = sy11 = acc(0)
     for q in range(size):
-        g = gx[q]
-        sx00 = acc(sx00 + g * c00[q])
-        sx01 = acc(sx01 + g * c01[q])
-        sx10 = acc(sx10 + g * c10[q])
-        sx11 = acc(sx11 + g * c11[q])
-        g = gy[q]
-        sy00 = acc(sy00 + g * c00[q])
-        sy01 = acc(sy01 + g * c01[q])
-        sy10 = acc(sy10 + g * c10[q])
-        sy11 = acc(sy11 + g * c11[q])
+        g = acc(gx[q])
+        sx00 = acc(sx00 + g * acc(c00[q]))
+        sx01 = acc(sx01 + g * acc(c01[q]))
+        sx10 = acc(sx10 + g * acc(c10[q]))
+        sx11 = acc(sx11 + g * acc(c11[q]))
+        g = acc(gy[q])
+        sy00 = acc(sy00 + g * acc(c00[q]))
+        sy01 = acc(sy01 + g * acc(c01[q]))
+        sy10 = acc(sy10 + g * acc(c10[q]))
+        sy11 = acc(sy11 + g * acc(c11[q]))
     return (np.int64(sx00), np.int64(sx01), np.int64(sx10), np.int64(sx11), np.int64(sy00),
             np.int64(sy01), np.int64(sy10), np.int64(sy11))
 
@@ -1039,9 +1015,10 @@ def _corners(gx, gy, cp, off, stride, acc):  # pragma: no cover - numba
 def _refine_scratch(wts, acc):  # pragma: no cover - numba
     """The weights of a (2h+1)^2 window in :func:`_refine`'s layout (rows R = m + 4 apart,
     zero beyond the window, the length a multiple of VEC) and its scratch: (wpad, tp, cp, g,
-    q, cen), ``g`` the two gradients in the integer type of ``acc`` (an empty array from
-    :func:`refine_acc`), in which :func:`_refine` sums; ``q`` each pixel's (i, j) from the
-    window's centre in the same layout; ``cen`` (2,) where :func:`_refine` puts the window's
+    q, cen), ``tp`` and ``cp`` the two patches (uint8), ``g`` the two gradients (int16 where
+    :func:`_refine` sums in int32, the type of ``acc``, an empty array from
+    :func:`refine_acc`; else int64); ``q`` each pixel's (i, j) from the window's centre in the
+    same layout, in the type of ``acc``; ``cen`` (2,) where :func:`_refine` puts the window's
     centroid."""
     m = wts.shape[0]
     half = m // 2
@@ -1054,24 +1031,59 @@ def _refine_scratch(wts, acc):  # pragma: no cover - numba
             wpad[j * stride + i] = wts[j, i]
             q[0, j * stride + i] = i - half
             q[1, j * stride + i] = j - half
-    tp = np.zeros(rsize + 4 * stride + 4, np.int32)
-    cp = np.zeros(rsize + 3 * stride + 3, np.int32)
-    g = np.empty((2, rsize), acc.dtype)
-    return wpad, tp, cp, g, q, np.zeros(2, np.float64)
+    tp = np.zeros(rsize + 4 * stride + 4, np.uint8)
+    cp = np.zeros(rsize + 3 * stride + 3, np.uint8)
+    return wpad, tp, cp, _gradients(acc, rsize), q, np.zeros(2, np.float64)
+
+
+def _gradients(acc, size):  # pragma: no cover - numba: compiled through the overload below
+    """The scratch of :func:`_refine`'s two gradients, (2, size): int16 where the sums are
+    int32 (it holds every weighted gradient of a window whose sums fit int32), else int64."""
+    raise NotImplementedError
+
+
+@overload(_gradients)
+def _gradients_typed(acc, size):  # pragma: no cover - numba
+    if acc.dtype == types.int32:
+        return lambda acc, size: np.empty((2, size), np.int16)
+    return lambda acc, size: np.empty((2, size), np.int64)
 
 
 def refine_acc(*windows: np.ndarray) -> np.ndarray:
     """An empty array of the integer type in which :func:`_refine` sums over every one of the
-    weight ``windows``: int32 (twice the vector width) where no sum can overflow it, else
-    int64. Chosen here, before the kernels, so that they compile for that one type only."""
+    weight ``windows``: int32 where no sum can overflow it and every weighted gradient fits
+    int16 (its 16-bit multiply-adds), else int64. Chosen here, before the kernels, so that
+    they compile for that one type only."""
     for wts in windows:
         m = wts.shape[0]
         h = m // 2
         # the sums of the normal matrix and corrections, and a single term of the centroid's
         term = max(_REFINE_TERM * m * m, _CENTROID_TERM * 2 * h)
-        if float(np.abs(wts).max(initial=0)) * term >= 2.0**31:
+        top = float(np.abs(wts).max(initial=0))
+        # and each weighted gradient fits the int16 of the gradients' scratch (_gradients)
+        if top * term >= 2.0**31 or top * 255.0 > 32767.0:
             return np.empty(0, np.int64)
     return np.empty(0, np.int32)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _pixel_sums(gx, gy, a, b, c, d, size, acc):  # pragma: no cover - numba
+    """The sums over q < size of gx[q] times a[q], b[q], c[q] and d[q], then gy[q] times the
+    same, in ``acc``: each a gradient (int16 where ``acc`` is int32) times a pixel (uint8), the
+    form of a 16-bit multiply-add (see :func:`_refine`)."""
+    xa = xb = xc = xd = ya = yb = yc = yd = acc(0)
+    for q in range(size):
+        g = acc(gx[q])
+        h = acc(gy[q])
+        xa = acc(xa + g * acc(a[q]))
+        xb = acc(xb + g * acc(b[q]))
+        xc = acc(xc + g * acc(c[q]))
+        xd = acc(xd + g * acc(d[q]))
+        ya = acc(ya + h * acc(a[q]))
+        yb = acc(yb + h * acc(b[q]))
+        yc = acc(yc + h * acc(c[q]))
+        yd = acc(yd + h * acc(d[q]))
+    return xa, xb, xc, xd, ya, yb, yc, yd
 
 
 @nb.njit(**NO_NRT)
@@ -1116,12 +1128,14 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
     the tail carry zero weight), so that each sum is one long loop that LLVM vectorises.
     ``wpad``, ``tp``, ``cp``, ``gx``, ``gy``: from :func:`_refine_scratch` (``tp``: frame t
     around the window with a 2 px margin, the image's edge repeated beyond it; ``cp``: frame
-    t+1 around (x0, y0) with the margin the estimate can use, within 1 px). The sums are in
-    the integer type of ``gx``: int32 where they cannot overflow (twice the vector width), else
-    int64 (:func:`refine_acc`); the centroid's, which outgrow int32 from 27 px windows on, in
-    int64, each term in the type of ``gx``.
+    t+1 around (x0, y0) with the margin the estimate can use, within 1 px; both uint8). The
+    sums are in the integer type of ``qs``: int32 where they cannot overflow, the gradients
+    ``gx``, ``gy`` then int16, each sum one of a gradient times a pixel, a 16-bit multiply-add
+    (vpmaddwd, vpdpwssd with AVX-512 VNNI); else int64 (:func:`refine_acc`). The centroid's
+    sums, which outgrow int32 from 33 px windows on, in int64 there, each term in ``acc``.
     """
-    acc = gx.dtype.type
+    acc = qs.dtype.type
+    g_t = gx.dtype.type
     h, w = prev.shape
     m = 2 * n + 1
     stride = m + 4
@@ -1148,53 +1162,71 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, gx, gy, third, qs,
     down2 = tp[c + 2 * stride:c + 2 * stride + size]
     up2 = tp[c - 2 * stride:c - 2 * stride + size]
     mid = tp[c:c + size]
-    h11 = h12 = h22 = tx = ty = axx = axy = ayx = ayy = bxx = bxy = byx = byy = acc(0)
     for q in range(size):
-        # int32, each step (numba types int32 - int32 as int64, and LLVM narrowed only the
-        # single differences back): 16 lanes a vector, not 8 widened to 64 bits
-        ddx = np.int32(right[q] - left[q])
-        ddy = np.int32(down[q] - up[q])
-        twice = np.int32(mid[q] + mid[q])
-        dxx = np.int32(np.int32(right[q] + left[q]) - twice)
-        dyy = np.int32(np.int32(down[q] + up[q]) - twice)
-        gxq = wpad[q] * ddx
-        gyq = wpad[q] * ddy
-        gx[q] = gxq
-        gy[q] = gyq
-        h11 = acc(h11 + gxq * ddx)
-        h12 = acc(h12 + gxq * ddy)
-        h22 = acc(h22 + gyq * ddy)
-        tx = acc(tx + gxq * mid[q])
-        ty = acc(ty + gyq * mid[q])
-        axx = acc(axx + gxq * dxx)
-        axy = acc(axy + gxq * dyy)
-        ayx = acc(ayx + gyq * dxx)
-        ayy = acc(ayy + gyq * dyy)
+        gx[q] = g_t(wpad[q] * (np.int32(right[q]) - np.int32(left[q])))
+        gy[q] = g_t(wpad[q] * (np.int32(down[q]) - np.int32(up[q])))
+    # every sum a gradient (int16 where the sums are int32) times a pixel (uint8): the form
+    # of a multiply-add of 16-bit pairs (vpmaddwd; vpdpwssd with AVX-512 VNNI), 32 products
+    # an instruction where an int32 product took two. The normal matrix's and the second
+    # differences' sums are made of them: Sum gx (right - left) = xr - xl, and so on.
+    xr, xl, xd, xu, yr, yl, yd, yu = _pixel_sums(gx, gy, right, left, down, up, size, acc)
+    xm = ym = acc(0)
+    for q in range(size):
+        xm = acc(xm + acc(gx[q]) * acc(mid[q]))
+        ym = acc(ym + acc(gy[q]) * acc(mid[q]))
+    h11 = acc(xr - xl)
+    h12 = acc(xd - xu)
+    h22 = acc(yd - yu)
+    tx = xm
+    ty = ym
+    axx = acc(xr + xl - acc(2) * xm)
+    axy = acc(xd + xu - acc(2) * xm)
+    ayx = acc(yr + yl - acc(2) * ym)
+    ayy = acc(yd + yu - acc(2) * ym)
     # the centroid's sums in int64 whatever ``acc`` (each term fits ``acc``, see refine_acc):
     # in ``acc`` they made the windows of 27 px or more (the auto-tuner's reference and sweep)
     # sum everything in int64, kernels of their own that no start-up warm-up compiled (a cold
     # first tuning cycle took 28 s, 25 of them compiling)
     vx = vy = np.int64(0)
+    bxx = bxy = byx = byy = acc(0)
     centroid = third > 1.0
     if third > 0.0:
         # twice the third differences are right2 - left2 - 2 (right - left) and their y twin:
         # the gradients' products with the differences 4 px wide, less twice the normal
-        # matrix's sums (below); and with ``centroid`` the centroid's sums, of W (2 g)
-        # (2 g . q), in int64 (half this pass's time where they were summed for every
-        # refinement; LLVM makes the loop twice, one without them)
+        # matrix's sums (below); a pixel at a time, as above
+        xr2, xl2, xd2, xu2, yr2, yl2, yd2, yu2 = _pixel_sums(gx, gy, right2, left2, down2, up2,
+                                                             size, acc)
+        bxx = acc(xr2 - xl2)
+        bxy = acc(xd2 - xu2)
+        byx = acc(yr2 - yl2)
+        byy = acc(yd2 - yu2)
+    if centroid:
+        # with ``centroid`` the centroid's sums, of W (2 g) (2 g . q) (half the third pass's
+        # time where they were summed for every refinement): in int32 where no sum can
+        # overflow it (a term is at most |W| 255^2 (|i| + |j|), the differences' being at
+        # most 255: so the wide window's, uniform weights, up to 31 px), else in int64
         qx = qs[0]
         qy = qs[1]
+        weight = 0
         for q in range(size):
-            wide_x = right2[q] - left2[q]
-            wide_y = down2[q] - up2[q]
-            bxx = acc(bxx + gx[q] * wide_x)
-            bxy = acc(bxy + gx[q] * wide_y)
-            byx = acc(byx + gy[q] * wide_x)
-            byy = acc(byy + gy[q] * wide_y)
-            if centroid:
-                along = (right[q] - left[q]) * qx[q] + (down[q] - up[q]) * qy[q]
-                vx += np.int64(acc(gx[q] * along))
-                vy += np.int64(acc(gy[q] * along))
+            weight += abs(np.int64(wpad[q]))
+        if 255.0 * 255.0 * 2.0 * n * weight < 2.0**31:
+            sx = sy = np.int32(0)
+            for q in range(size):
+                along = np.int32(np.int32(np.int32(right[q]) - np.int32(left[q])) * np.int32(qx[q])
+                                 + np.int32(np.int32(down[q]) - np.int32(up[q]))
+                                 * np.int32(qy[q]))
+                sx = np.int32(sx + np.int32(gx[q]) * along)
+                sy = np.int32(sy + np.int32(gy[q]) * along)
+            vx = np.int64(sx)
+            vy = np.int64(sy)
+        else:
+            for q in range(size):
+                # each term in ``acc`` (numba types int32 * int32 as int64: 64-bit products)
+                along = acc(acc(acc(acc(right[q]) - acc(left[q])) * qx[q])
+                            + acc(acc(acc(down[q]) - acc(up[q])) * qy[q]))
+                vx += np.int64(acc(acc(gx[q]) * along))
+                vy += np.int64(acc(acc(gy[q]) * along))
     # the sums of the gradients' products with twice the third differences
     gxx3 = float(bxx) - 2.0 * h11 if third > 0.0 else 0.0
     gxy3 = float(bxy) - 2.0 * h12 if third > 0.0 else 0.0

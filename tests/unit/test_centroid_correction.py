@@ -5,6 +5,7 @@ scales or turns, it is moved to the feature's point by the similarity its neighb
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from vistrack.common.vision import pyramid, ssd
 
@@ -67,23 +68,27 @@ def test_too_few_matches_for_a_neighbourhood_are_left_alone():
     assert np.array_equal(correct(pts, measured, cen), measured)
 
 
-def test_the_refinements_centroid_is_the_windows(real_image):
+@pytest.mark.parametrize("h", [10, 20])
+def test_the_refinements_centroid_is_the_windows(real_image, h):
     """The wide window's centroid from its Gauss-Newton pass (integer sums) is the one
-    :func:`.pyramid._centroid` computes from the frame, on a real image; and a window textured
+    :func:`.pyramid._centroid` computes from the frame, on a real image, where its sums fit
+    int32 (21 px: pixel dots) and where they do not (41 px: int64); and a window textured
     on its right only has its centroid to the right."""
     img = np.ascontiguousarray(real_image)
-    wide = np.ones((21, 21), np.int32)
+    wide = np.ones((2 * h + 1, 2 * h + 1), np.int32)
     scratch = ssd._refine_scratch(wide, ssd.refine_acc(wide))
+    assert scratch[6] == (h == 10)  # which of the two ways the sums go
     for ax, ay in ((60, 70), (128, 128), (190, 40)):
         # a refinement whose centroid nobody reads leaves it alone
         scratch[5][:] = np.nan
-        good, _, _ = ssd._refine_with(img, img, ax, ay, ax + 0.3, ay - 0.2, 10, scratch, ssd.THIRD)
+        good, _, _ = ssd._refine_with(img, img, ax, ay, ax + 0.3, ay - 0.2, h, scratch, ssd.THIRD)
         assert good and np.isnan(scratch[5]).all()
-        good, _, _ = ssd._refine_with(img, img, ax, ay, ax + 0.3, ay - 0.2, 10, scratch,
+        good, _, _ = ssd._refine_with(img, img, ax, ay, ax + 0.3, ay - 0.2, h, scratch,
                                       ssd.CENTROID)
         assert good
-        np.testing.assert_allclose(scratch[5], pyramid._centroid(img, ax, ay, 10, wide, True),
+        np.testing.assert_allclose(scratch[5], pyramid._centroid(img, ax, ay, h, wide, True),
                                    atol=1e-9)
+    wide = np.ones((21, 21), np.int32)
     half = np.zeros((40, 40), np.uint8)
     half[:, 25:] = np.random.default_rng(0).integers(0, 255, (40, 15))
     cx, cy = pyramid._centroid(half, 20, 20, 10, wide, True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import cv2
+import numba as nb
 import numpy as np
 import pytest
 
@@ -408,3 +409,39 @@ def test_sub_pixel_refinement_reaches_as_close_to_the_right_edge_as_to_the_left(
     near_side = np.concatenate([e[10:] for e in errors])
     assert far_side.max() <= 0.2 and np.median(far_side) <= 0.08, np.sort(far_side)[-5:]
     assert np.median(near_side) <= 0.08
+
+
+@nb.njit(cache=True)
+def _dots_of(gx, gy, scale, pix, o0, o1, o2):
+    plain = ssd._pixel_dots(gx, gy, pix, (o0, o1, o2), gx.shape[0])
+    scaled = ssd._scaled_dots(gx, gy, scale, pix, (o0, o1), gx.shape[0])
+    return plain, scaled
+
+
+@pytest.mark.parametrize("dtype", [np.int16, np.int64])
+def test_pixel_dots_are_the_plain_sums(dtype):
+    """The refinement's multiply-add sums (a gradient times a pixel, in pairs of lanes) equal
+    numpy's sums in int64, for gradients of either sign up to the int16 range and pixels up to
+    255, at several offsets; scaled, of the gradients times a factor (in their own width:
+    kept within int16 here, as the refinement does)."""
+    rng = np.random.default_rng(3)
+    size = 4 * ssd.DOT_LANES
+    top = 32767 if dtype == np.int16 else 1 << 40
+    gx = rng.integers(-top, top + 1, size).astype(dtype)
+    gy = rng.integers(-top, top + 1, size).astype(dtype)
+    gx[:3] = [top, -top, 0]
+    pix = rng.integers(0, 256, size + 40).astype(np.uint8)
+    pix[:8] = 255
+    offs = (0, 7, 33)
+    scale = rng.integers(-3, 4, size).astype(dtype)
+    small_x, small_y = gx // 16, gy // 16  # times at most 3: still int16
+    plain, _ = _dots_of(gx, gy, scale, pix, *offs)
+    _, scaled = _dots_of(small_x, small_y, scale, pix, *offs)
+    p = pix.astype(np.int64)
+    want = [int(g.astype(np.int64) @ p[o:o + size]) for g in (gx, gy) for o in offs]
+    want_scaled = [int((g.astype(np.int64) * scale) @ p[o:o + size])
+                   for g in (small_x, small_y) for o in offs[:2]]
+    if dtype == np.int16:  # int32 sums: what fits (these do) is exact
+        assert all(abs(v) < 2**31 for v in want + want_scaled)
+    assert [int(v) for v in plain] == want
+    assert [int(v) for v in scaled] == want_scaled

@@ -243,7 +243,8 @@ def _refinement_calls() -> list[tuple[Callable[..., object], tuple]]:
 #: the parameters of :func:`~vistrack.common.vision.ssd._search_level` that
 #: :func:`_single_level_call` knows the types of
 _SINGLE_LEVEL_PARAMS = ("prev", "curr", "anchors", "centers", "active", "n", "s", "wts",
-                        "exhaustive", "ratio", "allowance", "out_q", "out_ssd", "out_status")
+                        "exhaustive", "ratio", "allowance", "out_q", "out_ssd", "out_status",
+                        "budget")
 
 
 def _single_level_call() -> tuple[Callable[..., object], tuple] | None:
@@ -262,7 +263,8 @@ def _single_level_call() -> tuple[Callable[..., object], tuple] | None:
     at = np.full((1, 2), 32, np.int64)
     return ssd._search_level, (
         frame, frame, at, at.copy(), np.zeros(1, np.bool_), 2, 2, ssd.window_weights("uniform", 2),
-        False, 1.25, 0.0, np.zeros((1, 2), np.int64), np.zeros(1), np.zeros(1, np.int8))
+        False, 1.25, 0.0, np.zeros((1, 2), np.int64), np.zeros(1), np.zeros(1, np.int8),
+        np.zeros(1, np.int64))
 
 
 #: the parameters of the kernels of :func:`_search_tail_signatures` and

@@ -219,6 +219,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import TypedDict
 
 import cv2
 import numba as nb
@@ -237,9 +238,11 @@ from .ssd import (
     DISAGREES,
     FB,
     LEFT,
+    NO_BUDGET,
     NO_NRT,
     NO_THIRD,
     OK,
+    OVER,
     RUNAWAY,
     THIRD,
     _parabola,
@@ -256,6 +259,12 @@ from .ssd import (
 DESCENT_STEPS = 3
 #: fewest features found for a frame's dominant motion to guide a retry
 MIN_GUIDES = 3
+#: the searches of Eq. (1) one frame may make, all levels and steps together, in window pixels
+#: x displacements (the default tracker's ~100 features spend about 10^7): a feature whose
+#: search would exceed what is left is not searched (OVER, lost: re-detection refills it).
+#: At the parameters' limits (2000 features, search 128, correlation 64) a frame of searches
+#: otherwise took up to 45 s, which a watchdog takes for a hang; this bounds one at ~1 s
+FRAME_WORK = 10**10
 #: the largest |x| or |y| of a point or prediction :func:`track_pyramid` takes, px: far beyond
 #: any frame (a point outside the frame is simply not found), and within the kernels' integers
 MAX_COORD = 2.0 ** 30
@@ -512,7 +521,7 @@ def _starting(anchors, pending, n, shape, k):  # pragma: no cover - numba
 @nb.njit(cache=True, nogil=True)
 def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, allowance,
            reject_border, subpixel, scratch, seen, out_pos, out_ssd,
-           out_status):  # pragma: no cover - numba
+           out_status, budget):  # pragma: no cover - numba
     """Steps 1 and 2 of the module notes for the ``active`` features at ``pts`` (float x, y)
     predicted at ``preds``: their position ``out_pos`` in frame t+1, S of Eq. (1) at its
     nearest pixel ``out_ssd`` and ``out_status`` (OK, or why not found). ``pdata``,
@@ -589,13 +598,13 @@ def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, 
         # start the features not matched yet; a failed start starts again a level finer.
         # Each reduction averages the noise: its variance shrinks by NOISE_GAIN a level
         _search_level(prev, curr, anchors, centers, pending, n, s, wts, exhaustive, ratio,
-                      allowance * NOISE_GAIN ** k, lq, lssd, lstatus)
+                      allowance * NOISE_GAIN ** k, lq, lssd, lstatus, budget)
         for f in range(n_feat):
             if not pending[f]:
                 continue
             st = lstatus[f]
             good = st == OK or (st == BORDER and not reject_border)
-            if not good and k > 0:
+            if not good and k > 0 and st != OVER:
                 continue
             pending[f] = False
             if not good:
@@ -635,12 +644,13 @@ def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, 
 @nb.njit(cache=True, nogil=True)
 def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wts, exhaustive,
                  ratio, allowance, reject_border, guided_retry, fb_bound, consensus, dominant,
-                 affine_fit, subpixel, wide, acc, agree, straddle, floor, out_pos, out_ssd,
-                 out_status):  # pragma: no cover - numba
+                 affine_fit, subpixel, wide, acc, agree, straddle, floor, budget, out_pos,
+                 out_ssd, out_status):  # pragma: no cover - numba
     """The whole of :func:`track_pyramid` (steps 0 to 7 of the module notes), returning how
     many were found; ``acc``: the integer type of the sub-pixel sums
     (:func:`.ssd.refine_acc`); ``dominant`` and ``affine_fit``: DOMINANT_PX and AFFINE_FIT_PX
-    (read where it is called, so that a test can turn steps 5b and 7 off)."""
+    (read where it is called, so that a test can turn steps 5b and 7 off); ``budget``: (1,)
+    int64, what is left of the frame's searches (:data:`FRAME_WORK`), drawn on here."""
     n_feat = pts.shape[0]
     for f in range(n_feat):
         out_pos[f, 0] = np.nan
@@ -660,7 +670,7 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
     for f in range(n_feat):
         followed[f] = not active[f]
     _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, allowance,
-           reject_border, subpixel, scratch, seen, out_pos, out_ssd, out_status)
+           reject_border, subpixel, scratch, seen, out_pos, out_ssd, out_status, budget)
     # each feature's predicted displacement (loops rather than array expressions here and
     # below: each of those compiles into a kernel of its own)
     offset = np.empty((n_feat, 2), np.float64)
@@ -694,7 +704,7 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
         ssd2 = np.empty(n_feat, np.float64)
         st2 = np.empty(n_feat, np.int8)
         _match(pdata, cdata, geo, pts, guided, retry, n, s, wts, exhaustive, ratio, allowance,
-               reject_border, subpixel, scratch, seen, pos2, ssd2, st2)
+               reject_border, subpixel, scratch, seen, pos2, ssd2, st2, budget)
         _take(retry, st2, ssd2, pos2, out_status, out_ssd, out_pos)
         for f in range(n_feat):
             if retry[f]:
@@ -721,19 +731,21 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
             # feature started; the full way back only where that cannot run (_back_check)
             checks = _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts,
                                  exhaustive, ratio, allowance, reject_border, scratch,
-                                 fb_bound, out_status)
+                                 fb_bound, out_status, budget)
         if checks > 0:
             posb = np.empty((n_feat, 2), np.float64)
             ssdb = np.empty(n_feat, np.float64)
             stb = np.empty(n_feat, np.int8)
             _match(cdata, pdata, geo, back, mirrored, check, n, s, wts, exhaustive, ratio,
-                   allowance, reject_border, subpixel, scratch, seen, posb, ssdb, stb)
+                   allowance, reject_border, subpixel, scratch, seen, posb, ssdb, stb, budget)
             for f in range(n_feat):
                 if not check[f]:
                     continue
                 ex = posb[f, 0] - pts[f, 0]
                 ey = posb[f, 1] - pts[f, 1]
-                if stb[f] != OK or ex * ex + ey * ey > fb_bound * fb_bound:
+                if stb[f] == OVER:
+                    out_status[f] = OVER  # not checked: not trusted
+                elif stb[f] != OK or ex * ex + ey * ey > fb_bound * fb_bound:
                     out_status[f] = FB
     # 5. consensus: a match must move as its nearest neighbours do
     judged = np.empty(0, np.int64)
@@ -901,8 +913,8 @@ def _take(which, status, ssd, pos, out_status, out_ssd, out_pos):  # pragma: no 
 
 @nb.njit(cache=True, nogil=True)
 def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaustive, ratio,
-                allowance, reject_border, scratch, bound,
-                out_status):  # pragma: no cover - numba
+                allowance, reject_border, scratch, bound, out_status,
+                budget):  # pragma: no cover - numba
     """Step 4 with sub-pixel refinement: the matches ``back`` (in frame t+1) of the features
     at ``pts`` (frame t) tracked back, ``check`` those to check (cleared as each is decided),
     their status set to FB where the way back fails or misses ``pts`` by more than ``bound``
@@ -959,7 +971,7 @@ def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaus
             continue
         _search_level(_level(cdata, geo, k), _level(pdata, geo, k), anchors, centers, pending,
                       n, s, wts, exhaustive, ratio, allowance * NOISE_GAIN ** k, lq, lssd,
-                      lstatus)
+                      lstatus, budget)
         if reject_border:
             # a minimum on the border: searched again a pixel wider (see BACK_MARGIN)
             edges = 0
@@ -969,12 +981,18 @@ def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaus
             if edges:
                 _search_level(_level(cdata, geo, k), _level(pdata, geo, k), anchors, centers,
                               edge, n, s + BACK_MARGIN, wts, exhaustive, ratio,
-                              allowance * NOISE_GAIN ** k, eq, essd, estatus)
+                              allowance * NOISE_GAIN ** k, eq, essd, estatus, budget)
                 _take(edge, estatus, essd, eq, lstatus, lssd, lq)
         for f in range(n_feat):
             if not pending[f]:
                 continue
             st = lstatus[f]
+            if st == OVER:  # not checked: not trusted
+                pending[f] = False
+                left -= 1
+                out_status[f] = OVER
+                check[f] = False
+                continue
             good = st == OK or (st == BORDER and not reject_border)
             # where the way back lands at level k, against the start there
             ex = (back[f, 0] - pts[f, 0]) / scale + (lq[f, 0] - anchors[f, 0])
@@ -1639,7 +1657,15 @@ def agreement(noise: float) -> float:
     return AGREE_PX * max(1.0, noise / AGREE_NOISE)
 
 
-def wide_tests(noise: float) -> dict[str, float]:
+class WideTests(TypedDict):
+    """:func:`wide_tests`' keyword arguments of :func:`track_pyramid`."""
+
+    agree: float
+    straddle: float
+    floor: float
+
+
+def wide_tests(noise: float) -> WideTests:
     """:func:`track_pyramid`'s ``agree``, ``straddle`` and ``floor`` (the wide window's tests,
     step 6 of the module notes) for a camera noise of ``noise`` grey levels."""
     return {"agree": agreement(noise), "straddle": STRADDLE, "floor": 2.0 * noise * noise}
@@ -1676,7 +1702,7 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
                   consensus: float = 0.0, wide_half: int = 0, agree: float = AGREE_PX,
                   straddle: float = 0.0, floor: float = 0.0,
                   held: np.ndarray | None = None, follow: bool = False,
-                  followed: np.ndarray | None = None
+                  followed: np.ndarray | None = None, work: int = FRAME_WORK
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Track features from frame t to frame t+1 coarse to fine (see the module notes).
 
@@ -1710,6 +1736,9 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
         the module notes); needs ``subpixel`` and ``max_fb_error`` > 0.
     followed : (N,) bool, set where the feature was taken by step 0 (the others were searched
         coarse to fine; the consensus may still reject it); None: not wanted.
+    work : the searches of Eq. (1) this call may make, window pixels x displacements, over
+        every level and step (:data:`FRAME_WORK`); a feature whose search would exceed what
+        is left is not searched (status :data:`.ssd.OVER`).
 
     Returns
     -------
@@ -1737,6 +1766,9 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
             bad = xy[~(np.abs(xy) <= MAX_COORD).all(axis=1)][0]
             raise ValueError(f"{name} must be finite x, y px within +-{MAX_COORD:g}: got "
                              f"({bad[0]:g}, {bad[1]:g})")
+    if not 0 <= work <= NO_BUDGET:
+        raise ValueError(f"work must be 0 to {NO_BUDGET}: got {work}")
+    budget = np.full(1, work, np.int64)
     n_feat = len(pts)
     pos = np.empty((n_feat, 2), np.float64)
     ssd = np.empty(n_feat, np.float64)
@@ -1759,7 +1791,7 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
                                 float(consensus), float(DOMINANT_PX), float(AFFINE_FIT_PX),
                                 bool(subpixel),
                                 int(wide_half), acc, float(agree), float(straddle),
-                                float(floor), pos, ssd, status))
+                                float(floor), budget, pos, ssd, status))
 
     found = run(preds, hold, bool(follow), pos, ssd, status, taken)
     if guided_retry and n_feat >= MIN_GUIDES and found < n_feat and (

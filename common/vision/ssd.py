@@ -787,8 +787,14 @@ FB = 6
 DISAGREES = 7
 #: the RMS residual at the match exceeds ``max_residual`` (set by the tracker)
 RESIDUAL = 8
+#: not searched: the searches of its frame had spent their work budget
+#: (:data:`.pyramid.FRAME_WORK`)
+OVER = 9
 STATUS_NAMES = ("ok", "left", "cut", "border", "ambiguous", "runaway", "fb", "disagrees",
-                "residual")
+                "residual", "budget")
+#: the work budget of :func:`_search_level` that never runs out (the paper's search,
+#: :func:`track_ssd`): work is counted in window pixels x displacements searched
+NO_BUDGET = 2**62
 
 
 @nb.njit(**NO_NRT)
@@ -865,7 +871,7 @@ def _weights_info(wts):  # pragma: no cover - numba
 
 @nb.njit(cache=True, nogil=True)
 def _search_level(prev, curr, anchors, centers, active, n, s, wts, exhaustive, ratio,
-                  allowance, out_q, out_ssd, out_status):  # pragma: no cover - numba
+                  allowance, out_q, out_ssd, out_status, budget):  # pragma: no cover - numba
     """The searches of Eq. (1) of the ``active`` features on one pair of frames.
 
     For feature f: the first (row-major) minimum of S over the displacements whose centre lies
@@ -879,6 +885,9 @@ def _search_level(prev, curr, anchors, centers, active, n, s, wts, exhaustive, r
     * AMBIGUOUS (only when ``ratio > 0``): a displacement outside the minimum's 3x3
       neighbourhood has S <= ratio * S_min + allowance;
     * BORDER: the minimum is on the border of the search window;
+    * OVER: not searched, its search would cost more than is left of ``budget[0]``, which
+      each search draws on (window pixels x displacements; the searches of one frame share
+      one budget, so that the work of a frame stays bounded at any parameters);
     * OK otherwise.
     """
     h, w = prev.shape
@@ -951,6 +960,11 @@ def _search_level(prev, curr, anchors, centers, active, n, s, wts, exhaustive, r
             continue
         ncol = hi_x - lo_x + 1
         nrow = hi_y - lo_y + 1
+        cost = nrow * ncol * m * m
+        if cost > budget[0]:
+            out_status[f] = OVER
+            continue
+        budget[0] -= cost
         width = total = 0
         if exhaustive:
             if full32:
@@ -1014,16 +1028,16 @@ def _search_level(prev, curr, anchors, centers, active, n, s, wts, exhaustive, r
 
 
 @nb.njit(cache=True, nogil=True)
-def _track(prev, curr, anchors, centers, n, s, wts, subpixel, exhaustive, acc,
-           out_pos, out_ssd, out_ok):  # pragma: no cover - numba
+def _track(prev, curr, anchors, centers, n, s, wts, subpixel, exhaustive, acc, budget,
+           out_pos, out_ssd, out_ok, status):  # pragma: no cover - numba
     """The searches of :func:`track_ssd` (:func:`_search_level` over every feature, no
-    uniqueness test), results into ``out_pos``, ``out_ssd``, ``out_ok``."""
+    uniqueness test, drawing on ``budget``), results into ``out_pos``, ``out_ssd``,
+    ``out_ok`` and ``status``."""
     n_feat = anchors.shape[0]
     q = np.zeros((n_feat, 2), np.int64)
-    status = np.empty(n_feat, np.int8)
     active = np.ones(n_feat, np.bool_)
     _search_level(prev, curr, anchors, centers, active, n, s, wts, exhaustive, 0.0, 0.0, q,
-                  out_ssd, status)
+                  out_ssd, status, budget)
     for f in range(n_feat):
         # a minimum on the search window's border is kept: the paper's search
         out_ok[f] = status[f] == OK or status[f] == BORDER
@@ -1425,7 +1439,8 @@ def _points(points: np.ndarray) -> np.ndarray:
 
 def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: np.ndarray, *,
               corr_half: int, search_half: int, weights: np.ndarray,
-              subpixel: bool = False, search: str = "pruned"
+              subpixel: bool = False, search: str = "pruned", work: int = NO_BUDGET,
+              status: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Find each feature of frame t in frame t+1 by the SSD of Eq. (1).
 
@@ -1445,13 +1460,18 @@ def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: 
         ``"pruned"`` (default) visits only the displacements the bounds cannot rule out (see
         the module notes), ``"exhaustive"`` scores every displacement in full, the paper's
         plain Eq. (1), whose cost is proportional to (2s+1)^2 (2n+1)^2 per feature.
+    work : the searches these features may make, window pixels x displacements; a feature
+        whose search would exceed what is left is not searched (not ``ok``; status OVER).
+        Default: no limit, the paper's search.
+    status : (N,) int8 array to fill with why each feature was or was not found (OK, BORDER,
+        LEFT, CUT or OVER); None: not wanted.
 
     Returns
     -------
     pos : (N, 2) float64 x, y of the best match in ``curr`` (NaN where not found);
     ssd : (N,) float64 S at the best match (inf where not found);
-    ok : (N,) bool, False where the template leaves ``prev`` or no search position fits
-    ``curr``.
+    ok : (N,) bool, False where the template leaves ``prev``, no search position fits
+    ``curr``, or the search was over ``work``.
     """
     if search not in SEARCH_KINDS:
         raise ValueError(f"search={search!r} is not allowed: use one of "
@@ -1470,9 +1490,15 @@ def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: 
     pos = np.empty((n_feat, 2), np.float64)
     ssd = np.empty(n_feat, np.float64)
     ok = np.empty(n_feat, np.bool_)
+    if not 0 <= work <= NO_BUDGET:
+        raise ValueError(f"work must be 0 to {NO_BUDGET}: got {work}")
+    if status is None:
+        status = np.empty(n_feat, np.int8)
+    elif status.shape != (n_feat,) or status.dtype != np.int8:
+        raise ValueError(f"status must be a ({n_feat},) int8 array")
     _track(prev, curr, anchors, centers, int(corr_half), int(search_half), wts, bool(subpixel),
-           search == "exhaustive", refine_acc(wts) if subpixel else _NO_REFINE, pos,
-           ssd, ok)
+           search == "exhaustive", refine_acc(wts) if subpixel else _NO_REFINE,
+           np.full(1, work, np.int64), pos, ssd, ok, status)
     return pos, ssd, ok
 
 

@@ -43,8 +43,8 @@ from .features import select_features
 from .motion import _incremental_motion, centroid_scatter
 from .noise import noise_level
 from .preprocess import Preprocessed, preprocess
-from .pyramid import Pyramid, build_pyramid, sum_type, track_pyramid, wide_tests
-from .ssd import BORDER, LEFT, OK, RESIDUAL, STATUS_NAMES, track_ssd, window_weights
+from .pyramid import FRAME_WORK, Pyramid, build_pyramid, sum_type, track_pyramid, wide_tests
+from .ssd import BORDER, LEFT, OK, OVER, RESIDUAL, STATUS_NAMES, track_ssd, window_weights
 
 #: The scale steps a new feature's prediction extrapolates (:meth:`Tracker._add_features`):
 #: an approach of up to 25 % a frame either way (the tests run 15 %); beyond, the frame's
@@ -163,14 +163,22 @@ class Tracker:
     @property
     def rejected_total(self) -> int:
         """Features lost because their match could not be trusted (not because their window
-        left the image)."""
-        return int(self._lost[BORDER:].sum())
+        left the image, nor because the frame's searches were over budget)."""
+        return int(self._lost[BORDER:OVER].sum())
+
+    @property
+    def over_budget(self) -> int:
+        """Features lost since the start because their frame's searches had reached
+        :data:`.pyramid.FRAME_WORK` (not searched)."""
+        return int(self._lost[OVER])
 
     @property
     def lost_by(self) -> dict[str, int]:
         """Features lost since the start, by reason: ``left`` (the window left the image),
         ``cut`` (the minimum on an image edge: leaving it), ``border``, ``ambiguous``,
-        ``runaway``, ``fb``, ``residual`` (rejected, see the module notes)."""
+        ``runaway``, ``fb``, ``disagrees``, ``residual`` (rejected, see the module notes),
+        ``budget`` (not searched: the frame's searches had reached
+        :data:`.pyramid.FRAME_WORK`)."""
         return {name: int(v) for name, v in zip(STATUS_NAMES[1:], self._lost[1:], strict=True)}
 
     @property
@@ -251,11 +259,13 @@ class Tracker:
             # (the same matches as track_pyramid at one level, tested; but not its per-frame
             # overhead, which the paper's factorial design would time)
             anchors, centers = _predict(self._pos, self._vel)
+            why = np.empty(len(anchors), np.int8)
             match, ssd, ok = track_ssd(self._prev, frame, anchors, centers,
                                        corr_half=p.corr_half, search_half=p.search_half,
-                                       weights=self._weights, search=p.search)
+                                       weights=self._weights, search=p.search,
+                                       work=FRAME_WORK, status=why)
             found = self._pos + (match - anchors)
-            status = np.where(ok, OK, LEFT).astype(np.int8)
+            status = np.where(ok, OK, np.where(why == OVER, OVER, LEFT)).astype(np.int8)
         else:
             prev = self._prev_pyr
             if prev is None or prev.levels != pyr.levels:  # the levels changed with the params
@@ -320,7 +330,7 @@ class Tracker:
             uniqueness=p.uniqueness, allowance=allowance, reject_border=p.reject_border,
             guided_retry=p.guided_retry, max_fb_error=p.max_fb_error, consensus=p.consensus,
             wide_half=p.refine_half, **wide_tests(max(p.noise_sigma, self.noise)),
-            held=self.held, follow=p.follow, followed=taken)
+            held=self.held, follow=p.follow, followed=taken, work=FRAME_WORK)
         return found, ssd, status, taken
 
     def _add_features(self, pre: Preprocessed, shape: tuple[int, int]) -> None:

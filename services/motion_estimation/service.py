@@ -40,6 +40,7 @@ from ...common.bus import Node
 from ...common.messages import Demand, Estimate, PreFrame, encode_estimate
 from ...common.params import TrackerParams
 from ...common.vision import Preprocessed, Tracker
+from ...common.vision import tracker as vision_tracker
 from ...common.vision.preprocess import DeferredPreprocessed
 from ..kernels import KernelsAhead, late_compiles_logged, warm_up_kernels
 from ..runtime import (
@@ -135,6 +136,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     # (seq, stamp_ns) of the frame last tracked, and its estimate: what a frame sent again gets
     answered: tuple[int, int, bytes] = (-1, -1, b"")
     last_npi, last_valid = 0, False  # the last estimate's, for the status
+    warned_budget = -1  # the params_id whose frames were last said to be over budget
 
     ahead = KernelsAhead(log)
     pending: ParamsUpdate | None = None  # accepted, waiting for kernels of its own
@@ -174,7 +176,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         return True
 
     def on_frame(payload: bytes) -> None:
-        nonlocal last_seq, answered, last_npi, last_valid
+        nonlocal last_seq, answered, last_npi, last_valid, warned_budget
         t0 = time.perf_counter()
         if pending is not None:
             put_in_force()
@@ -194,14 +196,21 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             log.info("camera restarted (seq %d after %d): new track", msg.seq, last_seq)
             tracker.reset()
         last_seq = msg.seq
-        redetections = tracker.redetections
+        redetections, over = tracker.redetections, tracker.over_budget
         try:
             est = tracker.update(pre, seq=msg.seq, t_start=t0)
         except ValueError as e:  # the only one: the frame size changed (another camera)
             log.warning("%s: restarting the track", e)
             tracker.reset()
-            redetections = 0
+            redetections, over = 0, tracker.over_budget
             est = tracker.update(pre, seq=msg.seq, t_start=t0)
+        if tracker.over_budget > over and warned_budget != state.params_id:
+            warned_budget = state.params_id
+            log.warning("frame %d: %d features not searched, the frame's searches had reached "
+                        "their budget (%.3g window pixels x displacements) at params_id %d "
+                        "(%s); smaller search_size, corr_size or max_features keep within it "
+                        "(said once per params_id)", msg.seq, tracker.over_budget - over,
+                        vision_tracker.FRAME_WORK, state.params_id, state.params.factors())
         out = estimate_payload(est, seq=msg.seq, stamp_ns=msg.stamp_ns,
                                params_id=state.params_id)
         node.publish(node.keys.estimate, out, reliable=node.answer_reliably)
@@ -225,8 +234,9 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             npi=last_npi, valid=last_valid, lost=tracker.lost_total,
             rejected_features=tracker.rejected_total, redetections=tracker.redetections,
             exposure_steps=tracker.exposure_steps, zoom_warps=tracker.zoom_warps,
-            noise=round(tracker.noise, 2),
-            rejected_by={k: v for k, v in lost_by.items() if k not in ("left", "cut")})
+            noise=round(tracker.noise, 2), over_budget=lost_by["budget"],
+            rejected_by={k: v for k, v in lost_by.items()
+                         if k not in ("left", "cut", "budget")})
 
     def recover() -> None:
         # a frame that failed may have left the track half-updated: start a new one

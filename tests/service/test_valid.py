@@ -105,6 +105,31 @@ def test_motion_estimation_status_counts_rejected_features_by_reason():
     assert extra["lost"] >= extra["rejected_features"] and "rejected" not in extra
 
 
+def test_motion_estimation_counts_features_over_the_frames_budget_apart(monkeypatch, caplog):
+    """Features a frame had no search budget left for are lost as ``over_budget`` in the
+    status, not as rejected matches, and the log says so once for the parameters in force,
+    naming them and what to make smaller."""
+    from vistrack.common.vision import tracker as tracker_module
+    from vistrack.services.motion_estimation.service import loop
+
+    monkeypatch.setattr(tracker_module, "FRAME_WORK", 0)
+    frames = synthetic.sequence(4, size=(128, 128))
+    with caplog.at_level("WARNING", logger="vistrack.motion_estimation"), \
+            Running("motion_estimation", loop, parse("motion-estimation")) as node:
+        for seq, image in enumerate(frames):
+            payload = pre_frame(image, seq)
+            wait_for(lambda payload=payload: node.feed(node.keys.pre_frame, payload),
+                     what="a subscription")
+            wait_for(lambda seq=seq: len(node.published_on(node.keys.estimate)) > seq,
+                     what=f"estimate {seq}")
+        extra = node.status.as_dict()["extra"]
+    assert extra["over_budget"] > 0, extra
+    assert "budget" not in extra["rejected_by"] and extra["lost"] >= extra["over_budget"]
+    said = [r.getMessage() for r in caplog.records if "budget" in r.getMessage()]
+    assert len(said) == 1, said
+    assert "search_size" in said[0] and "params_id 0" in said[0] and "(0 window" in said[0]
+
+
 def test_the_controller_does_not_move_the_robot_on_an_invalid_estimate():
     """An invalid first estimate neither moves the robot nor sets the set point; an invalid
     one later stops it; valid ones move it again."""

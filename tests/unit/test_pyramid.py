@@ -13,7 +13,7 @@ from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker, preprocess, track_ssd, window_weights
 from vistrack.common.vision import tracker as tracker_module
 from vistrack.common.vision.pyramid import NEIGHBOURS, _consensus, build_pyramid, track_pyramid
-from vistrack.common.vision.ssd import AMBIGUOUS, BORDER, DISAGREES, FB, OK, STATUS_NAMES
+from vistrack.common.vision.ssd import AMBIGUOUS, BORDER, DISAGREES, FB, OK, OVER, STATUS_NAMES
 
 from conftest import load_pair, source_image
 
@@ -609,3 +609,56 @@ def test_ring_fit_finds_a_second_motion_on_one_side_and_blur_all_round(real_imag
     blurred = cv2.blur(curr, (5, 1))
     inner, ring = _ring_fit(prev, blurred, ax, ay, ax + 2.0, ay + 1.0, n, wide, sq, cols)
     assert inner > 0.0 and ring <= STRADDLE * inner + floor
+
+
+@pytest.mark.parametrize("search", ["pruned", "exhaustive"])
+def test_a_frames_searches_stop_at_their_work_budget(real_image, search):
+    """Each search draws (2s+1)^2 displacements x (2n+1)^2 window pixels on the budget
+    ``work``: a feature whose search would overrun what is left is not searched (status
+    ``budget``, not found) and the features searched before it are found exactly as without
+    a budget; ``track_ssd``, the paper's search, counts the same way and has no budget by
+    default."""
+    n, s = 4, 7
+    cost = (2 * s + 1) ** 2 * (2 * n + 1) ** 2
+    wts = window_weights("uniform", n)
+    nxt = shifted(real_image, 2.4, -1.7)
+    pts = np.random.default_rng(3).integers(40, 216, (30, 2)).astype(float)
+    kw = dict(corr_half=n, search_half=s, weights=wts, search=search)
+    one, two = build_pyramid(real_image, 1), build_pyramid(nxt, 1)
+    free_pos, free_ssd, free_status = track_pyramid(one, two, pts, pts, **kw)
+    assert (free_status == OK).sum() >= 25
+    pos, ssd, status = track_pyramid(one, two, pts, pts, work=12 * cost - 1, **kw)
+    assert STATUS_NAMES[OVER] == "budget"
+    np.testing.assert_array_equal(status[:11], free_status[:11])
+    np.testing.assert_array_equal(pos[:11], free_pos[:11])
+    np.testing.assert_array_equal(ssd[:11], free_ssd[:11])
+    assert (status[11:] == OVER).all() and np.isnan(pos[11:]).all()
+    assert np.isinf(ssd[11:]).all()
+    why = np.empty(30, np.int8)
+    spos, _, ok = track_ssd(real_image, nxt, pts.astype(int), pts.astype(int), work=12 * cost,
+                            status=why, **kw)
+    np.testing.assert_array_equal(ok[:12], free_status[:12] == OK)
+    np.testing.assert_array_equal(spos[:12], free_pos[:12])
+    assert (why[12:] == OVER).all() and not ok[12:].any()
+    _, _, unbounded = track_ssd(real_image, nxt, pts.astype(int), pts.astype(int), **kw)
+    np.testing.assert_array_equal(unbounded, free_status == OK)
+    with pytest.raises(ValueError, match="work must be 0 to"):
+        track_pyramid(one, two, pts, pts, work=-1, **kw)
+
+
+def test_a_frame_over_its_budget_loses_features_as_budget_not_as_rejected(real_image,
+                                                                         monkeypatch):
+    """The tracker at every check (coarse to fine, way back, retry) shares one budget a
+    frame: with none left, the features that needed a search are lost as ``budget``, not
+    counted as rejected matches, and the estimate stays finite; re-detection refills them."""
+    monkeypatch.setattr(tracker_module, "FRAME_WORK", 0)
+    tracker = Tracker(TrackerParams(follow=False))
+    e0 = tracker.process(real_image)
+    e1 = tracker.process(shifted(real_image, 3.0, -2.0))
+    assert e0.npi > 50
+    assert tracker.over_budget == tracker.lost_by["budget"] == e0.npi
+    assert tracker.rejected_total == 0
+    assert np.isfinite([e1.xc, e1.yc, e1.xe, e1.ye, e1.dx, e1.dy, e1.scale]).all()
+    monkeypatch.setattr(tracker_module, "FRAME_WORK", 10**10)
+    e2 = tracker.process(shifted(real_image, 6.0, -4.0))
+    assert e2.npi > 50 and tracker.over_budget == e0.npi

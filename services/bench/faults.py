@@ -150,7 +150,8 @@ def extreme(rng: np.random.Generator, key: str, seq: int, params_id: int) -> byt
                         t_ms=abs(num()), first=bool(rng.integers(2)),
                         features=[[i, num(), num()] for i in range(npi)],
                         params_id=0).encode()
-    # parameters at the limits of their ranges (a large-window set makes a frame ~0.5 s)
+    # parameters at the limits of their ranges (a large-window set makes a frame up to ~1.5 s
+    # here: the frame's search budget, pyramid.FRAME_WORK, bounds it; up to 45 s before)
     values = {name: BOUNDS[name][int(rng.integers(2))] for name in FACTORS}
     return Params.from_tracker_params(TrackerParams().replace(**values), seq=seq,
                                       stamp_ns=stamp, params_id=params_id, source="user",

@@ -32,6 +32,10 @@ def test_bench_pipeline(capsys):
                 "free_cpu_us_per_frame"):
         assert math.isfinite(fig[key]) and fig[key] > 0, key
     assert fig["paced_lat_p99_ms"] >= fig["paced_lat_p50_ms"]
+    # 6 s at 30 fps hold three replays of the 60 built-in frames: frames after a jump, and others
+    for key in ("paced_lat_p99_steady_ms", "paced_lat_p99_wrap_ms"):
+        assert math.isfinite(fig[key]) and fig[key] > 0, key
+    assert "p99 of the frames after a jump" in buf.getvalue()
     assert fig["paced_frames"] >= 100 and fig["paced_720_frames"] >= 100  # ~30 fps for 6 s
     assert fig["hop_ratio_skeleton"] == pytest.approx(fig["paced_hop_ms"]
                                                       / fig["skeleton_paced_hop_ms"])

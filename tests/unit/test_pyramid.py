@@ -662,3 +662,33 @@ def test_a_frame_over_its_budget_loses_features_as_budget_not_as_rejected(real_i
     monkeypatch.setattr(tracker_module, "FRAME_WORK", 10**10)
     e2 = tracker.process(shifted(real_image, 6.0, -4.0))
     assert e2.npi > 50 and tracker.over_budget == e0.npi
+
+
+def test_a_frame_that_lost_few_features_is_not_tracked_all_over_again(real_image, monkeypatch):
+    """Predictions broken by a jump (9 px, beyond the search's 7) send every held feature
+    coarse to fine, which finds all but one whose window left the frame. Running every
+    feature again around the frame-wide shift keeps whichever run found more, so with one
+    feature in 40 to gain it is skipped (RETRY_GAIN): the same result from one run, where
+    without the gate it took two."""
+    from vistrack.common.vision import pyramid
+
+    nxt = shifted(real_image, 9.0, 0.0)
+    ys, xs = np.mgrid[40:216:28, 40:200:28]
+    pts = np.column_stack([xs.ravel(), ys.ravel()]).astype(float)[:39]
+    pts = np.vstack([pts, [[real_image.shape[1] - 8.0, 128.0]]])  # leaves the frame
+    one, two = build_pyramid(real_image, 3), build_pyramid(nxt, 3)
+    kw = dict(corr_half=4, search_half=7, weights=window_weights("uniform", 4), subpixel=True,
+              uniqueness=1.25, max_fb_error=1.0, consensus=2.0, guided_retry=True,
+              wide_half=10, follow=True, held=np.ones(len(pts), bool), reject_border=True)
+    runs = []
+    kernel = pyramid._track_frame
+    monkeypatch.setattr(pyramid, "_track_frame", lambda *a: runs.append(1) or kernel(*a))
+    pos, _, status = track_pyramid(one, two, pts, pts, **kw)
+    assert len(runs) == 1 and (status == OK).sum() == 39 and status[-1] != OK
+    np.testing.assert_allclose(pos[:-1] - pts[:-1], [[9.0, 0.0]] * 39, atol=0.1)
+    monkeypatch.setattr(pyramid, "RETRY_GAIN", 0.0)
+    runs.clear()
+    pos0, _, status0 = track_pyramid(one, two, pts, pts, **kw)
+    assert len(runs) == 2
+    np.testing.assert_array_equal(status0, status)
+    np.testing.assert_array_equal(pos0, pos)

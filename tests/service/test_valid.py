@@ -54,6 +54,17 @@ def pre_frame(image: np.ndarray, seq: int) -> bytes:
                     strength=pre.strength, params_id=0).encode()
 
 
+def track(node: MemoryNode, frames: list[np.ndarray]) -> None:
+    """Feed ``frames`` to a running motion-estimation in turn, each once its estimate of the
+    one before is out."""
+    for seq, image in enumerate(frames):
+        payload = pre_frame(image, seq)
+        wait_for(lambda payload=payload: node.feed(node.keys.pre_frame, payload),
+                 what="a subscription")
+        wait_for(lambda seq=seq: len(node.published_on(node.keys.estimate)) > seq,
+                 what=f"estimate {seq}")
+
+
 def test_motion_estimation_marks_an_estimate_without_features_invalid():
     """Textured frames give valid estimates; an all-black frame (a covered lens) and a frame
     too small for any feature give ones that say so, with every number finite, and the
@@ -67,11 +78,7 @@ def test_motion_estimation_marks_an_estimate_without_features_invalid():
         def estimates() -> list[Estimate]:
             return [Estimate.decode(p) for p in node.published_on(node.keys.estimate)]
 
-        for seq, image in enumerate(frames):
-            payload = pre_frame(image, seq)
-            wait_for(lambda payload=payload: node.feed(node.keys.pre_frame, payload),
-                     what="a subscription")
-            wait_for(lambda seq=seq: len(estimates()) > seq, what=f"estimate {seq}")
+        track(node, frames)
         got = estimates()
     assert [e.valid for e in got] == [True, True, True, False, False, True]
     assert all(e.npi >= 10 for e in got if e.valid)
@@ -92,12 +99,7 @@ def test_motion_estimation_status_counts_rejected_features_by_reason():
     frames = [*synthetic.sequence(2, size=(128, 128)),
               synthetic.sequence(1, size=(128, 128), seed=7)[0]]
     with Running("motion_estimation", loop, parse("motion-estimation")) as node:
-        for seq, image in enumerate(frames):
-            payload = pre_frame(image, seq)
-            wait_for(lambda payload=payload: node.feed(node.keys.pre_frame, payload),
-                     what="a subscription")
-            wait_for(lambda seq=seq: len(node.published_on(node.keys.estimate)) > seq,
-                     what=f"estimate {seq}")
+        track(node, frames)
         extra = node.status.as_dict()["extra"]  # the tracker's counters: computed when read
     by = extra["rejected_by"]
     assert set(by) == {"border", "ambiguous", "runaway", "fb", "disagrees", "residual"}
@@ -116,12 +118,7 @@ def test_motion_estimation_counts_features_over_the_frames_budget_apart(monkeypa
     frames = synthetic.sequence(4, size=(128, 128))
     with caplog.at_level("WARNING", logger="vistrack.motion_estimation"), \
             Running("motion_estimation", loop, parse("motion-estimation")) as node:
-        for seq, image in enumerate(frames):
-            payload = pre_frame(image, seq)
-            wait_for(lambda payload=payload: node.feed(node.keys.pre_frame, payload),
-                     what="a subscription")
-            wait_for(lambda seq=seq: len(node.published_on(node.keys.estimate)) > seq,
-                     what=f"estimate {seq}")
+        track(node, frames)
         extra = node.status.as_dict()["extra"]
     assert extra["over_budget"] > 0, extra
     assert "budget" not in extra["rejected_by"] and extra["lost"] >= extra["over_budget"]

@@ -644,6 +644,8 @@ def test_a_frames_searches_stop_at_their_work_budget(real_image, search):
     np.testing.assert_array_equal(unbounded, free_status == OK)
     with pytest.raises(ValueError, match="work must be 0 to"):
         track_pyramid(one, two, pts, pts, work=-1, **kw)
+    with pytest.raises(ValueError, match=r"status must be a \(30,\) int8 array"):
+        track_ssd(real_image, nxt, pts.astype(int), pts.astype(int), status=why[:3], **kw)
 
 
 def test_a_frame_over_its_budget_loses_features_as_budget_not_as_rejected(real_image,

@@ -220,6 +220,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                 node.status.extra.get("candidates_here", 0) + 1
         demand.after(tracker, est.npi, tracker.redetections > redetections, msg.stamp_ns)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
+        tracker.settle()  # the work the estimate did not wait for (the camera's noise)
         last_npi, last_valid = est.npi, est.valid
         if node.status.extra_on_read is None:
             node.status.extra_on_read = tracked

@@ -11,7 +11,7 @@ import pytest
 from vistrack.common import rendered
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker
-from vistrack.common.vision.exposure import compensate, exposure_change
+from vistrack.common.vision.exposure import _overlap_stats, compensate, exposure_change
 from vistrack.common.vision.pyramid import build_pyramid
 
 from conftest import rendered_sequences
@@ -164,3 +164,27 @@ def test_a_steady_exposure_is_left_alone(sequences):
         off, _, _, _, _ = _run(seq, TrackerParams(exposure=False))
         for a, b in zip(on, off, strict=True):
             assert np.array_equal(a.points, b.points) and np.array_equal(a.ids, b.ids)
+
+
+def test_the_frames_statistics_are_opencvs_to_the_bit(real_image):
+    """compensate reads the overlap's mean and standard deviation in one kernel, on every
+    frame: they must be those of ``cv2.meanStdDev`` exactly, for any shift (none where the
+    levels do not overlap), on real and on flat, dark and saturated frames."""
+    rng = np.random.default_rng(3)
+    frames = [real_image, _exposed(real_image, 1.3, -20.0), np.zeros_like(real_image),
+              np.full_like(real_image, 255), np.flipud(real_image)]
+    for a in frames:
+        for b in frames:
+            pa, pb = build_pyramid(a, 3), build_pyramid(b, 3)
+            for ix, iy in [(0, 0), (-64, 0), (0, 64), (70, 0)] + \
+                    [tuple(int(v) for v in rng.integers(-40, 40, 2)) for _ in range(3)]:
+                got = _overlap_stats(pa.data, pb.data, pa.geo, 2, ix, iy)
+                h, w = pa.shapes[2]
+                x0, x1, y0, y1 = max(0, -ix), min(w, w - ix), max(0, -iy), min(h, h - iy)
+                if x1 <= x0 or y1 <= y0:
+                    assert got == (0.0, 0.0, 0.0, 0.0)
+                    continue
+                want = [float(v) for part in (
+                    pa.level(2)[y0:y1, x0:x1], pb.level(2)[y0 + iy:y1 + iy, x0 + ix:x1 + ix])
+                    for v in np.concatenate(cv2.meanStdDev(part)).ravel()]
+                assert list(got) == want, (ix, iy)

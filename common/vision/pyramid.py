@@ -361,18 +361,19 @@ def build_pyramid(frame: np.ndarray, levels: int) -> Pyramid:
     frame = np.ascontiguousarray(frame, np.uint8)
     if frame.ndim != 2:
         raise ValueError(f"expected an (H, W) frame, got shape {frame.shape}")
-    geo, shapes = _layout(frame.shape, levels)
-    data = np.empty(int(geo[-1, 0] + geo[-1, 1] * geo[-1, 2]), np.uint8)
+    geo, shapes, size = _layout(frame.shape, levels)
+    data = np.empty(size, np.uint8)
     _build(frame, data, geo)
     return Pyramid(data, geo, shapes)
 
 
 @functools.lru_cache(maxsize=8)
-def _layout(shape: tuple[int, int], levels: int) -> tuple[np.ndarray, tuple[tuple[int, int], ...]]:
-    """The table of levels (:attr:`Pyramid.geo`) and their shapes for frames of ``shape``:
-    the same for every frame of a run, so made once (building it took ~1/3 of
-    :func:`build_pyramid`, ~10 us a frame). The table is shared by those frames' pyramids and
-    must not be written to."""
+def _layout(shape: tuple[int, int], levels: int
+            ) -> tuple[np.ndarray, tuple[tuple[int, int], ...], int]:
+    """The table of levels (:attr:`Pyramid.geo`), their shapes and the pyramid's size in
+    bytes for frames of ``shape``: the same for every frame of a run, so made once (building
+    it took ~1/3 of :func:`build_pyramid`, ~10 us a frame). The table is shared by those
+    frames' pyramids and must not be written to."""
     shapes = [(int(shape[0]), int(shape[1]))]
     while len(shapes) < levels and min(shapes[-1]) >= 8:
         h, w = shapes[-1]
@@ -382,7 +383,7 @@ def _layout(shape: tuple[int, int], levels: int) -> tuple[np.ndarray, tuple[tupl
     for k, (h, w) in enumerate(shapes):
         geo[k] = offset, h, w
         offset += h * w
-    return geo, tuple(shapes)
+    return geo, tuple(shapes), offset
 
 
 @nb.njit(cache=True, nogil=True)
@@ -655,8 +656,15 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
     many were found; ``acc``: the integer type of the sub-pixel sums
     (:func:`.ssd.refine_acc`); ``dominant`` and ``affine_fit``: DOMINANT_PX and AFFINE_FIT_PX
     (read where it is called, so that a test can turn steps 5b and 7 off); ``budget``: (1,)
-    int64, what is left of the frame's searches (:data:`FRAME_WORK`), drawn on here."""
+    int64, what is left of the frame's searches (:data:`FRAME_WORK`), drawn on here.
+    Returns -1, having done nothing, where a point or prediction is not finite within
+    +-MAX_COORD (NaN fails the comparison too): one given to the search indexed memory at
+    random (SIGSEGV)."""
     n_feat = pts.shape[0]
+    for f in range(n_feat):
+        for c in range(2):
+            if not (abs(pts[f, c]) <= MAX_COORD and abs(preds[f, c]) <= MAX_COORD):
+                return -1
     for f in range(n_feat):
         out_pos[f, 0] = np.nan
         out_pos[f, 1] = np.nan
@@ -1765,12 +1773,6 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
     preds = np.ascontiguousarray(predictions, np.float64).reshape(-1, 2)
     if pts.shape != preds.shape:
         raise ValueError(f"points {pts.shape} and predictions {preds.shape} differ in shape")
-    for name, xy in (("points", pts), ("predictions", preds)):
-        # NaN fails the comparison too; a kernel given one indexed memory at random (SIGSEGV)
-        if xy.size and not np.abs(xy).max() <= MAX_COORD:
-            bad = xy[~(np.abs(xy) <= MAX_COORD).all(axis=1)][0]
-            raise ValueError(f"{name} must be finite x, y px within +-{MAX_COORD:g}: got "
-                             f"({bad[0]:g}, {bad[1]:g})")
     if not 0 <= work <= NO_BUDGET:
         raise ValueError(f"work must be 0 to {NO_BUDGET}: got {work}")
     budget = np.full(1, work, np.int64)
@@ -1789,7 +1791,7 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
         raise ValueError(f"followed must be a ({n_feat},) bool array")
     def run(preds: np.ndarray, hold: np.ndarray, follow: bool, pos: np.ndarray,
             ssd: np.ndarray, status: np.ndarray, taken: np.ndarray) -> int:
-        return int(_track_frame(prev.data, curr.data, prev.geo, pts, preds, hold, follow,
+        found = int(_track_frame(prev.data, curr.data, prev.geo, pts, preds, hold, follow,
                                 taken, int(corr_half), int(search_half), wts,
                                 search == "exhaustive", float(uniqueness), float(allowance),
                                 bool(reject_border), bool(guided_retry), float(max_fb_error),
@@ -1797,6 +1799,9 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
                                 bool(subpixel),
                                 int(wide_half), acc, float(agree), float(straddle),
                                 float(floor), budget, pos, ssd, status))
+        if found < 0:  # a point or prediction out of bounds, which the kernel would not use
+            _bad_coordinates(pts, preds)
+        return found
 
     found = run(preds, hold, bool(follow), pos, ssd, status, taken)
     if guided_retry and n_feat >= MIN_GUIDES and n_feat - found > RETRY_GAIN * n_feat and (
@@ -1816,6 +1821,20 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
                 pos, ssd, status = pos2, ssd2, status2
                 taken[:] = False
     return pos, ssd, status
+
+
+def _bad_coordinates(pts: np.ndarray, preds: np.ndarray) -> None:
+    """Raise the error that names the first of ``pts`` or ``preds`` not finite within
+    +-MAX_COORD (:func:`_track_frame` refused them: the check costs nothing in the kernel,
+    where four numpy calls a frame cost ~40 us in a service, each from cold caches)."""
+    for name, xy in (("points", pts), ("predictions", preds)):
+        # NaN fails the comparison too
+        out = ~(np.abs(xy) <= MAX_COORD).all(axis=1)
+        if out.any():
+            bad = xy[out][0]
+            raise ValueError(f"{name} must be finite x, y px within +-{MAX_COORD:g}: got "
+                             f"({bad[0]:g}, {bad[1]:g})")
+    raise AssertionError("_track_frame refused coordinates that are all within bounds")
 
 
 def _broke(pts: np.ndarray, preds: np.ndarray, pos: np.ndarray, status: np.ndarray,

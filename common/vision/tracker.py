@@ -122,6 +122,7 @@ class Tracker:
     """
 
     def __init__(self, params: TrackerParams | None = None) -> None:
+        self._all_held = np.ones(0, np.bool_)
         self.set_params(params if params is not None else TrackerParams())
         self.reset()
 
@@ -203,6 +204,14 @@ class Tracker:
         """Which of the current features the next frame first follows from its prediction
         (step 0 of :mod:`.pyramid`): every one (see :meth:`_add_features`)."""
         return np.ones(len(self._pos), np.bool_)
+
+    def _held(self, n: int) -> np.ndarray:
+        """:attr:`held` for the kernel, which only reads it: a view of an array kept and
+        grown as needed (np.ones every frame was ~60 us of a service's frame at 30 fps, where
+        every call starts from cold caches)."""
+        if len(self._all_held) < n:
+            self._all_held = np.ones(max(n, 2 * len(self._all_held)), np.bool_)
+        return self._all_held[:n]
 
     def process(self, gray: np.ndarray, seq: int | None = None) -> Estimate:
         """Pre-process and track one (H, W) uint8 frame; t_ms covers both."""
@@ -346,7 +355,7 @@ class Tracker:
             uniqueness=p.uniqueness, allowance=allowance, reject_border=p.reject_border,
             guided_retry=p.guided_retry, max_fb_error=p.max_fb_error, consensus=p.consensus,
             wide_half=p.refine_half, **wide_tests(max(p.noise_sigma, self.noise)),
-            held=self.held, follow=p.follow, followed=taken, work=FRAME_WORK)
+            held=self._held(len(pts)), follow=p.follow, followed=taken, work=FRAME_WORK)
         return found, ssd, status, taken
 
     def _add_features(self, pre: Preprocessed, shape: tuple[int, int]) -> None:

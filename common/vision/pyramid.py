@@ -1775,7 +1775,7 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
         raise ValueError(f"points {pts.shape} and predictions {preds.shape} differ in shape")
     if not 0 <= work <= NO_BUDGET:
         raise ValueError(f"work must be 0 to {NO_BUDGET}: got {work}")
-    budget = np.full(1, work, np.int64)
+    budget = np.array((work,), np.int64)  # one C call (np.full is two, in Python)
     n_feat = len(pts)
     pos = np.empty((n_feat, 2), np.float64)
     ssd = np.empty(n_feat, np.float64)

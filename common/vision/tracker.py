@@ -336,6 +336,20 @@ class Tracker:
         self._vel = vel
         self._ids = ids
 
+    def rehearse(self) -> bool:
+        """Run a frame's search on a tiny job, keeping nothing: the first two features
+        tracked from the last frame into itself, through the same calls and kernels as a
+        frame's (:class:`~vistrack.services.runtime.Rehearsal`: a service at 30 fps runs it
+        just before the next frame is expected, whose work then finds its code warm). False
+        where there is nothing to rehearse on: no frame or feature yet, or the paper's
+        tracker (no pyramid)."""
+        pyr = self._prev_pyr
+        if pyr is None or len(self._pos) == 0:
+            return False
+        pts = self._pos[:2].copy()
+        self._search(pyr, pyr, pts, pts)
+        return True
+
     def _exposed(self, prev: Pyramid, pyr: Pyramid) -> Pyramid:
         """Frame t's pyramid in frame t+1's exposure, where it changed (``exposure``)."""
         p = self._params
@@ -346,7 +360,7 @@ class Tracker:
         """The features at ``pts`` of frame t (``prev``) tracked into frame t+1 (``pyr``) from
         ``preds``: positions, S, status, and which step 0 took (:func:`.track_pyramid`)."""
         p = self._params
-        taken = np.zeros(len(self._pos), np.bool_)
+        taken = np.zeros(len(pts), np.bool_)
         # what noise alone adds to S at a perfect match: both frames' noise, over the window
         allowance = 2.0 * p.noise_sigma ** 2 * self._wsum
         found, ssd, status = track_pyramid(

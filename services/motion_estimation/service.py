@@ -37,7 +37,7 @@ import time
 import numpy as np
 
 from ...common.bus import Node
-from ...common.messages import Demand, Estimate, PreFrame, encode_estimate
+from ...common.messages import Demand, Estimate, MessageError, PreFrame, encode_estimate
 from ...common.params import TrackerParams
 from ...common.vision import Preprocessed, Tracker
 from ...common.vision import tracker as vision_tracker
@@ -46,6 +46,7 @@ from ..kernels import KernelsAhead, late_compiles_logged, warm_up_kernels
 from ..runtime import (
     ParamsInForce,
     ParamsUpdate,
+    Rehearsal,
     add_service_args,
     decode_or_reject,
     dispatch,
@@ -213,6 +214,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                         vision_tracker.FRAME_WORK, state.params_id, state.params.factors())
         out = estimate_payload(est, seq=msg.seq, stamp_ns=msg.stamp_ns,
                                params_id=state.params_id)
+        rehearsed[0] = est
         node.publish(node.keys.estimate, out, reliable=node.answer_reliably)
         answered = (msg.seq, msg.stamp_ns, out)
         if isinstance(pre, DeferredPreprocessed) and pre.computed:
@@ -239,6 +241,21 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             rejected_by={k: v for k, v in lost_by.items()
                          if k not in ("left", "cut", "budget")})
 
+    rehearsed: list[vision_tracker.Estimate | None] = [None]  # the last frame's estimate
+
+    def rehearse(payload: bytes) -> bool:
+        """The frame's path on the last frame, nothing kept (:class:`Rehearsal`): its
+        payload decoded, a search of two features, its estimate encoded."""
+        est = rehearsed[0]
+        if est is None or not tracker.rehearse():
+            return False
+        try:
+            PreFrame.decode(payload)
+        except MessageError:
+            return False
+        estimate_payload(est, seq=est.seq, stamp_ns=0, params_id=state.params_id)
+        return True
+
     def recover() -> None:
         # a frame that failed may have left the track half-updated: start a new one
         tracker.reset()
@@ -247,7 +264,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     ready(node)
     with late_compiles_logged(log):
         dispatch(node, {node.keys.params: on_params, node.keys.pre_frame: on_frame}, log,
-                 recover=recover)
+                 recover=recover,
+                 rehearsal=Rehearsal(node, node.keys.pre_frame, rehearse, log))
 
 
 def main(args: argparse.Namespace) -> int:

@@ -36,13 +36,14 @@ import numpy as np
 from ...common import rmw_zenoh as rmw
 from ...common import ros2types as r2
 from ...common.bus import Node
-from ...common.messages import Demand, Frame, encode_pre_frame
+from ...common.messages import Demand, Frame, MessageError, encode_pre_frame
 from ...common.vision import preprocess
-from ...common.vision.preprocess import Grey
+from ...common.vision.preprocess import Grey, gaussian_filter
 from ..camera import ros2cam
 from ..kernels import late_compiles_logged, warm_up_kernels
 from ..runtime import (
     ParamsInForce,
+    Rehearsal,
     add_service_args,
     decode_or_reject,
     dispatch,
@@ -135,9 +136,25 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     if args.source == FRAME_SOURCE:
         node.subscribe(node.keys.frame, latest=True)
         handlers[node.keys.frame] = on_frame
+        tiny = np.zeros((16, 16), np.uint8)
+        tiny.flags.writeable = False  # as decoded frames come: the kernel they run
+
+        def rehearse(payload: bytes) -> bool:
+            """The frame's path on the last frame and a tiny one, nothing kept
+            (:class:`Rehearsal`): decoded, filtered, encoded."""
+            try:
+                Frame.decode(payload)
+            except MessageError:
+                return False
+            filtered = gaussian_filter(tiny, state.params.blur_sigma)
+            encode_pre_frame(seq=0, stamp_ns=0, data=filtered, candidates=NO_CANDIDATES,
+                             strength=NO_STRENGTH, params_id=state.params_id, deferred=True)
+            return True
+
         ready(node)
         with late_compiles_logged(log):
-            dispatch(node, handlers, log)
+            dispatch(node, handlers, log,
+                     rehearsal=Rehearsal(node, node.keys.frame, rehearse, log))
         return
     topic = ros2cam.topic_of(args.source)
     typename = ros2cam.type_of(topic)

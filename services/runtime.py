@@ -280,8 +280,13 @@ class Rehearsal:
     motion-estimation's frame path (decode to encoded estimate) after 33 ms idle: 1.95 to
     2.07 ms a frame; after a rehearsal of the search alone (~0.7 ms) 3 ms before, 1.2 to
     1.3 ms; with the decode and encode rehearsed too (~0.3 ms more), 0.74 to 0.89 against
-    1.02 ms. Pre-processing's filter alone rehearsed: 0.54 against 0.90 ms. About the same
-    CPU (a cold cache's misses are paid once either way), the frame's latency much lower.
+    1.02 ms. Pre-processing's filter alone rehearsed: 0.54 against 0.90 ms. In the pipeline
+    at 30 fps (`vistrack bench pipeline`'s processes, 256x256), the other processes' work
+    between the rehearsal and the frame takes back part of what it warmed: capture to
+    estimate 3.25 to 3.31 ms at the median against 3.78 to 3.93, p99 5.24 to 5.42 against
+    5.89 to 6.64, for ~0.45 ms more CPU a frame in motion-estimation (2300 to 2450 against
+    1900 to 1983 us with its Zenoh threads) and ~0.35 ms in pre-processing (1583 to 1717
+    against 1267 to 1333): ~2.4 % of a core in all. ``--no-rehearsal`` turns it off.
 
     At most one rehearsal a frame, and none once the frame is late (it may be coming: the
     rehearsal would only stand in its way). The loop (:func:`dispatch`) calls
@@ -336,6 +341,15 @@ class Rehearsal:
                                     "rehearsals", e, exc_info=e)
                 self.rehearse = None
         return timeout
+
+
+def add_rehearsal_arg(parser: argparse.ArgumentParser) -> None:
+    """``--no-rehearsal`` (:class:`Rehearsal`)."""
+    parser.add_argument("--no-rehearsal", action="store_true",
+                        help="do not rehearse a frame's path just before the next frame is "
+                             "expected: less CPU (measured at 30 fps: ~0.4 ms a frame in "
+                             "motion-estimation, ~0.35 in preprocessing), ~0.5 ms more "
+                             "latency a frame")
 
 
 def dispatch(node: Node, handlers: Mapping[str, Handler], logger: logging.Logger, *,

@@ -47,6 +47,7 @@ from ..runtime import (
     ParamsInForce,
     ParamsUpdate,
     Rehearsal,
+    add_rehearsal_arg,
     add_service_args,
     decode_or_reject,
     dispatch,
@@ -59,6 +60,7 @@ log = logging.getLogger("vistrack.motion_estimation")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_service_args(parser, tracker_params=True)
+    add_rehearsal_arg(parser)
 
 
 def estimate_message(e, *, seq: int, stamp_ns: int, params_id: int) -> Estimate:
@@ -265,7 +267,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     with late_compiles_logged(log):
         dispatch(node, {node.keys.params: on_params, node.keys.pre_frame: on_frame}, log,
                  recover=recover,
-                 rehearsal=Rehearsal(node, node.keys.pre_frame, rehearse, log))
+                 rehearsal=None if args.no_rehearsal
+                 else Rehearsal(node, node.keys.pre_frame, rehearse, log))
 
 
 def main(args: argparse.Namespace) -> int:

@@ -44,6 +44,7 @@ from ..kernels import late_compiles_logged, warm_up_kernels
 from ..runtime import (
     ParamsInForce,
     Rehearsal,
+    add_rehearsal_arg,
     add_service_args,
     decode_or_reject,
     dispatch,
@@ -72,6 +73,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "motion-estimation asks for them on motion/demand (on-demand, "
                              "the default: other frames go out deferred, without them)")
     add_service_args(parser, tracker_params=True)
+    add_rehearsal_arg(parser)
 
 
 NO_CANDIDATES = np.empty((0, 2), np.int16)
@@ -153,8 +155,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
 
         ready(node)
         with late_compiles_logged(log):
-            dispatch(node, handlers, log,
-                     rehearsal=Rehearsal(node, node.keys.frame, rehearse, log))
+            dispatch(node, handlers, log, rehearsal=None if args.no_rehearsal
+                     else Rehearsal(node, node.keys.frame, rehearse, log))
         return
     topic = ros2cam.topic_of(args.source)
     typename = ros2cam.type_of(topic)

@@ -119,28 +119,34 @@ def test_a_trackers_rehearsal_keeps_nothing():
 
 
 def _at_30_fps(node: MemoryNode, key: str, out_key: str, payloads: list[bytes]) -> list[bytes]:
-    """Feed ``payloads`` on ``key`` 33 ms apart; what the service published on ``out_key``
-    for them."""
-    for payload in payloads:
+    """Feed ``payloads`` on ``key`` 33 ms apart, each once the one before is answered on
+    ``out_key`` (a latest-only input: one fed while the service is still busy, on a slow
+    first frame, could be written over); what the service published there."""
+    for n, payload in enumerate(payloads, 1):
+        t0 = time.monotonic()
         wait_for(lambda payload=payload: node.feed(key, payload), what="a subscription")
-        time.sleep(0.033)
-    wait_for(lambda: len(node.published_on(out_key)) == len(payloads), what="every output")
+        wait_for(lambda n=n: len(node.published_on(out_key)) == n, what=f"output {n}")
+        time.sleep(max(0.0, 0.033 - (time.monotonic() - t0)))
     return node.published_on(out_key)
 
 
-def test_motion_estimation_rehearses_between_frames_at_30_fps():
-    """Frames 33 ms apart: the service rehearses before them (status ``rehearsals``), and
-    its estimates are the tracker's own."""
+@pytest.mark.parametrize("flags", [(), ("--no-rehearsal",)])
+def test_motion_estimation_rehearses_between_frames_at_30_fps(flags):
+    """Frames 33 ms apart: the service rehearses before them (status ``rehearsals``) unless
+    told not to, and its estimates are the tracker's own either way."""
     from vistrack.services.motion_estimation.service import loop
 
     frames = synthetic.sequence(12, size=(128, 128))
     offline = Tracker(TrackerParams())
-    with Running("motion_estimation", loop, parse("motion-estimation")) as node:
+    with Running("motion_estimation", loop, parse("motion-estimation", *flags)) as node:
         out = _at_30_fps(node, node.keys.pre_frame, node.keys.estimate,
                          [pre_frame(image, seq) for seq, image in enumerate(frames)])
         got = [Estimate.decode(p) for p in out]
-        rehearsals = node.status.extra["rehearsals"]
-    assert rehearsals >= 3, rehearsals  # from the 5th frame on, one before each
+        rehearsals = node.status.extra.get("rehearsals")
+    if flags:
+        assert rehearsals is None
+    else:
+        assert rehearsals >= 3, rehearsals  # from the 5th frame on, one before each
     for est, image in zip(got, frames, strict=True):
         want = offline.update(preprocess(image, TrackerParams()))
         assert est.npi == want.npi and (est.dx, est.dy, est.scale) == (want.dx, want.dy,

@@ -254,7 +254,8 @@ class Faults:
 
 
 #: A frame's work is rehearsed this long before the next frame is expected, s (see
-#: :class:`Rehearsal`): 1 and 3 ms ahead saved the same, and a frame may come a little early.
+#: :class:`Rehearsal`): in process 1 and 3 ms ahead saved the same; in the pipeline 1.5 ms
+#: saved less (a frame may come a little early, and then finds none).
 REHEARSAL_LEAD_S = 0.003
 #: Frames are rehearsed where they come at least this far apart, s (closer, a frame's work
 #: finds the caches the one before left: ~1.3 times back to back at 1.1 ms), and at most

@@ -670,7 +670,7 @@ class PreFrame(_Message):
         if data is None or n % 4 or len(wire.strength) != n or (wire.deferred and n):
             return None
         if not n:  # a deferred frame (most are): nothing to read, nor to check
-            cand, strength = _NO_CANDIDATES, _NO_STRENGTH
+            cand, strength = NO_CANDIDATES, NO_STRENGTH
         else:
             # copied (5 KiB each), not viewed: at their offsets in the payload they are
             # unaligned, and numba compiles (seconds, on the first frame) and runs other code
@@ -691,11 +691,11 @@ class PreFrame(_Message):
 
 
 PreFrame._FAST = msgspec.msgpack.Decoder(_PreFrameWire)
-#: The candidates and strengths of every frame that comes without them (read-only, shared):
-#: two arrays fewer to make on a deferred frame's path, ~75 us of a service's cold start on
-#: each frame at 30 fps
-_NO_CANDIDATES = _read_only(np.empty((0, 2), "<i2"))
-_NO_STRENGTH = _read_only(np.empty(0, "<f4"))
+#: The candidates and strengths of every frame that goes or comes without them (read-only,
+#: shared by pre-processing, which sends them, and the decoder): two arrays fewer to make on a
+#: deferred frame's path, ~75 us of a service's cold start on each frame at 30 fps
+NO_CANDIDATES = _read_only(np.empty((0, 2), "<i2"))
+NO_STRENGTH = _read_only(np.empty(0, "<f4"))
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -203,7 +203,7 @@ class Tracker:
     def held(self) -> np.ndarray:
         """Which of the current features the next frame first follows from its prediction
         (step 0 of :mod:`.pyramid`): every one (see :meth:`_add_features`)."""
-        return np.ones(len(self._pos), np.bool_)
+        return self._held(len(self._pos)).copy()
 
     def _held(self, n: int) -> np.ndarray:
         """:attr:`held` for the kernel, which only reads it: a view of an array kept and

@@ -56,6 +56,8 @@ from ...common import synthetic
 from ...common.bus import alive_services, loopback_config, query_status
 from ...common.keys import Keys
 from ...common.messages import (
+    NO_CANDIDATES,
+    NO_STRENGTH,
     Estimate,
     Frame,
     PreFrame,
@@ -70,7 +72,6 @@ from ...common.vision import Preprocessed, Tracker, preprocess, warm_up
 from ...common.vision.preprocess import DeferredPreprocessed
 from ..fuzzy_controller.control import FuzzyController, FuzzySurface
 from ..motion_estimation.service import READ_WINDOW, estimate_payload, wants_candidates
-from ..preprocessing.service import NO_CANDIDATES, NO_STRENGTH
 from .messages import pipeline_messages
 
 ECHO_PEER = """

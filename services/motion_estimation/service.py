@@ -139,6 +139,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     # (seq, stamp_ns) of the frame last tracked, and its estimate: what a frame sent again gets
     answered: tuple[int, int, bytes] = (-1, -1, b"")
     last_npi, last_valid = 0, False  # the last estimate's, for the status
+    last_est: vision_tracker.Estimate | None = None  # the last frame's, for a rehearsal
     warned_budget = -1  # the params_id whose frames were last said to be over budget
 
     ahead = KernelsAhead(log)
@@ -179,7 +180,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         return True
 
     def on_frame(payload: bytes) -> None:
-        nonlocal last_seq, answered, last_npi, last_valid, warned_budget
+        nonlocal last_seq, answered, last_npi, last_valid, warned_budget, last_est
         t0 = time.perf_counter()
         if pending is not None:
             put_in_force()
@@ -216,7 +217,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                         vision_tracker.FRAME_WORK, state.params_id, state.params.factors())
         out = estimate_payload(est, seq=msg.seq, stamp_ns=msg.stamp_ns,
                                params_id=state.params_id)
-        rehearsed[0] = est
+        last_est = est
         node.publish(node.keys.estimate, out, reliable=node.answer_reliably)
         answered = (msg.seq, msg.stamp_ns, out)
         if isinstance(pre, DeferredPreprocessed) and pre.computed:
@@ -243,12 +244,10 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             rejected_by={k: v for k, v in lost_by.items()
                          if k not in ("left", "cut", "budget")})
 
-    rehearsed: list[vision_tracker.Estimate | None] = [None]  # the last frame's estimate
-
     def rehearse(payload: bytes) -> bool:
         """The frame's path on the last frame, nothing kept (:class:`Rehearsal`): its
         payload decoded, a search of two features, its estimate encoded."""
-        est = rehearsed[0]
+        est = last_est
         if est is None or not tracker.rehearse():
             return False
         try:

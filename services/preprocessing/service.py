@@ -36,7 +36,14 @@ import numpy as np
 from ...common import rmw_zenoh as rmw
 from ...common import ros2types as r2
 from ...common.bus import Node
-from ...common.messages import Demand, Frame, MessageError, encode_pre_frame
+from ...common.messages import (
+    NO_CANDIDATES,
+    NO_STRENGTH,
+    Demand,
+    Frame,
+    MessageError,
+    encode_pre_frame,
+)
 from ...common.vision import preprocess
 from ...common.vision.preprocess import Grey, gaussian_filter
 from ..camera import ros2cam
@@ -76,8 +83,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_rehearsal_arg(parser)
 
 
-NO_CANDIDATES = np.empty((0, 2), np.int16)
-NO_STRENGTH = np.empty(0, np.float32)
 
 #: ``--source`` of the camera service's frames.
 FRAME_SOURCE = "camera/frame"

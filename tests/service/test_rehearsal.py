@@ -121,8 +121,9 @@ def test_a_trackers_rehearsal_keeps_nothing():
 def _at_30_fps(node: MemoryNode, key: str, out_key: str, payloads: list[bytes]) -> list[bytes]:
     """Feed ``payloads`` on ``key`` 33 ms apart, each once the one before is answered on
     ``out_key`` (a latest-only input: one fed while the service is still busy, on a slow
-    first frame, could be written over); what the service published there."""
-    for n, payload in enumerate(payloads, 1):
+    first frame, could be written over); all the service has published there."""
+    start = len(node.published_on(out_key))
+    for n, payload in enumerate(payloads, start + 1):
         t0 = time.monotonic()
         wait_for(lambda payload=payload: node.feed(key, payload), what="a subscription")
         wait_for(lambda n=n: len(node.published_on(out_key)) == n, what=f"output {n}")
@@ -170,3 +171,23 @@ def test_preprocessing_rehearses_between_frames_at_30_fps():
     assert rehearsals >= 3, rehearsals
     for msg, image in zip(got, frames, strict=True):
         assert np.array_equal(msg.data, preprocess(image, TrackerParams()).filtered)
+
+
+def test_a_malformed_frame_is_rejected_and_rehearsed_around_without_a_fault():
+    """A payload that does not decode, among frames 33 ms apart: rejected as ever (counted,
+    the service goes on), and the rehearsal that would decode it again skips it rather than
+    fail; the frames after it are tracked and rehearsed."""
+    from vistrack.services.motion_estimation.service import loop
+
+    frames = synthetic.sequence(10, size=(128, 128))
+    payloads = [pre_frame(image, seq) for seq, image in enumerate(frames)]
+    with Running("motion_estimation", loop, parse("motion-estimation")) as node:
+        _at_30_fps(node, node.keys.pre_frame, node.keys.estimate, payloads[:6])
+        before = node.status.extra["rehearsals"]
+        node.feed(node.keys.pre_frame, b"\x81\xa1v\x07")  # a map, but not a frame
+        time.sleep(0.033)
+        wait_for(lambda: node.status.as_dict()["rejected"] == 1, what="the rejection")
+        out = _at_30_fps(node, node.keys.pre_frame, node.keys.estimate, payloads[6:])
+        status = node.status.as_dict()
+    assert len(out) == len(frames) and status["failed"] == 0, status
+    assert status["extra"]["rehearsals"] > before

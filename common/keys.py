@@ -14,6 +14,7 @@ attribute           key suffix                      message (common.messages)
 ``cmd_vel``         ``control/cmd_vel``             ``CmdVel``
 ``demand``          ``motion/demand``               ``Demand``
 ``pose``            ``sim/pose``                    ``Pose``
+``pre_done``        ``preprocessing/done``          ``PreDone``
 ==================  ==============================  ==========================
 
 Each service also declares the liveliness token ``vistrack/<robot>/alive/<service>`` and answers
@@ -43,6 +44,7 @@ CONTRACT_SUFFIXES: dict[str, str] = {
     "cmd_vel": "control/cmd_vel",
     "demand": "motion/demand",
     "pose": "sim/pose",
+    "pre_done": "preprocessing/done",
 }
 
 # One key chunk: robot ids and service names must not contain '/', wildcards ('*'), or the
@@ -88,8 +90,8 @@ class Keys:
     ----------
     robot : the robot id.
     root : ``"vistrack/<robot>"``.
-    frame, pre_frame, estimate, params, report, cmd_vel, demand, pose : the contract keys
-        (see the module docstring).
+    frame, pre_frame, estimate, params, report, cmd_vel, demand, pose, pre_done : the contract
+        keys (see the module docstring).
     """
 
     __slots__ = ("robot", "root", *CONTRACT_SUFFIXES)
@@ -109,6 +111,7 @@ class Keys:
     cmd_vel: str
     demand: str
     pose: str
+    pre_done: str
 
     def alive(self, service: str) -> str:
         """Liveliness token key of ``service``: ``vistrack/<robot>/alive/<service>``."""

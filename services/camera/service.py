@@ -1,7 +1,7 @@
 """camera: publish 8-bit grey frames from a file camera, a device, or the built-in sequence.
 
 Reads   ``vistrack/<robot>/motion/estimate``  (pacing to the pipeline, and end of file)
-        ``vistrack/<robot>/preprocessing/frame`` (pacing with ``--fps 0 --in-flight`` > 1)
+        ``vistrack/<robot>/preprocessing/done`` (pacing with ``--fps 0 --in-flight`` > 1)
         ``vistrack/<robot>/control/cmd_vel``  (simulator only: it moves the robot)
 Writes  ``vistrack/<robot>/camera/frame``, ``vistrack/<robot>/sim/pose`` (simulator only)
 
@@ -12,7 +12,9 @@ textured scene), ``sim[:SCENARIO]`` (the robot simulator, see :mod:`.simcam`), `
 ``--fps F`` paces frames at F per second. ``--fps 0`` (the default for files) runs "as fast as
 consumers allow": frame n is sent once motion-estimation has published frame n - ``--in-flight``
 and, with more than one in flight, pre-processing has published frame n-1 (it is free again, so
-nothing overwrites a frame waiting at its input), or after ``--ack-timeout`` s. With the default,
+nothing overwrites a frame waiting at its input: ``preprocessing/done``, a few bytes, says so;
+an estimate of frame n-1 says so too, for a pre-processing that does not publish it), or after
+``--ack-timeout`` s. With the default,
 1, a file camera loses no frame however slow the pipeline: a frame whose estimate does not come
 within ``--ack-timeout`` s is sent again, the same bytes (seq and stamp), up to
 :data:`RESENDS` times, before the camera goes on without it (status ``extra``: ``resent``,
@@ -140,9 +142,15 @@ def open_source(spec: str, size: tuple[int, int] | None, loop: bool) -> Iterator
 class _Acks:
     """How far the pipeline has got: the newest ``stamp_ns`` seen on each watched key.
 
-    A pre-processed frame or an estimate of frame k acknowledges every frame up to k (a frame
-    overwritten at a latest-only input never gets one of its own). Only ``stamp_ns`` is read
-    (:func:`peek_int`); a payload without one is counted as rejected.
+    An estimate, or pre-processing's ``preprocessing/done``, of frame k acknowledges every
+    frame up to k (a frame overwritten at a latest-only input never gets one of its own); an
+    estimate of frame k also says that pre-processing is done with it. Only ``stamp_ns`` is
+    read (:func:`peek_int`); a payload without one is counted as rejected.
+
+    Pre-processing's progress once came from ``preprocessing/frame`` itself: the camera
+    received every pre-processed frame (64 KiB at 256x256, 900 KiB at 1280x720) to read one
+    stamp. Unpaced at 256x256 that cost the pipeline ~100 us of CPU a frame (the camera ~60,
+    pre-processing's second send ~25), ~6 % of it.
     """
 
     def __init__(self, node: Node, keys: tuple[str, ...]) -> None:
@@ -179,6 +187,9 @@ class _Acks:
                                     f"({self.sent})")
         else:
             self.newest[key] = max(self.newest[key], stamp)
+            if key == self.node.keys.estimate and self.node.keys.pre_done in self.newest:
+                done = self.node.keys.pre_done  # tracked, so pre-processed
+                self.newest[done] = max(self.newest[done], stamp)
 
 
 def _is_sim(args: argparse.Namespace) -> bool:
@@ -214,10 +225,10 @@ def loop(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray] | No
     if not released(node, args):
         return 0
     # estimates tell when a frame has been through the pipeline (pacing with --fps 0, and the
-    # end of a file either way); pre-processed frames when pre-processing is free again
+    # end of a file either way); preprocessing/done when pre-processing is free again
     window = 1 if args.fps > 0 else args.in_flight
     acks = _Acks(node, (node.keys.estimate,) if window == 1
-                 else (node.keys.estimate, node.keys.pre_frame))
+                 else (node.keys.estimate, node.keys.pre_done))
     node.advertise(node.keys.frame, reliable=_reliable(args))
     ready(node)
     # a recording loses its first frames if it plays before anyone listens; a live device
@@ -258,7 +269,7 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
         elif sent:
             need = {keys.estimate: sent[0]} if len(sent) == window else {}
             if window > 1:
-                need[keys.pre_frame] = sent[-1]
+                need[keys.pre_done] = sent[-1]
             if not _wait(node, acks, need, args.ack_timeout, last if lockstep else []):
                 sent.clear()  # lost downstream (a service restarted): go on
         # a device's frame: when it was read from the device (its newest, not when sent)

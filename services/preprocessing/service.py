@@ -4,6 +4,8 @@ Reads   ``vistrack/<robot>/camera/frame``          (latest only: a slow stage dr
         ``vistrack/<robot>/tuner/params``          (reliable: applied between frames)
         ``vistrack/<robot>/motion/demand``         (reliable: whether candidates are read)
 Writes  ``vistrack/<robot>/preprocessing/frame``   (filtered frame + candidates + strength)
+        ``vistrack/<robot>/preprocessing/done``    (its seq and stamp_ns, after it, while
+                                                   anything subscribes: a file camera's pacing)
 
 A pre-processed frame keeps its camera frame's ``seq``: downstream sees the camera's gaps, and
 a ``seq`` that goes back (the camera restarted) tells motion-estimation to start a new track.
@@ -42,6 +44,7 @@ from ...common.messages import (
     Demand,
     Frame,
     MessageError,
+    encode_pre_done,
     encode_pre_frame,
 )
 from ...common.vision import preprocess
@@ -107,6 +110,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     if not always:
         node.subscribe(node.keys.demand, latest=False)
     node.advertise(node.keys.pre_frame, reliable=False)
+    node.advertise(node.keys.pre_done, reliable=True)
     node.status.extra["deferred"] = 0
 
     def on_demand(payload: bytes) -> None:
@@ -129,6 +133,10 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                                    params_id=state.params_id, deferred=True)
             node.status.extra["deferred"] += 1
         node.publish(node.keys.pre_frame, out, reliable=node.answer_reliably)
+        if node.has_subscribers(node.keys.pre_done):  # a file camera pacing its frames
+            node.publish(node.keys.pre_done, encode_pre_done(seq=frame.seq,
+                                                             stamp_ns=frame.stamp_ns),
+                         reliable=node.answer_reliably)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
 
     def on_frame(payload: bytes) -> None:

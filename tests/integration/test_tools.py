@@ -58,6 +58,7 @@ CONTRACT: dict[str, dict[str, type]] = {
                      "reason": str},
     "control/cmd_vel": {"vx": float, "vy": float, "wz": float, "stale": bool},
     "motion/demand": {"candidates": bool},
+    "preprocessing/done": {},  # while anything subscribes: this test does
 }
 
 

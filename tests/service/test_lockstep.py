@@ -15,7 +15,7 @@ import pytest
 
 from vistrack.common import synthetic
 from vistrack.common.bus import MemoryNode
-from vistrack.common.messages import CmdVel, Estimate, Frame, peek_seq
+from vistrack.common.messages import CmdVel, Estimate, Frame, PreDone, peek_seq
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker
 from vistrack.services.camera import service as camera
@@ -27,10 +27,12 @@ N = 8
 FRAME, PRE, EST = 0, 1, 2  # the hops: camera -> pre-processing -> motion-estimation -> camera
 
 
-def run(lose: dict[tuple[int, int], int]) -> tuple[MemoryNode, MemoryNode, list[bytes]]:
-    """The three loops over the built-in sequence, the first ``lose[hop, seq]`` transmissions
-    of ``seq`` on ``hop`` lost; the camera's and motion-estimation's nodes, and what the
-    latter published on ``motion/estimate``."""
+def run(lose: dict[tuple[int, int], int], *argv: str, done: bool = True
+        ) -> tuple[MemoryNode, MemoryNode, list[bytes]]:
+    """The three loops over the built-in sequence, the camera given ``argv``, the first
+    ``lose[hop, seq]`` transmissions of ``seq`` on ``hop`` lost (and none of
+    ``preprocessing/done`` carried unless ``done``); the camera's and motion-estimation's
+    nodes, and what the latter published on ``motion/estimate``."""
     images = synthetic.builtin_sequence(N)
     with Running("preprocessing") as pre, Running("motion-estimation") as me:
         for r in (pre, me):  # kernels loaded, as `vistrack up` starts the camera after them
@@ -38,15 +40,17 @@ def run(lose: dict[tuple[int, int], int]) -> tuple[MemoryNode, MemoryNode, list[
             while not r.node.alive:
                 assert r.thread.is_alive() and time.monotonic() < deadline, r.node.service
                 time.sleep(0.01)
-        with Running("camera", "--ack-timeout", str(ACK_TIMEOUT_S), target=camera.loop,
+        with Running("camera", "--ack-timeout", str(ACK_TIMEOUT_S), *argv, target=camera.loop,
                      extra=(iter(images),)) as cam:
-            return _carry(cam, pre, me, lose)
+            return _carry(cam, pre, me, lose, done)
 
 
-def _carry(cam: Running, pre: Running, me: Running, lose: dict[tuple[int, int], int]
-           ) -> tuple[MemoryNode, MemoryNode, list[bytes]]:
+def _carry(cam: Running, pre: Running, me: Running, lose: dict[tuple[int, int], int],
+           done: bool) -> tuple[MemoryNode, MemoryNode, list[bytes]]:
     keys = cam.node.keys
     hops = [(cam, keys.frame, pre), (pre, keys.pre_frame, me), (me, keys.estimate, cam)]
+    if done:  # what the camera subscribes to of pre-processing's (with --in-flight > 1)
+        hops.append((pre, keys.pre_done, cam))
     carried = [0] * len(hops)
     sent: dict[tuple[int, int], int] = {}
     deadline = time.monotonic() + IDLE_S + 10 * N * ACK_TIMEOUT_S
@@ -59,7 +63,7 @@ def _carry(cam: Running, pre: Running, me: Running, lose: dict[tuple[int, int], 
                 carried[hop] += 1
                 seq = peek_seq(payload)
                 sent[hop, seq] = sent.get((hop, seq), 0) + 1
-                if sent[hop, seq] > lose.get((hop, seq), 0):
+                if sent[hop, seq] > lose.get((hop, seq), 0) and dst.node.subscribed(key):
                     dst.feed(key, payload, wait=dst is not cam, reliable=reliable)
                     moved = True
         if not moved:
@@ -109,6 +113,37 @@ def test_a_lost_message_is_sent_again_and_no_frame_is_lost(lose, resent, repeate
     # estimate of a file's run
     answers = [p for p in me.published if p.key == me.keys.estimate]
     assert len(answers) == len(published) and all(p.reliable for p in answers)
+
+
+@pytest.mark.parametrize("done", [True, False], ids=["done", "no-done"])
+def test_two_in_flight_track_every_frame_once_without_the_pre_processed_frames(done):
+    """--fps 0 --in-flight 2: pre-processing works on frame n while motion-estimation tracks
+    n-1. The camera sends a frame once pre-processing is free, which ``preprocessing/done``
+    tells it in a few bytes; it never receives the pre-processed frames themselves. Without
+    those (a pre-processing that does not publish them) each frame's estimate tells it
+    instead, one frame in flight: slower, and still no frame overwritten or lost."""
+    cam, me, published = run({}, "--in-flight", "2", done=done)
+    assert cam.subscribed(cam.keys.pre_done) and not cam.subscribed(cam.keys.pre_frame)
+    assert_every_frame_tracked_once(published, offline())
+    assert me.status.dropped == 0 and cam.status.extra.get("ack_timeouts", 0) == 0
+    assert len(published) == N  # none sent again (that is one in flight, lockstep's)
+
+
+def test_pre_processing_says_it_is_done_with_each_frame_after_publishing_it():
+    """``preprocessing/done`` follows each ``preprocessing/frame``, with the frame's seq and
+    stamp_ns, BLOCK where the frame came BLOCK (a file camera's pacing) and latest-only
+    where it did not (a live camera's)."""
+    images = synthetic.builtin_sequence(4)
+    with Running("preprocessing") as pre:
+        keys = pre.node.keys
+        for seq, image in enumerate(images):
+            pre.feed(keys.frame, Frame.from_image(image, seq=seq, stamp_ns=1000 + seq).encode(),
+                     reliable=seq % 2 == 0)
+        out = [p for p in pre.node.published if p.key in (keys.pre_frame, keys.pre_done)]
+    assert [(p.key, peek_seq(p.payload), p.reliable) for p in out] == [
+        (key, seq, seq % 2 == 0) for seq in range(4) for key in (keys.pre_frame, keys.pre_done)]
+    done = [PreDone.decode(p.payload) for p in out if p.key == keys.pre_done]
+    assert [(m.seq, m.stamp_ns) for m in done] == [(seq, 1000 + seq) for seq in range(4)]
 
 
 def test_a_paced_camera_publishes_latest_only():

@@ -22,6 +22,7 @@ CONTRACT = {
     "cmd_vel": "vistrack/robot/control/cmd_vel",
     "demand": "vistrack/robot/motion/demand",
     "pose": "vistrack/robot/sim/pose",
+    "pre_done": "vistrack/robot/preprocessing/done",
 }
 
 

@@ -22,6 +22,7 @@ from vistrack.common.messages import (
     MessageError,
     Params,
     Pose,
+    PreDone,
     PreFrame,
     Report,
     decode_any,
@@ -51,6 +52,7 @@ def _good_maps() -> dict[str, dict]:
         CmdVel(**common, vx=0.1, vy=-0.1, wz=0.0, stale=False),
         Demand(**common, candidates=True),
         Pose(**common, x=0.0, y=1.0, theta=0.5, tx=2.0, ty=3.0),
+        PreDone(**common),
     ]
     return {m.KEY: msgpack.unpackb(m.encode()) for m in messages}
 

@@ -20,6 +20,7 @@ from vistrack.common.messages import (
     MessageError,
     Params,
     Pose,
+    PreDone,
     PreFrame,
     Report,
     decode_any,
@@ -68,6 +69,8 @@ def make(cls):
         return Demand(**common, candidates=False)
     if cls is Pose:
         return Pose(**common, x=1.0, y=2.0, theta=0.5, tx=3.0, ty=4.0)
+    if cls is PreDone:
+        return PreDone(**common)
     raise AssertionError(cls)
 
 
@@ -755,10 +758,15 @@ def test_encode_estimate_refuses_what_the_constructor_refuses(change, name, word
 
 def test_encode_frame_pre_frame_and_cmd_vel_write_what_the_messages_write():
     """For the services' own outputs (a camera image, a filtered frame with and without its
-    candidates, a command), and for inputs the fast path hands to the message (a view, numpy
-    scalars), byte for byte."""
+    candidates, a command, pre-processing's done), and for inputs the fast path hands to the
+    message (a view, numpy scalars), byte for byte."""
     from vistrack.common import synthetic
-    from vistrack.common.messages import encode_cmd_vel, encode_frame, encode_pre_frame
+    from vistrack.common.messages import (
+        encode_cmd_vel,
+        encode_frame,
+        encode_pre_done,
+        encode_pre_frame,
+    )
     from vistrack.common.vision import preprocess
 
     image = synthetic.builtin_sequence(3)[1]
@@ -780,6 +788,9 @@ def test_encode_frame_pre_frame_and_cmd_vel_write_what_the_messages_write():
         assert encode_cmd_vel(**fields) == CmdVel(**fields).encode()
     assert encode_cmd_vel(seq=4, stamp_ns=5, vx=np.float32(0.5), vy=1, wz=0.0) == \
         CmdVel(seq=4, stamp_ns=5, vx=np.float32(0.5), vy=1, wz=0.0).encode()
+    for seq, stamp in ((0, 1), (np.int64(7), 1_700_000_000_123_456_789)):
+        assert encode_pre_done(seq=seq, stamp_ns=stamp) == \
+            PreDone(seq=seq, stamp_ns=stamp).encode()
 
 
 @pytest.mark.parametrize(("encoder", "change", "name", "words"), [
@@ -798,9 +809,16 @@ def test_encode_frame_pre_frame_and_cmd_vel_write_what_the_messages_write():
     ("cmd", {"vx": math.nan}, "vx", "finite"),
     ("cmd", {"stale": 1}, "stale", "true or false"),
     ("cmd", {"seq": 1.5}, "seq", "integer"),
+    ("done", {"seq": -2}, "seq", ">= 0"),
+    ("done", {"stamp_ns": "now"}, "stamp_ns", "integer"),
 ])
 def test_the_fast_encoders_refuse_what_the_constructors_refuse(encoder, change, name, words):
-    from vistrack.common.messages import encode_cmd_vel, encode_frame, encode_pre_frame
+    from vistrack.common.messages import (
+        encode_cmd_vel,
+        encode_frame,
+        encode_pre_done,
+        encode_pre_frame,
+    )
 
     fields: dict = {
         "frame": dict(image=np.zeros((8, 6), np.uint8), seq=1, stamp_ns=2),
@@ -808,8 +826,10 @@ def test_the_fast_encoders_refuse_what_the_constructors_refuse(encoder, change, 
                     candidates=np.array([[3, 4]], np.int16),
                     strength=np.array([1.5], np.float32), params_id=0),
         "cmd": dict(seq=1, stamp_ns=2, vx=0.0, vy=0.0, wz=0.0),
+        "done": dict(seq=1, stamp_ns=2),
     }[encoder]
-    encode = {"frame": encode_frame, "pre": encode_pre_frame, "cmd": encode_cmd_vel}[encoder]
+    encode = {"frame": encode_frame, "pre": encode_pre_frame, "cmd": encode_cmd_vel,
+              "done": encode_pre_done}[encoder]
     with pytest.raises(MessageError) as info:
         encode(**{**fields, **change})
     assert info.value.field == name and words in str(info.value)

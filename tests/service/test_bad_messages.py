@@ -139,6 +139,30 @@ def test_the_camera_takes_no_acknowledgement_of_a_frame_it_has_not_sent():
         assert acks.wait({node.keys.estimate: 1000}, 1.0)
 
 
+def test_the_camera_takes_a_bad_done_for_no_acknowledgement_and_an_estimate_for_one():
+    """``preprocessing/done`` is checked as estimates are: one stamped after the newest frame
+    sent, or without a stamp, is rejected and named, and pre-processing is not taken for
+    free; an estimate of the frame says it is (the frame was pre-processed to be tracked)."""
+    from vistrack.common.messages import PreDone
+    from vistrack.services.camera.service import _Acks
+
+    with MemoryNode("camera") as node:
+        keys = node.keys
+        acks = _Acks(node, (keys.estimate, keys.pre_done))
+        acks.sent = 1000
+        node.feed(keys.pre_done, PreDone(seq=0, stamp_ns=10**18).encode())
+        assert not acks.wait({keys.pre_done: 1000}, 0.05)
+        assert "preprocessing/done: stamp_ns 1000000000000000000 is after the newest frame " \
+            "sent (1000)" in node.status.last_error
+        node.feed(keys.pre_done, msgpack.packb({"v": 1, "seq": 0}))
+        assert not acks.wait({keys.pre_done: 1000}, 0.05)
+        assert node.status.rejected == 2 and "no valid stamp_ns" in node.status.last_error
+        node.feed(keys.estimate, Estimate(seq=0, stamp_ns=1000, npi=0, xc=0.0, yc=0.0, xe=0.0,
+                                          ye=0.0, dx=0.0, dy=0.0, scale=1.0, t_ms=0.0,
+                                          first=True, features=[], params_id=0).encode())
+        assert acks.wait({keys.pre_done: 1000}, 1.0)
+
+
 def test_the_controller_refuses_an_estimate_from_the_future():
     """Accepted, a stamp from the future never looked stale (its command was kept however old
     it got) and every later estimate was refused as out of order: the robot kept moving."""

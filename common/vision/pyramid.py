@@ -285,6 +285,11 @@ RETRY_GAIN = 0.05
 #: the side, px, of the coarsest level :func:`frame_shift` correlates: enough pixels for a
 #: clear peak (at 256 x 256 with 3 levels, 64 x 64, ~40 us)
 SHIFT_SIDE = 32
+#: ... and at most this on its shorter side: a larger level is halved (INTER_AREA) until it is
+#: not. ``cv2.phaseCorrelate`` took 1034 us on 1280 x 720's coarsest level, 320 x 180, and 136
+#: us on 160 x 90 (one core); the retry's searches, which reach 2^k SEARCH_SIZE // 2 px from
+#: it, refine what it finds
+SHIFT_MAX_SIDE = 128
 #: a match departing from the frame's dominant motion by more than this, px, has that motion
 #: tested as a second minimum (step 5b, :func:`_dominant_alternative`)
 DOMINANT_PX = 2.0
@@ -1855,8 +1860,9 @@ def _broke(pts: np.ndarray, preds: np.ndarray, pos: np.ndarray, status: np.ndarr
 def frame_shift(prev: Pyramid, curr: Pyramid) -> np.ndarray | None:
     """The frame-wide translation from frame t to frame t+1, (dx, dy) px, by phase
     correlation (``cv2.phaseCorrelate``, Hann-windowed) at the coarsest level whose sides are
-    at least SHIFT_SIDE px (the frame itself if it is smaller); None where the frames show no
-    peak (a flat frame) or the peak lies off the level.
+    at least SHIFT_SIDE px (the frame itself if it is smaller), halved further while its
+    shorter side exceeds SHIFT_MAX_SIDE; None where the frames show no peak (a flat frame)
+    or the peak lies off the level.
 
     Its reach is a good part of the frame at any speed (a third of the level's side with the
     window's taper), where the search's is SEARCH_SIZE // 2 pixels of the coarsest level: the
@@ -1870,15 +1876,21 @@ def frame_shift(prev: Pyramid, curr: Pyramid) -> np.ndarray | None:
     h, w = prev.shapes[k]
     if min(h, w) < 4:
         return None
+    a8, b8 = prev.level(k), curr.level(k)
+    while min(h, w) > SHIFT_MAX_SIDE:
+        h, w = h // 2, w // 2
+        a8 = cv2.resize(a8, (w, h), interpolation=cv2.INTER_AREA)
+        b8 = cv2.resize(b8, (w, h), interpolation=cv2.INTER_AREA)
     # without their means: the window's own spectrum, left in, peaks at no shift
-    a = prev.level(k).astype(np.float32)
+    a = a8.astype(np.float32)
     a -= a.mean()
-    b = curr.level(k).astype(np.float32)
+    b = b8.astype(np.float32)
     b -= b.mean()
     (dx, dy), response = cv2.phaseCorrelate(a, b, _hann(h, w))
     if not (response > 0.0 and abs(dx) < w / 2 and abs(dy) < h / 2):
         return None
-    return np.array([dx, dy]) * 2.0 ** k
+    kh, kw = prev.shapes[k]
+    return np.array([dx * kw / w, dy * kh / h]) * 2.0 ** k
 
 
 @functools.lru_cache(maxsize=8)

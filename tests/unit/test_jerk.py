@@ -150,6 +150,22 @@ def test_frame_shift_finds_a_real_frames_shift_and_none_in_a_flat_frame(sources)
     assert frame_shift(tiny, tiny) is None
 
 
+@pytest.mark.parametrize(("levels", "halved"), [(3, 1), (2, 2)])
+def test_frame_shift_of_a_camera_resolution_frame_from_a_halved_coarsest_level(sources, levels,
+                                                                               halved):
+    """At 1280x720 the coarsest level (320x180 with 3 levels, 640x360 with 2) is halved
+    (``halved`` times) before the phase correlation, ~8 times cheaper; the shift found there,
+    scaled back, is still within the 2 px the retry's searches start from."""
+    image = cv2.resize(dict(sources)["Urban2"], None, fx=2.4, fy=2.4,
+                       interpolation=cv2.INTER_CUBIC)
+    a = build_pyramid(np.ascontiguousarray(image[200:920, 150:1430]), levels)
+    b = build_pyramid(np.ascontiguousarray(image[221:941, 113:1393]), levels)  # (37, -21)
+    assert min(a.shapes[-1]) >> halved <= pyramid.SHIFT_MAX_SIDE < min(a.shapes[-1]) >> (
+        halved - 1)
+    shift = frame_shift(a, b)
+    assert shift is not None and np.abs(shift - [37, -21]).max() <= 2.0, shift
+
+
 @pytest.mark.parametrize("dominant", [pyramid.DOMINANT_PX, np.inf])
 def test_a_texture_a_coarse_level_aliases_is_not_matched_a_period_off(sources, monkeypatch,
                                                                       dominant):

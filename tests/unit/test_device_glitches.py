@@ -47,7 +47,8 @@ class Device:
     """Opens the video as a camera: each opening starts a clock, frame k (the video's frames
     over and over) is delivered at k ``period`` s into a queue of ``depth`` that drops its
     oldest when full, and a read takes the oldest queued (waiting for one), as V4L2 does. Frame
-    k carries k % 256 in its pixel (0, 0). The n-th read overall (0-based) fails where
+    k carries k % 256 in its pixel (0, 0), and the opening that delivered it (1, 2, ...) in
+    pixel (0, 1). The n-th read overall (0-based) fails where
     ``fails(n)``; ``openable`` says whether each opening, in turn, succeeds."""
 
     def __init__(self, path: str, period: float, fails=lambda n: False,
@@ -75,6 +76,7 @@ class Device:
         def __init__(self, device: Device, cap: cv2.VideoCapture | None) -> None:
             self.device = device
             self.cap = cap
+            self.opening = device.opened  # this capture's opening, 1 for the first
             self.t0 = time.monotonic()
             self.next = 0  # the next frame a read returns, if still queued
             self.images: list[np.ndarray] = []
@@ -99,6 +101,7 @@ class Device:
                 self.images.append(self.cap.read()[1])
             image = self.images[self.next % 8].copy()
             image[0, 0] = self.next % 256
+            image[0, 1] = self.opening
             self.next += 1
             return True, image
 
@@ -111,9 +114,13 @@ def _id(frame: np.ndarray) -> int:
     return int(frame[0, 0])
 
 
+def _opening(frame: np.ndarray) -> int:
+    return int(frame[0, 1])
+
+
 def _same_picture(frame: np.ndarray, picture: np.ndarray) -> bool:
     a = frame.copy()
-    a[0, 0] = picture[0, 0]
+    a[0, :2] = picture[0, :2]
     return bool(np.array_equal(a, picture))
 
 
@@ -168,7 +175,10 @@ def test_a_device_silent_for_longer_is_opened_again_and_goes_on(video, caplog):
     caplog.set_level(logging.INFO, "vistrack.frames")
     got = _take(device, 4, frames)
     assert device.opened == 2
-    assert [_id(f) for f in got[:2]] == [0, 1]
+    # the first opening's frames (its reads 0 and 1 succeed; the newest is taken when the
+    # camera asks, so one or both), then the second's: in order, none twice
+    seen = [(_opening(f), _id(f)) for f in got]
+    assert seen == sorted(set(seen)) and seen[0][0] == 1 and seen[-1][0] == 2, seen
     assert "device:3: no frame for 0.2 s: opening the device again" in caplog.text
     assert "device:3: delivering frames again, opened again" in caplog.text
 

@@ -906,6 +906,15 @@ def encode_pre_frame(*, seq: int, stamp_ns: int, data: np.ndarray, candidates: n
         "params_id": params_id, "deferred": deferred})
 
 
+def _pack_checked(cls: type[_Message], values: dict[str, Any]) -> bytes:
+    """``cls(**values).encode()``, byte for byte, for a message of scalar fields only: each
+    value through the constructor's check (which raises as it would), then packed."""
+    key, checks = cls.KEY, cls._CHECKS
+    for name, value in values.items():
+        values[name] = checks[name](key, name, value)
+    return pack(values)
+
+
 def encode_pre_done(*, seq: int, stamp_ns: int) -> bytes:
     """``PreDone(...).encode()``, byte for byte, with the constructor's checks and no message
     object: pre-processing's hot path.
@@ -915,9 +924,7 @@ def encode_pre_done(*, seq: int, stamp_ns: int) -> bytes:
     MessageError
         As the constructor would, naming the field.
     """
-    key, checks = PreDone.KEY, PreDone._CHECKS
-    return pack({"seq": checks["seq"](key, "seq", seq),
-                 "stamp_ns": checks["stamp_ns"](key, "stamp_ns", stamp_ns)})
+    return _pack_checked(PreDone, {"seq": seq, "stamp_ns": stamp_ns})
 
 
 def encode_cmd_vel(*, seq: int, stamp_ns: int, vx: float, vy: float, wz: float,
@@ -930,11 +937,8 @@ def encode_cmd_vel(*, seq: int, stamp_ns: int, vx: float, vy: float, wz: float,
     MessageError
         As the constructor would, naming the field.
     """
-    key, checks = CmdVel.KEY, CmdVel._CHECKS
-    values = {"seq": seq, "stamp_ns": stamp_ns, "vx": vx, "vy": vy, "wz": wz, "stale": stale}
-    for name, value in values.items():
-        values[name] = checks[name](key, name, value)
-    return pack(values)
+    return _pack_checked(CmdVel, {"seq": seq, "stamp_ns": stamp_ns, "vx": vx, "vy": vy,
+                                  "wz": wz, "stale": stale})
 
 
 @dataclass(frozen=True, kw_only=True)

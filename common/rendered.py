@@ -260,6 +260,40 @@ def approach(source: np.ndarray, name: str, *, rate: float = 1.1, n: int = 12,
                                                         noise=noise, seed=seed), np.array(hs))
 
 
+def roll(source: np.ndarray, name: str, *, rate_deg: float = 3.0, n: int = 30,
+         size: tuple[int, int] = (256, 256), noise: float = 1.0, seed: int | None = None
+         ) -> RenderedSequence:
+    """A view turning about its centre by ``rate_deg`` degrees a frame: a camera that rolls,
+    or one looking down at the floor from a robot turning on the spot (90 degrees a second is
+    3 a frame at 30 fps). A point r px from the centre moves r times the angle a frame (6.7
+    px at 128 px and 3 degrees), each feature's window turns with it. The view is centred in
+    the source, which must hold its diagonal.
+
+    Raises
+    ------
+    ValueError
+        If the source cannot hold the turning view.
+    """
+    sw, sh = source.shape[1], source.shape[0]
+    w, h = size
+    if np.hypot(w, h) > min(sw, sh) - 4:
+        raise ValueError(f"{name}: a {sw}x{sh} source cannot hold a {w}x{h} view turning "
+                         f"(its diagonal is {np.hypot(w, h):.0f} px)")
+    cs = ((sw - 1) / 2.0, (sh - 1) / 2.0)
+    cv = ((w - 1) / 2.0, (h - 1) / 2.0)
+    hs = []
+    for k in range(n):
+        a = np.deg2rad(rate_deg * k)
+        c, s = np.cos(a), np.sin(a)
+        # frame = cv + R(a) (source - cs)
+        hs.append([[c, -s, cv[0] - c * cs[0] + s * cs[1]],
+                   [s, c, cv[1] - s * cs[0] - c * cs[1]], [0.0, 0.0, 1.0]])
+    if seed is None:
+        seed = zlib.crc32(name.encode()) + 37
+    return RenderedSequence(f"{name}, roll", render(source, np.array(hs), size, noise=noise,
+                                                    seed=seed), np.array(hs))
+
+
 def _line_kernel(dx: float, dy: float) -> np.ndarray:
     """The normalised kernel of a straight motion (dx, dy) px during an exposure, centred:
     the mean of the image shifted along the motion, sampled every quarter pixel."""

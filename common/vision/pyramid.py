@@ -95,9 +95,10 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
    rows' 6 to 9 pixels vectorised badly: +28 us);
 7. **the window's centroid** (with sub-pixel refinement; AFFINE_FIT_PX, 0: off): a
    translation estimated over a window whose neighbourhood also scales or turns (an approach,
-   a roll) is the motion of the window's texture-weighted centroid, not of its centre. Each
-   estimate is moved to its feature's point by the scale and rotation of a similarity fitted
-   to its nearest matches' displacements, where they fit one (:func:`_affine_correction`). On
+   a roll) is the motion at the window's texture-weighted centroids (the turn's differs from
+   the scale's), not at its centre. Each estimate is moved to its feature's point by the scale
+   and rotation of a similarity fitted to its nearest matches' displacements, where they fit
+   one (:func:`_affine_correction`). On
    the scoreboard's approaches (10 % a frame) the median error fell from 0.16 to 0.24 px to
    0.05 to 0.07 (LK 0.27 to 0.33); elsewhere it moved by a few thousandths. Cost: ~25 us a
    frame on the bench's frames (step 7 on and off in one process, best of 200 rounds); ~7 us
@@ -785,7 +786,7 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
             out_pos[f, 1] = np.nan
             out_ssd[f] = np.inf
     took = np.zeros(n_feat, np.bool_)
-    cen = np.empty((n_feat, 2), np.float64)
+    cen = np.empty((n_feat, 4), np.float64)
     if subpixel and wide > n:
         _widen(prev, curr, pts, n, wide, acc, ok, out_pos, agree, straddle, floor, took, cen)
     # 7. each estimate is of the motion at its window's centroid: corrected to the feature's
@@ -1457,8 +1458,8 @@ def _widen(prev, curr, pts, n, wide, acc, ok, out_pos, agree, straddle, floor, t
             out_pos[f, 0] = pts[f, 0] + (xw - ax)
             out_pos[f, 1] = pts[f, 1] + (yw - ay)
             took[f] = True
-            cen[f, 0] = scratch[5][0]
-            cen[f, 1] = scratch[5][1]
+            for k in range(4):
+                cen[f, k] = scratch[5][k]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1467,18 +1468,19 @@ def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform, b
     """Step 7: each match's (``status`` OK) estimate moved from its window's centroid to its
     feature's point, by the scale and rotation of its neighbourhood, where that is known.
 
-    A translation estimated over a window whose neighbourhood also scales or turns (an
-    approach, a roll) is, to first order, the motion of the window's centroid weighted by its
-    texture, c = (sum H)^-1 sum H q over its pixels q (H: each pixel's gradient outer
-    product), not of its centre: with c a few pixels off and a 10 % scale step, some tenths
-    of a pixel. So the match becomes pos - A c, A the local similarity's scale and rotation
-    (a I + b R), fitted to the displacements of its NEIGHBOURS nearest matches: first as they
-    are, then each corrected by the first fit at its own centroid, and taken where that fits
-    to within ``bound`` px rms (one surface moving as one; a motion boundary, parallax or a
-    non-rigid scene fits worse and is left alone). The window is the wide one where
-    :func:`_widen` took its estimate (``took``; its centroid ``cen``, from its Gauss-Newton
-    sums), else the correlation window (``wts``; :func:`_centroid`, where the first fit's
-    correction could reach AFFINE_RELEVANT_PX).
+    A translation estimated over a window whose neighbourhood also scales by a and turns by b
+    (an approach, a roll: the displacement at its pixel q is t + (a I + b R) q) is, to first
+    order, t + (sum H)^-1 sum H (a I + b R) q = t + a c + b c' (H: each pixel's gradient outer
+    product; c = (sum H)^-1 sum H q the window's texture-weighted centroid, c' = (sum H)^-1
+    sum H R q its turn centroid), not the motion of its centre: with c a few pixels off and a
+    10 % scale step, some tenths of a pixel. So the match becomes pos - (a c + b c'), a and b
+    the local similarity's, fitted to the displacements of its NEIGHBOURS nearest matches:
+    first as they are, then each corrected by the first fit at its own centroids, and taken
+    where that fits to within ``bound`` px rms (one surface moving as one; a motion boundary,
+    parallax or a non-rigid scene fits worse and is left alone). The window is the wide one
+    where :func:`_widen` took its estimate (``took``; its centroids ``cen``, (N, 4): c then
+    c', from its Gauss-Newton sums), else the correlation window (``wts``; :func:`_centroid`,
+    where the first fit's correction could reach AFFINE_RELEVANT_PX).
 
     On the scoreboard's approaches (10 % a frame) the median error fell from 0.16 to 0.24 px to
     0.05 to 0.07 (LK 0.27 to 0.33), their drift from 1.5 to 4.1 px to 0.3 to 0.8; the other
@@ -1487,7 +1489,11 @@ def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform, b
     rotation gave about what the fitted ones give; one similarity fitted to the whole frame
     made the pairs worse (Urban2's 0.084 -> 0.129: parallax is not a similarity), and so did
     the local fits taken everywhere (0.120); the second fit's residual is the test that tells
-    them apart. The neighbours are the consensus's (``judged``, ``judged_near``; empty when it
+    them apart. The turn was first corrected by b R c, as if c' were R c (true only where the
+    window's texture has no direction): on the scoreboard's roll (3 degrees a frame) that left
+    the median error at 0.16 to 0.21 px, LK's; with c', 0.026 to 0.031 (the pairs: Grove2's
+    0.084 -> 0.095, Urban2's 0.078 -> 0.075, with up to 500 features 0.080 -> 0.077 and 0.079
+    -> 0.078). The neighbours are the consensus's (``judged``, ``judged_near``; empty when it
     did not run), where they are all still matches (:func:`_reused_neighbourhoods`)."""
     idx, xs, ys, dxs, dys, near = _reused_neighbourhoods(pts, out_pos, status, judged,
                                                          judged_near)
@@ -1499,28 +1505,32 @@ def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform, b
     sb = np.empty(c, np.float64)
     cx = np.zeros(c, np.float64)
     cy = np.zeros(c, np.float64)
+    rx = np.zeros(c, np.float64)
+    ry = np.zeros(c, np.float64)
+    have = np.zeros(c, np.bool_)
     for a in range(c):
         sa[a], sb[a], _ = _similarity_of(xs, ys, dxs, dys, near, a)
         f = idx[a]
         if took[f]:
-            cx[a] = cen[f, 0]
-            cy[a] = cen[f, 1]
+            cx[a], cy[a], rx[a], ry[a] = cen[f, 0], cen[f, 1], cen[f, 2], cen[f, 3]
+            have[a] = True
         elif (abs(sa[a]) + abs(sb[a])) * n >= AFFINE_RELEVANT_PX:
-            cx[a], cy[a] = _centroid(prev, int(np.rint(pts[f, 0])), int(np.rint(pts[f, 1])), n,
-                                     wts, uniform)
+            cx[a], cy[a], rx[a], ry[a] = _centroid(prev, int(np.rint(pts[f, 0])),
+                                                   int(np.rint(pts[f, 1])), n, wts, uniform)
+            have[a] = True
     ex = np.empty(c, np.float64)
     ey = np.empty(c, np.float64)
     for a in range(c):
-        ex[a] = dxs[a] - (sa[a] * cx[a] - sb[a] * cy[a])
-        ey[a] = dys[a] - (sb[a] * cx[a] + sa[a] * cy[a])
+        ex[a] = dxs[a] - (sa[a] * cx[a] + sb[a] * rx[a])
+        ey[a] = dys[a] - (sa[a] * cy[a] + sb[a] * ry[a])
     for a in range(c):
-        if cx[a] == 0.0 and cy[a] == 0.0:
+        if not have[a]:
             continue
         ka, kb, rms = _similarity_of(xs, ys, ex, ey, near, a)
         if rms <= bound and ka * ka + kb * kb <= AFFINE_MAX * AFFINE_MAX:
             f = idx[a]
-            out_pos[f, 0] -= ka * cx[a] - kb * cy[a]
-            out_pos[f, 1] -= kb * cx[a] + ka * cy[a]
+            out_pos[f, 0] -= ka * cx[a] + kb * rx[a]
+            out_pos[f, 1] -= ka * cy[a] + kb * ry[a]
 
 
 @nb.njit(**NO_NRT)
@@ -1575,14 +1585,16 @@ def _similarity(xs, ys, dxs, dys, near):  # pragma: no cover - numba
 @nb.njit(**NO_NRT)
 def _centroid(img, ax, ay, half, wts, uniform):  # pragma: no cover - numba
     """The texture-weighted centroid (cx, cy) of the (2 half + 1)^2 window at (ax, ay) of
-    ``img``, relative to its centre: (sum W H)^-1 sum W H q, H the outer product of the
-    central-difference gradient at pixel q, W ``wts`` (or 1 where ``uniform``); the point
-    whose motion a translation estimated over the window measures, to first order. (0, 0)
-    where the window (and its 1 px margin) leaves the image or has no texture. Integer sums."""
+    ``img``, relative to its centre, (sum W H)^-1 sum W H q, H the outer product of the
+    central-difference gradient at pixel q, W ``wts`` (or 1 where ``uniform``), and its turn
+    centroid (rx, ry) = (sum W H)^-1 sum W H R q, R q = (-j, i): a translation estimated over
+    the window whose neighbourhood scales by a and turns by b measures, to first order, the
+    motion at a (cx, cy) + b (rx, ry). (cx, cy, rx, ry); zeros where the window (and its 1 px
+    margin) leaves the image or has no texture. Integer sums."""
     h, w = img.shape
     if ax - half - 1 < 0 or ay - half - 1 < 0 or ax + half + 1 >= w or ay + half + 1 >= h:
-        return 0.0, 0.0
-    hxx = hxy = hyy = vx = vy = 0
+        return 0.0, 0.0, 0.0, 0.0
+    hxx = hxy = hyy = vx = vy = wx = wy = 0
     for j in range(-half, half + 1):
         up = img[ay + j - 1]
         row = img[ay + j]
@@ -1600,11 +1612,15 @@ def _centroid(img, ax, ay, half, wts, uniform):  # pragma: no cover - numba
             hyy += gyy
             vx += gxx * i + gxy * j
             vy += gxy * i + gyy * j
+            wx += gxy * i - gxx * j
+            wy += gyy * i - gxy * j
     det = float(hxx) * float(hyy) - float(hxy) * float(hxy)
     if det <= 1e-6 * float(hxx + hyy) * float(hxx + hyy) or det <= 0.0:
-        return 0.0, 0.0
+        return 0.0, 0.0, 0.0, 0.0
     return ((float(hyy) * vx - float(hxy) * vy) / det,
-            (float(hxx) * vy - float(hxy) * vx) / det)
+            (float(hxx) * vy - float(hxy) * vx) / det,
+            (float(hyy) * wx - float(hxy) * wy) / det,
+            (float(hxx) * wy - float(hxy) * wx) / det)
 
 
 @nb.njit(**NO_NRT)

@@ -1127,9 +1127,9 @@ def _refine_scratch(wts, acc):  # pragma: no cover - numba
     q, cen, fast), ``tp`` and ``cp`` the two patches (uint8), ``g`` the two gradients (int16 where
     :func:`_refine` sums in int32, the type of ``acc``, an empty array from
     :func:`refine_acc`; else int64); ``q`` each pixel's (i, j) from the window's centre in the
-    same layout, in the type of ``acc``; ``cen`` (2,) where :func:`_refine` puts the window's
-    centroid; ``fast``: whether the centroid's sums fit int32, each product of a gradient and
-    a pixel's i or j int16."""
+    same layout, in the type of ``acc``; ``cen`` (4,) where :func:`_refine` puts the window's
+    centroid and turn centroid; ``fast``: whether the centroids' sums fit int32, each product
+    of a gradient and a pixel's i or j int16."""
     m = wts.shape[0]
     half = m // 2
     stride = m + 4
@@ -1152,7 +1152,7 @@ def _refine_scratch(wts, acc):  # pragma: no cover - numba
     weight = np.abs(wts).astype(np.int64)
     fast = (g.itemsize == 2 and 255.0 * 255.0 * 2.0 * half * weight.sum() < 2.0**31
             and 255 * half * weight.max() <= 32767)
-    return wpad, tp, cp, g, q, np.zeros(2, np.float64), fast
+    return wpad, tp, cp, g, q, np.zeros(4, np.float64), fast
 
 
 def _gradients(acc, size):  # pragma: no cover - numba: compiled through the overload below
@@ -1214,10 +1214,11 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
     shifted by exact band-limited shifts of (3.3, 1.2) px a frame, 16 frames, on Venus: +0.43
     / +0.44 px without it, +0.23 / +0.20 with it (RubberWhale +0.19 / +0.21 -> +0.07 / +0.07).
     That pass, where ``third`` is 2.0 (:data:`CENTROID`), also puts into ``cen`` the window's
-    texture-weighted centroid relative to its centre, (sum W H)^-1 sum W H q (H the
-    gradient's outer product at pixel q; ``qs`` the pixels' (i, j)): the point whose motion
-    the estimate measures where the neighbourhood also scales or turns
-    (:func:`.pyramid._affine_correction`).
+    texture-weighted centroid relative to its centre, c = (sum W H)^-1 sum W H q (H the
+    gradient's outer product at pixel q; ``qs`` the pixels' (i, j)), then its turn centroid
+    c' = (sum W H)^-1 sum W H R q (R q = (-j, i)): where the neighbourhood also scales by a
+    and turns by b, the estimate is off by a c + b c' (:func:`.pyramid._affine_correction`).
+    c' is R c only where the window's texture has no direction.
 
     The gradient-weighted sum of the bilinear samples splits into four integer correlations of
     the gradient with frame t+1 at the corners of the pixel holding the estimate, so an
@@ -1280,7 +1281,7 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
     # in ``acc`` they made the windows of 27 px or more (the auto-tuner's reference and sweep)
     # sum everything in int64, kernels of their own that no start-up warm-up compiled (a cold
     # first tuning cycle took 28 s, 25 of them compiling)
-    vx = vy = np.int64(0)
+    vx = vy = wx = wy = np.int64(0)
     bxx = bxy = byx = byy = acc(0)
     centroid = third > 1.0
     if third > 0.0:
@@ -1302,18 +1303,29 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
         qy = qs[1]
         if fast:
             # Sum gx (right - left) i + gx (down - up) j as pixel dots of the gradients times
-            # i and j (int16: at most 255 n |W|), and the same of gy
-            kr, kl, lr, ll = _scaled_dots(gx, gy, g[2], tp, (c + 1, c - 1), size)
-            kd, ku, ld, lu = _scaled_dots(gx, gy, g[3], tp, (c + stride, c - stride), size)
-            vx = np.int64(np.int32(np.int32(kr - kl) + np.int32(kd - ku)))
-            vy = np.int64(np.int32(np.int32(lr - ll) + np.int32(ld - lu)))
+            # i and j (int16: at most 255 n |W|), and the same of gy; and the turn's, of
+            # (2 g) (2 g . R q), R q = (-j, i): Sum gx (down - up) i - gx (right - left) j
+            # and the same of gy. Each call: both gradients times i (or j) with the pixels
+            # right, left, down and up (x then y: 8 sums)
+            kr, kl, kd, ku, lr, ll, ld, lu = _scaled_dots(
+                gx, gy, g[2], tp, (c + 1, c - 1, c + stride, c - stride), size)
+            mr, ml, md, mu, nr, nl, nd, nu = _scaled_dots(
+                gx, gy, g[3], tp, (c + 1, c - 1, c + stride, c - stride), size)
+            vx = np.int64(np.int32(np.int32(kr - kl) + np.int32(md - mu)))
+            vy = np.int64(np.int32(np.int32(lr - ll) + np.int32(nd - nu)))
+            wx = np.int64(np.int32(np.int32(kd - ku) - np.int32(mr - ml)))
+            wy = np.int64(np.int32(np.int32(ld - lu) - np.int32(nr - nl)))
         else:
             for q in range(size):
                 # each term in ``acc`` (numba types int32 * int32 as int64: 64-bit products)
                 along = acc(acc(acc(acc(right[q]) - acc(left[q])) * qx[q])
                             + acc(acc(acc(down[q]) - acc(up[q])) * qy[q]))
+                turn = acc(acc(acc(acc(down[q]) - acc(up[q])) * qx[q])
+                           - acc(acc(acc(right[q]) - acc(left[q])) * qy[q]))
                 vx += np.int64(acc(acc(gx[q]) * along))
                 vy += np.int64(acc(acc(gy[q]) * along))
+                wx += np.int64(acc(acc(gx[q]) * turn))
+                wy += np.int64(acc(acc(gy[q]) * turn))
     # the sums of the gradients' products with twice the third differences
     gxx3 = float(bxx) - 2.0 * h11 if third > 0.0 else 0.0
     gxy3 = float(bxy) - 2.0 * h12 if third > 0.0 else 0.0
@@ -1329,6 +1341,8 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
     if centroid:
         cen[0] = 0.25 * (f22 * vx - f12 * vy) / det
         cen[1] = 0.25 * (f11 * vy - f12 * vx) / det
+        cen[2] = 0.25 * (f22 * wx - f12 * wy) / det
+        cen[3] = 0.25 * (f11 * wy - f12 * wx) / det
     x = x0
     y = y0
     cbx = cby = -(1 << 30)  # the pixel whose corner correlations are in sx.., sy..

@@ -95,3 +95,22 @@ def test_an_approach_zooms_about_the_centre_and_shows_its_dot_where_it_says():
     corners = np.array([[0.0, 0.0, 1.0], [199.0, 159.0, 1.0]])
     q = corners @ np.linalg.inv(seq.homographies[0]).T  # the first view inside the source
     assert q[:, :2].min() >= 1.0 and q[1, 0] <= 399.0 and q[1, 1] <= 299.0
+
+
+def test_a_roll_turns_about_the_centre_and_shows_its_dot_where_it_says():
+    seq = rendered.roll(_dot_source(at=(230.0, 170.0)), "dot", rate_deg=5.0, n=4,
+                        size=(200, 160), noise=0.0)
+    assert len(seq) == 4 and seq.name == "dot, roll"
+    centre = np.array([[99.5, 79.5]])
+    p = centre + [[40.0, 0.0]]
+    turn = np.deg2rad(5.0)
+    for k in range(3):  # the view's centre stays; a point 40 px right turns 5 degrees
+        np.testing.assert_allclose(seq.map(centre, k, k + 1), centre, atol=1e-9)
+        np.testing.assert_allclose(seq.map(p, k, k + 1),
+                                   centre + 40.0 * np.array([[np.cos(turn), np.sin(turn)]]),
+                                   atol=1e-9)
+    for k, f in enumerate(seq.frames):
+        h = seq.homographies[k] @ [230.0, 170.0, 1.0]
+        assert np.hypot(*(_centre_of_mass(f) - h[:2] / h[2])) < 0.05, k
+    with pytest.raises(ValueError, match="cannot hold"):
+        rendered.roll(_dot_source((220, 300)), "small", size=(200, 160))

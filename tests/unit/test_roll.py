@@ -1,47 +1,88 @@
-"""A view turning 3 degrees a frame about its centre (:func:`.rendered.roll`): a camera that
-rolls, or one looking down at the floor from a robot turning on the spot at 90 degrees a
-second, 30 fps. Each feature's window turns with the view, so a translation estimated over it
-is of the motion at the window's centroids, not at its centre: step 7 of the coarse-to-fine
-tracker moves it there (:func:`.pyramid._affine_correction`). Real frames of the shared data,
-turned by known rotations (exact ground truth), against LK from the same points."""
+"""A view turning about its centre (:func:`.rendered.roll`): a camera that rolls, or one
+looking down at the floor from a robot turning on the spot (90 degrees a second is 3 a frame
+at 30 fps, 10 at 9 fps). Each feature's window turns with the view: the tracker turns frame t
+by the turn the frame before measured (:meth:`.Tracker._track`, TURN_WARP), and moves each
+estimate from its window's centroids to its feature's point by the turn its neighbours show
+(step 7 of the coarse-to-fine tracker, :func:`.pyramid._affine_correction`). Real frames of
+the shared data, turned by known rotations (exact ground truth), against LK from the same
+points."""
 
 from __future__ import annotations
+
+import numpy as np
 
 from vistrack.common import rendered
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import pyramid
-from vistrack.services.bench.accuracy import GROSS_PX, run_sequence
+from vistrack.common.vision import tracker as tracker_module
+from vistrack.services.bench.accuracy import run_sequence
 
 
-def scores(sources):
+def scores(sources, rate_deg):
     out = {}
     for name, image in sources:
-        seq = rendered.roll(image, f"{name} rendered", n=15)
+        seq = rendered.roll(image, f"{name} rendered", rate_deg=rate_deg, n=15)
         out[name] = run_sequence(seq.frames, lambda p, k, s=seq: s.map(p, k, k + 1),
                                  TrackerParams(),
                                  end_truth=lambda p, s=seq: s.map(p, 0, len(s) - 1))[:2]
     return out
 
 
-def test_a_turning_view_is_tracked_without_drift(sources):
-    """Every source: median error at most 0.06 px (0.026 to 0.030; LK 0.17 to 0.25), at most
-    0.5 % of pairs off by more than 2 px (0 to 0.07 %), and the first frame's survivors at
-    most 1 px from the truth after 14 frames (0.15 to 0.18 px; LK 2.2 to 3.3). Step 7 used to
-    correct a turn as if each window's texture had no direction (by A c): medians 0.17 to
-    0.22 px and drift 2.4 to 3.1 px, LK's on 3 of the 5 sources, which this test fails."""
-    for name, (ours, lk) in scores(sources).items():
+def check(got, median, gross, drift):
+    for name, (ours, lk) in got.items():
         assert ours.pairs >= 0.9 * lk.pairs, (name, ours.pairs, lk.pairs)
-        assert ours.median_epe <= min(0.06, lk.median_epe), (name, ours, lk)
-        assert ours.gross <= 0.005, (name, ours.gross, GROSS_PX)
+        assert ours.median_epe <= min(median, lk.median_epe), (name, ours, lk)
+        assert ours.gross <= gross, (name, ours.gross)
         assert ours.drift is not None and lk.drift is not None
-        assert ours.drift <= min(1.0, lk.drift), (name, ours.drift, lk.drift)
+        assert ours.drift <= min(drift, lk.drift), (name, ours.drift, lk.drift)
         assert ours.survival >= 0.5 * lk.survival, (name, ours.survival, lk.survival)
 
 
-def test_without_step_7_a_turning_view_drifts(sources, monkeypatch):
-    """Without step 7 (``AFFINE_FIT_PX`` 0) each estimate is of the motion at its window's
-    centroid: medians 0.11 to 0.21 px, drift 1.2 to 2.9 px."""
-    monkeypatch.setattr(pyramid, "AFFINE_FIT_PX", 0.0)
-    got = scores(sources)
-    assert sum(ours.median_epe > 0.06 or ours.drift > 1.0 for ours, _ in got.values()) >= 3, {
+def test_a_turning_view_is_tracked_without_drift(sources):
+    """3 degrees a frame, every source: median error at most 0.03 px (0.016 to 0.020; LK 0.17
+    to 0.25), at most 0.5 % of pairs off by more than 2 px (0 to 0.07 %), the first frame's
+    survivors at most 0.3 px from the truth after 14 frames (0.06 to 0.09; LK 2.2 to 3.3).
+    Before step 7 corrected a turn by the turn centroid c' (it took c' as R c) and frame t was
+    turned: medians 0.17 to 0.22 px and drift 2.4 to 3.1 px, which this test fails."""
+    check(scores(sources, 3.0), median=0.03, gross=0.005, drift=0.3)
+
+
+def test_a_fast_spin_is_tracked_with_frame_t_turned(sources):
+    """10 degrees a frame, every source: median at most 0.03 px (0.014 to 0.018; LK 0.67 to
+    0.93), at most 1 % off by more than 2 px (0 to 0.63 %; LK 1.8 to 23 %), drift at most 0.5
+    px (0.12 to 0.17; LK 7.6 to 12.7)."""
+    check(scores(sources, 10.0), median=0.03, gross=0.01, drift=0.5)
+
+
+def test_without_turning_frame_t_a_fast_spin_is_measured_worse(sources, monkeypatch):
+    """The test above can tell: frame t not turned (TURN_WARP infinite), the templates no
+    longer fit: medians 0.10 to 0.14 px, drift 1.1 to 1.7 px."""
+    monkeypatch.setattr(tracker_module, "TURN_WARP", float("inf"))
+    got = scores(sources[:3], 10.0)
+    assert all(ours.median_epe > 0.05 and ours.drift > 0.5 for ours, _ in got.values()), {
         name: (ours.median_epe, ours.drift) for name, (ours, _) in got.items()}
+
+
+def test_without_step_7_a_turning_view_drifts(sources, monkeypatch):
+    """Frame t not turned either, each estimate is of the motion at its window's centroids:
+    medians 0.11 to 0.21 px, drift 1.2 to 2.9 px, at 3 degrees a frame."""
+    monkeypatch.setattr(tracker_module, "TURN_WARP", float("inf"))
+    monkeypatch.setattr(pyramid, "AFFINE_FIT_PX", 0.0)
+    got = scores(sources[:3], 3.0)
+    assert all(ours.median_epe > 0.06 and ours.drift > 0.3 for ours, _ in got.values()), {
+        name: (ours.median_epe, ours.drift) for name, (ours, _) in got.items()}
+
+
+def test_a_frames_turn_is_measured_about_the_features_median_point():
+    """:func:`.tracker._turn`: 40 points turned by 7 degrees about a point off their centre
+    and shifted, 5 of them matched wrongly: 7 degrees within 0.05; too few points far enough
+    from their median point: 0."""
+    rng = np.random.default_rng(4)
+    a = rng.uniform(0.0, 200.0, (40, 2))
+    t = np.deg2rad(7.0)
+    rot = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    b = (a - [60.0, 150.0]) @ rot.T + [63.0, 148.0]
+    b[:5] = rng.uniform(0.0, 200.0, (5, 2))
+    assert abs(np.rad2deg(tracker_module._turn(a, b)) - 7.0) < 0.05
+    near = 100.0 + rng.uniform(-3.0, 3.0, (20, 2))
+    assert tracker_module._turn(near, near @ rot.T) == 0.0

@@ -59,6 +59,9 @@ TURN_WARP = 0.02
 #: a turn beyond this a frame (radians, 20 degrees) is a frame's error, not a roll: not
 #: extrapolated
 TURN_MAX = 0.35
+#: a turn is expected again where the two frames before turned the same way, by amounts
+#: within this share of the last one (:meth:`Tracker._turn_ahead`)
+TURN_STEADY = 0.5
 #: a frame pair searched without a zoom is searched again with one (:func:`_zoom_retry`) where
 #: fewer than this share of its features were found, at least ZOOM_FOUND of them, and they
 #: zoom (ZOOM_WARP); their distances to their median point are taken from ZOOM_RADIUS px on
@@ -146,7 +149,9 @@ class Tracker:
         self._acc_scale = 1.0
         self._motion = (0.0, 0.0)  # the image motion of the last frame, px
         self._zoom = 1.0  # its scale step, about the features' centroid in frame t+1
-        self._turn = 0.0  # and its turn, radians (counter-clockwise on the screen: x right, y down)
+        # and its turn, radians (clockwise on the screen: x right, y down), and the turn of the
+        # frame before it; NaN: not measured (no frame pair yet)
+        self._turn = self._turn_before = np.nan
         #: frames whose frame t was scaled (and turned) by the zoom (and turn) of the frame
         #: before (:func:`_zoomed`), or (a track's first pair in an approach) by the zoom of its
         #: own matches (:func:`_zoom_retry`)
@@ -289,7 +294,7 @@ class Tracker:
         if len(self._pos) == 0:
             self._motion = (0.0, 0.0)
             self._zoom = 1.0
-            self._turn = 0.0
+            self._turn = self._turn_before = np.nan
             return
         if pyr is None:
             # the paper's tracker: its single-level search straight from track_ssd, no pyramid
@@ -308,13 +313,14 @@ class Tracker:
             if prev is None or prev.levels != pyr.levels:  # the levels changed with the params
                 prev = build_pyramid(self._prev, p.levels)
             pts = self._pos
-            zoomed = abs(self._zoom - 1.0) > ZOOM_WARP or abs(self._turn) > TURN_WARP
+            turn = self._turn_ahead()
+            zoomed = abs(self._zoom - 1.0) > ZOOM_WARP or abs(turn) > TURN_WARP
             if zoomed:
                 # an approach (or a retreat), a roll: frame t scaled and turned by the zoom and
                 # turn of the frame before, about the features' centroid, so that each
                 # template shows its patch at the size and angle it has in frame t+1; the
                 # features where that puts them
-                prev, pts = _zoomed(self._prev, pts, self._zoom, p.levels, self._turn)
+                prev, pts = _zoomed(self._prev, pts, self._zoom, p.levels, turn)
                 self.zoom_warps += 1
             mapped = self._exposed(prev, pyr)
             self.exposure_steps += mapped is not prev
@@ -341,11 +347,27 @@ class Tracker:
         self._motion = (dx, dy) if moved else (0.0, 0.0)
         # a scale step beyond ZOOM_RANGE is a frame's error, not an approach: not extrapolated
         self._zoom = scale if moved and ZOOM_RANGE[0] <= scale <= ZOOM_RANGE[1] else 1.0
+        self._turn_before = self._turn
         self._turn = turn if moved and abs(turn) <= TURN_MAX else 0.0
         self._lost += lost
         self._pos = pos
         self._vel = vel
         self._ids = ids
+
+    def _turn_ahead(self) -> float:
+        """The turn to expect from frame t to t+1: the last frame's where the one before
+        turned the same way by about as much (within TURN_STEADY of it: a roll's rate changes
+        smoothly), else 0. A shake turns back and forth: frame t turned by the last frame's
+        turn then made the templates fit worse than not turned (frames jittering by up to 4
+        degrees and 6 px: medians 0.039 to 0.050 px and 3 % of one source's pairs off by more
+        than 2 px, against 0.027 to 0.036 and 0.99 %)."""
+        last, before = self._turn, self._turn_before
+        if np.isnan(last):
+            return 0.0
+        if np.isnan(before) or (last * before > 0.0
+                                and abs(last - before) <= TURN_STEADY * abs(last)):
+            return last  # a track's second pair has one turn measured before it: taken
+        return 0.0
 
     def rehearse(self) -> bool:
         """Run a frame's search on a tiny job, keeping nothing: the first two features
@@ -400,8 +422,9 @@ class Tracker:
             vel = np.zeros_like(new)
         else:
             vel = np.tile(np.array(self._motion), (len(new), 1))
-            if (self._zoom != 1.0 or self._turn != 0.0) and len(self._pos):
-                c, s = np.cos(self._turn), np.sin(self._turn)
+            turn = self._turn_ahead()
+            if (self._zoom != 1.0 or turn != 0.0) and len(self._pos):
+                c, s = np.cos(turn), np.sin(turn)
                 step = self._zoom * np.array([[c, -s], [s, c]]) - np.eye(2)
                 vel += (new - self._pos.mean(axis=0)) @ step.T
         self._pos = np.concatenate([self._pos, new])

@@ -130,9 +130,9 @@ def compensate(prev: Pyramid, curr: Pyramid, shift: tuple[float, float],
     ``shift``: the image motion expected from ``prev`` to ``curr``, px of level 0."""
     k = min(prev.levels, curr.levels) - 1
     at = (shift[0] * 0.5 ** k, shift[1] * 0.5 ** k)
+    ix, iy = int(round(at[0])), int(round(at[1]))
     # _change(prev.level(k), curr.level(k), at) in one kernel (the frame's path: every frame)
-    m0, s0, m1, s1 = _overlap_stats(prev.data, curr.data, prev.geo, k, int(round(at[0])),
-                                    int(round(at[1])))
+    m0, s0, m1, s1 = _overlap_stats(prev.data, curr.data, prev.geo, k, ix, iy)
     if s0 < MIN_SPREAD or s1 < MIN_SPREAD:  # no contrast, or no overlap
         return prev
     gain = s1 / s0
@@ -142,7 +142,8 @@ def compensate(prev: Pyramid, curr: Pyramid, shift: tuple[float, float],
     if change[2] <= max(2.0 * noise_sigma, 1.0):
         return prev
     gain, offset, _ = change
-    if not _explains(prev.level(k), curr.level(k), at, gain, offset):
+    if not _explains(prev.data, curr.data, prev.geo, k, ix, iy, at[0] - ix, at[1] - iy, gain,
+                     offset, BLOCKS):
         return prev
     lut = np.clip(np.rint(np.arange(256) * gain + offset), 0, 255).astype(np.uint8)
     return Pyramid(cv2.LUT(prev.data, lut).reshape(-1), prev.geo, prev.shapes)
@@ -152,32 +153,95 @@ def compensate(prev: Pyramid, curr: Pyramid, shift: tuple[float, float],
 BLOCKS = 4
 
 
-def _explains(prev: np.ndarray, curr: np.ndarray, shift: tuple[float, float], gain: float,
-              offset: float) -> bool:
-    """Whether the change ``(gain, offset)`` explains how the blocks of the overlap differ:
-    mapped by it, frame t's block means come at least twice as close to frame t+1's (RMS over
-    the blocks). A change of exposure moves every block alike; a view that moved further than
-    predicted (a fast turn, the first frame of a track) changes the blocks' content, which a
-    gain and offset fitted to the whole overlap do not explain."""
-    both = _overlap(prev, curr, shift)
-    if both is None:
+@nb.njit(cache=True, nogil=True)
+def _explains(pdata, cdata, geo, k, ix, iy, fx, fy, gain, offset,
+              blocks):  # pragma: no cover - numba
+    """Whether the change ``(gain, offset)`` explains how the blocks of the overlap of level k
+    of two pyramids' buffers differ (:func:`_overlap` of the whole shift ``ix, iy``, cut into
+    ``blocks`` x ``blocks``): mapped by it, frame t's block means come at least twice as close
+    to frame t+1's (RMS over the blocks). A change of exposure moves every block alike; a view
+    that moved further than predicted (a fast turn, the first frame of a track) changes the
+    blocks' content, which a gain and offset fitted to the whole overlap do not explain.
+
+    The part of the shift the whole pixels leave out, ``(fx, fy)`` (up to half a pixel of the
+    coarsest level, 2 px of the frame's), moves frame t's overlap bilinearly first, its edge
+    repeated: its blocks' means then see the scene frame t+1's do. One kernel for what was
+    ~10 numpy and OpenCV calls (a bilinear ``cv2.warpAffine``, conversions, block means): 42
+    -> 17 us at 64 x 64 back to back, the same decision on every one of 177 frames where it
+    ran (the rendered sequences with exposure changes, the built-in sequence's jumps); after
+    33 ms idle, as in a service at 30 fps, whose calls start from cold caches, see the
+    commit that made it a kernel."""
+    prev = _level(pdata, geo, k)
+    curr = _level(cdata, geo, k)
+    h, w = prev.shape
+    x0, x1 = max(0, -ix), min(w, w - ix)
+    y0, y1 = max(0, -iy), min(h, h - iy)
+    if x1 <= x0 or y1 <= y0:
         return False
-    a: np.ndarray = both[0].astype(np.float32)
-    b: np.ndarray = both[1]
-    # the part of the shift the overlap's whole pixels leave out (up to half a pixel of the
-    # coarsest level, 2 px of the frame's), applied to frame t bilinearly: its blocks' means
-    # then see the scene frame t+1's do
-    fx, fy = shift[0] - round(shift[0]), shift[1] - round(shift[1])
-    if fx or fy:
-        a = cv2.warpAffine(a, np.array([[1.0, 0.0, fx], [0.0, 1.0, fy]], np.float32),
-                           (a.shape[1], a.shape[0]), flags=cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_REPLICATE)
-    a, b = a.astype(np.float64), b.astype(np.float64)
-    bh, bw = a.shape[0] // BLOCKS, a.shape[1] // BLOCKS
-    if bh < 1 or bw < 1:
+    ow = x1 - x0
+    oh = y1 - y0
+    bw = ow // blocks
+    bh = oh // blocks
+    if bw < 1 or bh < 1:
         return False
-    ma = a[:bh * BLOCKS, :bw * BLOCKS].reshape(BLOCKS, bh, BLOCKS, bw).mean(axis=(1, 3))
-    mb = b[:bh * BLOCKS, :bw * BLOCKS].reshape(BLOCKS, bh, BLOCKS, bw).mean(axis=(1, 3))
-    before = float(np.sqrt(np.mean((mb - ma) ** 2)))
-    after = float(np.sqrt(np.mean((mb - (gain * ma + offset)) ** 2)))
-    return after <= 0.5 * before
+    # the sample of frame t at (x - fx, y - fy): between its pixels dx and dx + 1 (dy, dy + 1)
+    dx = int(np.floor(-fx))
+    dy = int(np.floor(-fy))
+    tx = -fx - dx
+    ty = -fy - dy
+    # bilinear sampling is linear: a block's sum of samples is the blend of four sums of frame
+    # t's pixels over the block moved by whole pixels (dx or dx + 1, dy or dy + 1). Per row of
+    # frame t (sample row y reads rows y + dy and y + dy + 1), each block's sums over its
+    # columns moved by dx and dx + 1, in integers, the overlap's edge repeated
+    rows = bh * blocks
+    left = np.zeros((rows + 1, blocks), np.int64)
+    right = np.zeros((rows + 1, blocks), np.int64)
+    for j in range(rows + 1):
+        row = prev[min(max(j + dy, 0), oh - 1) + y0]
+        for c in range(blocks):
+            left[j, c] = _row_sum(row, x0, ow, c * bw + dx, (c + 1) * bw + dx)
+            right[j, c] = _row_sum(row, x0, ow, c * bw + dx + 1, (c + 1) * bw + dx + 1)
+    ma = np.zeros((blocks, blocks))
+    mb = np.zeros((blocks, blocks))
+    for r in range(blocks):
+        for y in range(r * bh, (r + 1) * bh):
+            seen = curr[y0 + y + iy]
+            for c in range(blocks):
+                ma[r, c] += ((1.0 - ty) * ((1.0 - tx) * left[y, c] + tx * right[y, c])
+                             + ty * ((1.0 - tx) * left[y + 1, c] + tx * right[y + 1, c]))
+                mb[r, c] += _row_sum(seen, x0 + ix, ow, c * bw, (c + 1) * bw)
+    n = float(bw * bh)
+    before = 0.0
+    after = 0.0
+    for r in range(blocks):
+        for c in range(blocks):
+            a = ma[r, c] / n
+            b = mb[r, c] / n
+            before += (b - a) ** 2
+            after += (b - (gain * a + offset)) ** 2
+    return after <= 0.25 * before
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _row_sum(row, x0, width, lo, hi):  # pragma: no cover - numba
+    """Sum of ``row[x0 + clamp(x)]`` for x in [lo, hi), clamp(x) within [0, width): the
+    row's part from x0, its ends repeated beyond it."""
+    s = np.int64(0)
+    a = max(lo, 0)
+    part = row[x0 + a:x0 + max(min(hi, width), a)]  # a slice: no wraparound test an index
+    for i in range(part.shape[0]):
+        s += part[i]
+    if lo < 0:
+        s += (min(hi, 0) - lo) * np.int64(row[x0])
+    if hi > width:
+        s += (hi - max(lo, width)) * np.int64(row[x0 + width - 1])
+    return s
+
+
+def warm() -> None:
+    """Compile (or load) this module's kernels: :func:`_explains` runs only on a frame whose
+    exposure seems to change, which a warm-up's frames need not show."""
+    from .pyramid import build_pyramid
+
+    pyr = build_pyramid(np.zeros((16, 16), np.uint8), 1)
+    _explains(pyr.data, pyr.data, pyr.geo, 0, 0, 0, 0.25, -0.25, 1.0, 0.0, BLOCKS)

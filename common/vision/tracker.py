@@ -38,6 +38,7 @@ import numpy as np
 from numba.core import event as numba_event
 
 from ..params import MIN_VALID_NPI, TrackerParams
+from . import exposure
 from .exposure import compensate
 from .features import select_features
 from .motion import _incremental_motion, centroid_scatter
@@ -668,6 +669,7 @@ def warm_up(on_compile: Callable[[], None] | None = None,
             _WARMING.add(threading.get_ident())
             try:
                 track_frames(sequence(3, size=(side, side), seed=1), small)
+                exposure.warm()
             finally:
                 _WARMING.discard(threading.get_ident())
             _WARM.add(key)

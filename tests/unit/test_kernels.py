@@ -216,6 +216,10 @@ for size in ((8, 8), (320, 240)):
     tr = Tracker(p)
     for f in frames[:5]:
         tr.process(np.ascontiguousarray(f[:size[1], :size[0]]))
+tr = Tracker(p)  # an auto-exposure that hunts: every other frame brighter
+for i, f in enumerate(frames[:6]):
+    tr.process(np.clip(f * 1.2 + 8.0, 0, 255).astype(np.uint8) if i % 2 else f)
+print(tr.exposure_steps > 0)
 tr = Tracker(p)  # as motion-estimation takes a pre-processed frame: copied, deferred
 for f in frames[:10]:
     tr.update(DeferredPreprocessed(np.array(np.frombuffer(f.tobytes(), np.uint8)
@@ -246,10 +250,11 @@ def test_a_tuning_cycle_runs_on_the_kernels_the_start_up_warm_up_loaded():
 
 def test_a_track_runs_on_the_kernels_the_start_up_warm_up_loaded():
     """Tracking, re-detection, a black and a saturated frame, frames of 8 x 8 and 320 x 240,
-    and the copied, deferred frames of motion-estimation."""
+    exposure steps (whose test of the blocks, :func:`.exposure._explains`, runs only where
+    the exposure seems to change), and the copied, deferred frames of motion-estimation."""
     out = late_kernels(TRACK)
-    assert out[0] == "True"
-    assert [line for line in out[1:] if line] == []
+    assert out[:2] == ["True", "True"]
+    assert [line for line in out[2:] if line] == []
 
 
 WIDE = """

@@ -10,6 +10,7 @@ points."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from vistrack.common import rendered
 from vistrack.common.params import TrackerParams
@@ -148,3 +149,26 @@ def test_a_tracks_first_pair_in_a_spin_is_searched_again_with_its_turn(sources, 
     monkeypatch.setattr(tracker_module, "TURN_WARP", float("inf"))
     without = [first_pair(image, name)[0] for name, image in sources]
     assert sum(share < 0.75 for share in without) >= 3, without
+
+
+@pytest.mark.parametrize("n", [100, 2000])
+def test_the_retrys_similarity_is_the_one_most_matches_agree_with(n):
+    """:func:`.tracker._zoom_retry`: 60 % of ``n`` features found (fewer than three quarters),
+    zoomed by 6 % and turned by 10 degrees about a point off the frame and shifted, a quarter
+    of the matches wrong: the zoom within 0.001, the turn within 0.02 degrees, and every
+    feature predicted within 0.01 px of where the similarity takes it (with 2000 features, of
+    at most RETRY_PROPOSALS proposals)."""
+    rng = np.random.default_rng(n)
+    pos = rng.uniform(0.0, 640.0, (n, 2))
+    t = np.deg2rad(10.0)
+    m = 1.06 * np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    went = (pos - [900.0, -200.0]) @ m.T + [905.0, -190.0]
+    found = went.copy()
+    wrong = rng.random(n) < 0.25
+    found[wrong] += rng.uniform(-40.0, 40.0, (int(wrong.sum()), 2))
+    status = np.where(np.arange(n) < 0.6 * n, tracker_module.OK, tracker_module.LEFT)
+    zoom, turn, preds = tracker_module._zoom_retry(pos, found, status.astype(np.int8))
+    assert abs(zoom - 1.06) < 0.001 and abs(np.rad2deg(turn) - 10.0) < 0.02, (zoom, turn)
+    assert np.abs(preds - went).max() < 0.01
+    # three quarters found: no retry
+    assert tracker_module._zoom_retry(pos, found, np.zeros(n, np.int8)) is None

@@ -1127,9 +1127,9 @@ def _refine_scratch(wts, acc):  # pragma: no cover - numba
     q, cen, fast), ``tp`` and ``cp`` the two patches (uint8), ``g`` the two gradients (int16 where
     :func:`_refine` sums in int32, the type of ``acc``, an empty array from
     :func:`refine_acc`; else int64); ``q`` each pixel's (i, j) from the window's centre in the
-    same layout, in the type of ``acc``; ``cen`` (4,) where :func:`_refine` puts the window's
-    centroid and turn centroid; ``fast``: whether the centroids' sums fit int32, each product
-    of a gradient and a pixel's i or j int16."""
+    same layout, in the type of ``acc``; ``cen`` (8,) where :func:`_refine` puts the window's
+    centroid, turn, stretch and shear centroids; ``fast``: whether the centroids' sums fit
+    int32, each product of a gradient and a pixel's i or j int16."""
     m = wts.shape[0]
     half = m // 2
     stride = m + 4
@@ -1152,7 +1152,7 @@ def _refine_scratch(wts, acc):  # pragma: no cover - numba
     weight = np.abs(wts).astype(np.int64)
     fast = (g.itemsize == 2 and 255.0 * 255.0 * 2.0 * half * weight.sum() < 2.0**31
             and 255 * half * weight.max() <= 32767)
-    return wpad, tp, cp, g, q, np.zeros(4, np.float64), fast
+    return wpad, tp, cp, g, q, np.zeros(8, np.float64), fast
 
 
 def _gradients(acc, size):  # pragma: no cover - numba: compiled through the overload below
@@ -1218,7 +1218,8 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
     gradient's outer product at pixel q; ``qs`` the pixels' (i, j)), then its turn centroid
     c' = (sum W H)^-1 sum W H R q (R q = (-j, i)): where the neighbourhood also scales by a
     and turns by b, the estimate is off by a c + b c' (:func:`.pyramid._affine_correction`).
-    c' is R c only where the window's texture has no direction.
+    c' is R c only where the window's texture has no direction. Then its stretch and shear
+    centroids, (sum W H)^-1 sum W H (i, -j) and (sum W H)^-1 sum W H (j, i): ``cen`` (8,).
 
     The gradient-weighted sum of the bilinear samples splits into four integer correlations of
     the gradient with frame t+1 at the corners of the pixel holding the estimate, so an
@@ -1281,7 +1282,7 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
     # in ``acc`` they made the windows of 27 px or more (the auto-tuner's reference and sweep)
     # sum everything in int64, kernels of their own that no start-up warm-up compiled (a cold
     # first tuning cycle took 28 s, 25 of them compiling)
-    vx = vy = wx = wy = np.int64(0)
+    vx = vy = wx = wy = sdx = sdy = shx = shy = np.int64(0)
     bxx = bxy = byx = byy = acc(0)
     centroid = third > 1.0
     if third > 0.0:
@@ -1315,6 +1316,11 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
             vy = np.int64(np.int32(np.int32(lr - ll) + np.int32(nd - nu)))
             wx = np.int64(np.int32(np.int32(kd - ku) - np.int32(mr - ml)))
             wy = np.int64(np.int32(np.int32(ld - lu) - np.int32(nr - nl)))
+            # and the stretch's, (2 g) (2 g . (i, -j)), and the shear's, (2 g) (2 g . (j, i))
+            sdx = np.int64(np.int32(np.int32(kr - kl) - np.int32(md - mu)))
+            sdy = np.int64(np.int32(np.int32(lr - ll) - np.int32(nd - nu)))
+            shx = np.int64(np.int32(np.int32(mr - ml) + np.int32(kd - ku)))
+            shy = np.int64(np.int32(np.int32(nr - nl) + np.int32(ld - lu)))
         else:
             for q in range(size):
                 # each term in ``acc`` (numba types int32 * int32 as int64: 64-bit products)
@@ -1322,10 +1328,18 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
                             + acc(acc(acc(down[q]) - acc(up[q])) * qy[q]))
                 turn = acc(acc(acc(acc(down[q]) - acc(up[q])) * qx[q])
                            - acc(acc(acc(right[q]) - acc(left[q])) * qy[q]))
+                stretch = acc(acc(acc(acc(right[q]) - acc(left[q])) * qx[q])
+                              - acc(acc(acc(down[q]) - acc(up[q])) * qy[q]))
+                shear = acc(acc(acc(acc(right[q]) - acc(left[q])) * qy[q])
+                            + acc(acc(acc(down[q]) - acc(up[q])) * qx[q]))
                 vx += np.int64(acc(acc(gx[q]) * along))
                 vy += np.int64(acc(acc(gy[q]) * along))
                 wx += np.int64(acc(acc(gx[q]) * turn))
                 wy += np.int64(acc(acc(gy[q]) * turn))
+                sdx += np.int64(acc(acc(gx[q]) * stretch))
+                sdy += np.int64(acc(acc(gy[q]) * stretch))
+                shx += np.int64(acc(acc(gx[q]) * shear))
+                shy += np.int64(acc(acc(gy[q]) * shear))
     # the sums of the gradients' products with twice the third differences
     gxx3 = float(bxx) - 2.0 * h11 if third > 0.0 else 0.0
     gxy3 = float(bxy) - 2.0 * h12 if third > 0.0 else 0.0
@@ -1343,6 +1357,10 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
         cen[1] = 0.25 * (f11 * vy - f12 * vx) / det
         cen[2] = 0.25 * (f22 * wx - f12 * wy) / det
         cen[3] = 0.25 * (f11 * wy - f12 * wx) / det
+        cen[4] = 0.25 * (f22 * sdx - f12 * sdy) / det
+        cen[5] = 0.25 * (f11 * sdy - f12 * sdx) / det
+        cen[6] = 0.25 * (f22 * shx - f12 * shy) / det
+        cen[7] = 0.25 * (f11 * shy - f12 * shx) / det
     x = x0
     y = y0
     cbx = cby = -(1 << 30)  # the pixel whose corner correlations are in sx.., sy..

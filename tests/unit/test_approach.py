@@ -89,3 +89,35 @@ def test_an_approach_is_measured_at_each_feature_not_at_its_windows_centroid(sou
     monkeypatch.setattr(pyramid, "AFFINE_FIT_PX", 0.0)
     off = {name: median(name, image) for name, image in sources}
     assert min(off.values()) > 0.1, off  # the test can tell
+
+
+def ground(image, name, speed=4.0, n=12):
+    """A camera 60 px above a plane textured with ``image``, looking along it (the horizon 60
+    px above the frame, focal length 200 px), driving forward ``speed`` px of the plane a
+    frame: the top row sees the plane 200 px ahead and moves 1.2 px a frame, the bottom row 38
+    px ahead and 35 px a frame, each patch wider by up to 11 % a frame and taller by up to 23
+    %. Exact ground truth (a homography of the plane a frame)."""
+    f, height, cx, horizon = 200.0, 60.0, 127.5, -60.0
+    u0 = image.shape[1] / 2.0
+    hs = np.array([[[f, cx, -f * u0 - cx * v0], [0.0, horizon, f * height - horizon * v0],
+                    [0.0, 1.0, -v0]] for v0 in 2.0 + speed * np.arange(n)])
+    return rendered.RenderedSequence(name, rendered.render(image, hs, (256, 256), seed=3), hs)
+
+
+def test_a_plane_seen_in_perspective_is_measured_at_each_feature(sources):
+    """Forward driving over a ground plane: each patch scales along x and y apart, which no
+    similarity fits. Step 7 fits its neighbours' affine map there and corrects each estimate
+    by its window's stretch and shear centroids too: medians at most half LK's on every
+    source and at most 0.08 px on 3 of 5 (0.043 to 0.105; LK 0.18 to 0.40). With the
+    similarity alone (d938312): 0.082 to 0.135, on none."""
+    from vistrack.services.bench.accuracy import run_sequence
+
+    medians = []
+    for name, image in sources:
+        seq = ground(image, name)
+        ours, lk, _ = run_sequence(seq.frames, lambda p, k, s=seq: s.map(p, k, k + 1),
+                                   TrackerParams())
+        assert ours.median_epe <= 0.5 * lk.median_epe, (name, ours, lk)
+        assert ours.gross <= 0.03, (name, ours.gross)
+        medians.append(ours.median_epe)
+    assert sum(m <= 0.08 for m in medians) >= 3, medians

@@ -98,7 +98,8 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
    a roll) is the motion at the window's texture-weighted centroids (the turn's differs from
    the scale's), not at its centre. Each estimate is moved to its feature's point by the scale
    and rotation of a similarity fitted to its nearest matches' displacements, where they fit
-   one (:func:`_affine_correction`). On
+   one, else by their affine map where they fit that (a plane in perspective)
+   (:func:`_affine_correction`). On
    the scoreboard's approaches (10 % a frame) the median error fell from 0.16 to 0.24 px to
    0.05 to 0.07 (LK 0.27 to 0.33); elsewhere it moved by a few thousandths. Cost: ~25 us a
    frame on the bench's frames (step 7 on and off in one process, best of 200 rounds); ~7 us
@@ -1470,8 +1471,9 @@ def _widen(prev, curr, pts, n, wide, acc, ok, out_pos, agree, straddle, floor, t
 @nb.njit(cache=True, nogil=True)
 def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform, bound,
                        judged, judged_near):  # pragma: no cover - numba
-    """Step 7: each match's (``status`` OK) estimate moved from its window's centroid to its
-    feature's point, by the scale and rotation of its neighbourhood, where that is known.
+    """Step 7: each match's (``status`` OK) estimate moved from its window's centroids to its
+    feature's point, by the scale and rotation of its neighbourhood (or its affine map, where
+    it is no similarity), where that is known.
 
     A translation estimated over a window whose neighbourhood also scales by a and turns by b
     (an approach, a roll: the displacement at its pixel q is t + (a I + b R) q) is, to first

@@ -294,6 +294,51 @@ def roll(source: np.ndarray, name: str, *, rate_deg: float = 3.0, n: int = 30,
                                                     seed=seed), np.array(hs))
 
 
+def shake(source: np.ndarray, name: str, *, jolt_px: float = 6.0, jolt_deg: float = 2.0,
+          n: int = 30, size: tuple[int, int] = (256, 256), noise: float = 1.0,
+          seed: int | None = None) -> RenderedSequence:
+    """A slow path (up to 4 px a frame) seen by a camera that shakes: each frame moved by up
+    to ``jolt_px`` px along each axis and turned by up to ``jolt_deg`` degrees about its
+    centre, at random and independently of the frame before (a camera on a vibrating mount,
+    a robot on a rough floor, a hand). From frame to frame a point then moves by up to twice
+    as much either way, so a constant-velocity prediction is off by up to three times the
+    jolt: at 6 px, 12 px at the median. Jolts and noise are drawn from ``seed`` (by default
+    one per name).
+
+    Raises
+    ------
+    ValueError
+        If the source has no room for the path.
+    """
+    if seed is None:
+        seed = zlib.crc32(name.encode()) + 53
+    rng = np.random.default_rng(seed + 2)
+    path = homographies((source.shape[1], source.shape[0]), size, n, max_step=4.0, seed=3,
+                        travel=0.1)
+    cx, cy = (size[0] - 1) / 2.0, (size[1] - 1) / 2.0
+    hs = []
+    for h in path:
+        t, a = rng.uniform(-jolt_px, jolt_px, 2), np.deg2rad(rng.uniform(-jolt_deg, jolt_deg))
+        c, s = np.cos(a), np.sin(a)
+        jolt = np.array([[c, -s, t[0] + cx - c * cx + s * cy],
+                         [s, c, t[1] + cy - s * cx - c * cy], [0.0, 0.0, 1.0]])
+        hs.append(jolt @ h)
+    hs = np.array(hs)
+    # the jolted views' corners, in the source: inside it, or the frames would show its edge
+    w, h = size
+    corners = np.array([[0.0, 0.0, 1.0], [w - 1.0, 0.0, 1.0], [0.0, h - 1.0, 1.0],
+                        [w - 1.0, h - 1.0, 1.0]])
+    q = np.einsum("kij,cj->kci", np.linalg.inv(hs), corners)
+    q = q[..., :2] / q[..., 2:]
+    sw, sh = source.shape[1], source.shape[0]
+    if q[..., 0].min() < 0 or q[..., 1].min() < 0 or q[..., 0].max() > sw - 1 \
+            or q[..., 1].max() > sh - 1:
+        raise ValueError(f"{name}: a {sw}x{sh} source has no room for a {w}x{h} view jolted by "
+                         f"{jolt_px:g} px and {jolt_deg:g} degrees")
+    return RenderedSequence(f"{name}, shake", render(source, hs, size, noise=noise, seed=seed),
+                            hs)
+
+
 def _line_kernel(dx: float, dy: float) -> np.ndarray:
     """The normalised kernel of a straight motion (dx, dy) px during an exposure, centred:
     the mean of the image shifted along the motion, sampled every quarter pixel."""

@@ -3,6 +3,8 @@ their views stay inside the source, their motion is what it says, and they are d
 
 from __future__ import annotations
 
+import zlib
+
 import cv2
 import numpy as np
 import pytest
@@ -114,3 +116,29 @@ def test_a_roll_turns_about_the_centre_and_shows_its_dot_where_it_says():
         assert np.hypot(*(_centre_of_mass(f) - h[:2] / h[2])) < 0.05, k
     with pytest.raises(ValueError, match="cannot hold"):
         rendered.roll(_dot_source((220, 300)), "small", size=(200, 160))
+
+
+def test_a_shake_jolts_each_frame_within_its_bounds_and_shows_its_dot_where_it_says():
+    """Each frame of the slow path jolted by up to 6 px and 2 degrees at random: from frame to
+    frame the view's centre moves by the path's step (at most 4 px) and two jolts (at most 12
+    px a side), turns by at most 4 degrees and the path's little; the steps scatter as a shake
+    does (not a steady path); the dot shows where the homographies put it; a seed repeats."""
+    seq = rendered.shake(_dot_source(), "dot", n=12, size=(200, 160), noise=0.0)
+    assert len(seq) == 12 and seq.name == "dot, shake"
+    ends = np.array([[99.5, 79.5], [139.5, 79.5]])
+    steps, turns = [], []
+    for k in range(11):
+        moved = seq.map(ends, k, k + 1)
+        steps.append(moved[0] - ends[0])
+        turns.append(np.degrees(np.arctan2(*(moved[1] - moved[0])[::-1])))
+    steps = np.array(steps)
+    assert np.abs(steps).max() <= 16.0 and (steps.std(axis=0) > 2.0).all(), steps
+    assert np.abs(turns).max() <= 4.5, turns
+    for k, f in enumerate(seq.frames):
+        h = seq.homographies[k] @ [200.0, 150.0, 1.0]
+        assert np.hypot(*(_centre_of_mass(f) - h[:2] / h[2])) < 0.05, k
+    again = rendered.shake(_dot_source(), "other", n=12, size=(200, 160), noise=0.0,
+                           seed=zlib.crc32(b"dot") + 53)
+    np.testing.assert_array_equal(again.homographies, seq.homographies)
+    with pytest.raises(ValueError, match="no room"):
+        rendered.shake(_dot_source(), "far", size=(200, 160), jolt_px=90.0)

@@ -94,18 +94,7 @@ def shaken(image, name, n=15):
     """A slow path (up to 4 px a frame) seen by a camera that shakes: each frame turned by up
     to 4 degrees about its centre and moved by up to 6 px, at random, independently of the
     frame before (the turn from frame to frame: up to 8 degrees, either way)."""
-    rng = np.random.default_rng(7)
-    path = rendered.homographies((image.shape[1], image.shape[0]), (256, 256), n,
-                                 max_step=4.0, seed=3, travel=0.1)
-    hs = []
-    for h in path:
-        t, a = rng.uniform(-6.0, 6.0, 2), np.deg2rad(rng.uniform(-4.0, 4.0))
-        c, s = np.cos(a), np.sin(a)
-        jolt = np.array([[c, -s, t[0] + 127.5 - 127.5 * (c - s)],
-                         [s, c, t[1] + 127.5 - 127.5 * (s + c)], [0.0, 0.0, 1.0]])
-        hs.append(jolt @ h)
-    hs = np.array(hs)
-    return rendered.RenderedSequence(name, rendered.render(image, hs, (256, 256), seed=5), hs)
+    return rendered.shake(image, name, jolt_px=6.0, jolt_deg=4.0, n=n, seed=5)
 
 
 def test_a_shaking_camera_does_not_turn_frame_t_by_the_last_jolt(sources):

@@ -75,6 +75,19 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
    alternatives are summed); on the searched ones only, +4 us on frames whose features were
    held (old and new side by side in one process, 60 interleaved rounds, best of them), within
    the rounds' spread;
+5c. **rescue** (``consensus`` and ``max_fb_error`` > 0, sub-pixel): a match rejected by a
+   test of its search (steps 1 to 5b: border, ambiguous, runaway, the way back, the
+   consensus) whose NEIGHBOURS nearest matches move as one surface (a similarity fits their
+   displacements to within RESCUE_FIT_PX rms) is followed by Gauss-Newton from the
+   displacement that similarity gives at its point, as Lucas-Kanade would be from a good
+   guess, and kept where it lands within the consensus's bound of it and its way back (step
+   4) returns to its start (:func:`_rescue`). A search fails where its prediction was far
+   off and its coarse level aliased a repetitive texture: a camera shaking by up to 6 px a
+   frame at random (the prediction 12 px off at the median) lost 64 of RubberWhale's
+   features to the way back, the consensus and ambiguity in 30 frames, where Lucas-Kanade
+   from the neighbours' motion found 98 % of them to within 0.5 px. Where the neighbours
+   are not one surface (a motion boundary) their motion is not the feature's: there it
+   keeps its status;
 6. **wide sub-pixel window**: Gauss-Newton again over a wider window (21 px by default), whose
    estimate is taken where it agrees with the correlation window's (:func:`_widen`) to within
    a bound that grows with the camera's noise (:func:`agreement`), or where each side of its
@@ -301,6 +314,17 @@ NEIGHBOURS = 6
 #: nearest matches' displacements fit a similarity to within this, px rms (several times a
 #: match's own error): one surface, moving as one (:func:`_affine_correction`)
 AFFINE_FIT_PX = 0.2
+#: step 5c follows a rejected match from its NEIGHBOURS nearest matches' motion where their
+#: displacements fit a similarity to within this, px rms: one surface moving as one, as step 7
+#: asks (0: off). Where they need not (a median of theirs, or a fit to within 0.5 px), the
+#: pairs' motion boundaries paid: Urban2's feature there took its neighbours' motion, 3 of
+#: 76 pairs off by more than 2 px -> 6 of 81 (with up to 500 features, 12 of 399 -> 19 of
+#: 442); at 0.2, 3 of 78 and 17 of 436 (:func:`_rescue`)
+RESCUE_FIT_PX = AFFINE_FIT_PX
+#: ... and takes it where it lands within this of their motion, px (or 3 times their fit's
+#: rms, where more): a feature next to an occluding patch, taken with the consensus's 2 px,
+#: was followed to 1.2 px off
+RESCUE_NEAR_PX = 0.5
 #: where the neighbourhood is no similarity, step 7 fits an affine map (a plane in
 #: perspective scales along x and y apart) and corrects by it where that fits instead
 AFFINE_GENERAL = True
@@ -662,13 +686,14 @@ def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, 
 @nb.njit(cache=True, nogil=True)
 def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wts, exhaustive,
                  ratio, allowance, reject_border, guided_retry, fb_bound, consensus, dominant,
-                 affine_fit, subpixel, wide, acc, agree, straddle, floor, budget, out_pos,
-                 out_ssd, out_status):  # pragma: no cover - numba
+                 affine_fit, rescue_fit, subpixel, wide, acc, agree, straddle, floor, budget,
+                 out_pos, out_ssd, out_status):  # pragma: no cover - numba
     """The whole of :func:`track_pyramid` (steps 0 to 7 of the module notes), returning how
     many were found; ``acc``: the integer type of the sub-pixel sums
-    (:func:`.ssd.refine_acc`); ``dominant`` and ``affine_fit``: DOMINANT_PX and AFFINE_FIT_PX
-    (read where it is called, so that a test can turn steps 5b and 7 off); ``budget``: (1,)
-    int64, what is left of the frame's searches (:data:`FRAME_WORK`), drawn on here.
+    (:func:`.ssd.refine_acc`); ``dominant``, ``affine_fit`` and ``rescue_fit``: DOMINANT_PX,
+    AFFINE_FIT_PX and RESCUE_FIT_PX (read where it is called, so that a test can turn steps
+    5b, 7 and 5c off); ``budget``: (1,) int64, what is left of the frame's searches
+    (:data:`FRAME_WORK`), drawn on here.
     Returns -1, having done nothing, where a point or prediction is not finite within
     +-MAX_COORD (NaN fails the comparison too): one given to the search indexed memory at
     random (SIGSEGV)."""
@@ -741,37 +766,11 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
     # held to the same tests as the forward search
     if fb_bound > 0.0:
         check = np.empty(n_feat, np.bool_)
-        back = np.zeros((n_feat, 2), np.float64)
-        mirrored = np.zeros((n_feat, 2), np.float64)
-        checks = 0
         for f in range(n_feat):
             check[f] = out_status[f] == OK and active[f]
-            if check[f]:
-                checks += 1
-                for c in range(2):
-                    back[f, c] = out_pos[f, c]
-                    mirrored[f, c] = out_pos[f, c] - offset[f, c]
-        if checks > 0 and subpixel:
-            # the coarse search back, then Gauss-Newton at the frame's level from where the
-            # feature started; the full way back only where that cannot run (_back_check)
-            checks = _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts,
-                                 exhaustive, ratio, allowance, reject_border, scratch,
-                                 fb_bound, out_status, budget)
-        if checks > 0:
-            posb = np.empty((n_feat, 2), np.float64)
-            ssdb = np.empty(n_feat, np.float64)
-            stb = np.empty(n_feat, np.int8)
-            _match(cdata, pdata, geo, back, mirrored, check, n, s, wts, exhaustive, ratio,
-                   allowance, reject_border, subpixel, scratch, seen, posb, ssdb, stb, budget)
-            for f in range(n_feat):
-                if not check[f]:
-                    continue
-                ex = posb[f, 0] - pts[f, 0]
-                ey = posb[f, 1] - pts[f, 1]
-                if stb[f] == OVER:
-                    out_status[f] = OVER  # not checked: not trusted
-                elif stb[f] != OK or ex * ex + ey * ey > fb_bound * fb_bound:
-                    out_status[f] = FB
+        _way_back(pdata, cdata, geo, pts, out_pos, offset, check, n, s, wts, exhaustive,
+                  ratio, allowance, reject_border, subpixel, scratch, seen, fb_bound,
+                  out_status, budget)
     # 5. consensus: a match must move as its nearest neighbours do
     judged = np.empty(0, np.int64)
     judged_near = np.empty((0, NEIGHBOURS), np.int64)
@@ -781,6 +780,10 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
     if ratio > 0.0:
         _dominant_alternative(prev, curr, pts, out_pos, out_ssd, out_status, active, n, wts,
                               uniform, ratio, allowance, dominant)
+    # 5c. a match rejected where its neighbours move as one surface: followed from their motion
+    if rescue_fit > 0.0 and fb_bound > 0.0 and consensus > 0.0 and subpixel:
+        _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, s, wts, exhaustive,
+                ratio, allowance, reject_border, scratch, seen, fb_bound, rescue_fit, budget)
     # 6. the wide window's sub-pixel estimate, where it agrees
     ok = np.empty(n_feat, np.bool_)
     found = 0
@@ -840,7 +843,6 @@ def _follow_each(pdata, cdata, geo, pts, preds, held, n, wts, uniform, fb_bound,
 
     Without numba's runtime (``_nrt=False``): nothing here allocates or keeps an array, and
     with it each feature's views took atomic reference counts (see :func:`_refine_at`)."""
-    levels = geo.shape[0]
     o = geo[0, 0]
     h = geo[0, 1]
     w = geo[0, 2]
@@ -859,39 +861,8 @@ def _follow_each(pdata, cdata, geo, pts, preds, held, n, wts, uniform, fb_bound,
         ay = int(np.rint(pts[f, 1]))
         ox = preds[f, 0] - pts[f, 0]  # the predicted displacement
         oy = preds[f, 1] - pts[f, 1]
-        # at the frame's level, then (where that fails) from the coarsest level down; one
-        # call of the refinement in the loop: LLVM inlines each call, compile time
-        k = 0
-        first = True
-        have = False
-        dx = dy = 0.0
-        while True:
-            scale = 2.0 ** k
-            kx = int(np.rint(pts[f, 0] / scale))
-            ky = int(np.rint(pts[f, 1] / scale))
-            if have:
-                dx *= 2.0
-                dy *= 2.0
-            elif k == 0 and not first:
-                break  # no coarse level helped: the first attempt's own call, which failed
-            else:
-                dx = ox / scale
-                dy = oy / scale
-            have, xk, yk = _refine_at(pdata, cdata, geo, k, kx, ky, kx + dx, ky + dy, n,
-                                      scratch, THIRD if k == 0 else NO_THIRD)
-            if have:
-                dx = xk - kx
-                dy = yk - ky
-            if k > 0:
-                k -= 1
-            elif have or not first or levels == 1:
-                break
-            else:
-                first = False
-                k = levels - 1
-        good = have
-        x = ax + dx
-        y = ay + dy
+        good, first, x, y = _follow_one(pdata, cdata, geo, pts[f, 0], pts[f, 1], ox, oy, n,
+                                        scratch)
         if not good:
             continue
         px = pts[f, 0] + (x - ax)
@@ -913,16 +884,70 @@ def _follow_each(pdata, cdata, geo, pts, preds, held, n, wts, uniform, fb_bound,
             lim = FOLLOW_FB * fb_bound
             if ex * ex + ey * ey > lim * lim:
                 continue
-        qx = ax + int(np.rint(x - ax))
-        qy = ay + int(np.rint(y - ay))
-        if qx - n < 0 or qy - n < 0 or qx + n >= w or qy + n >= h:
+        if not _keep(pf, cf, w, h, ax, ay, x, y, px, py, n, wts, uniform, f, out_pos, out_ssd):
             continue
         took[f] = True
         taken += 1
-        out_pos[f, 0] = px
-        out_pos[f, 1] = py
-        out_ssd[f] = float(_ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, BIG))
     return count, taken
+
+
+@nb.njit(**NO_NRT)
+def _keep(pf, cf, w, h, ax, ay, x, y, px, py, n, wts, uniform, f, out_pos,
+          out_ssd):  # pragma: no cover - numba
+    """Feature f's match (px, py), its template at (ax, ay) of frame t found at (x, y) of
+    frame t+1, written to ``out_pos`` with S at the nearest whole pixel (``out_ssd``) where
+    the window fits frame t+1 there (steps 0 and 5c); False where it does not."""
+    qx = ax + int(np.rint(x - ax))
+    qy = ay + int(np.rint(y - ay))
+    if qx - n < 0 or qy - n < 0 or qx + n >= w or qy + n >= h:
+        return False
+    out_pos[f, 0] = px
+    out_pos[f, 1] = py
+    out_ssd[f] = float(_ssd_at(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, BIG))
+    return True
+
+
+@nb.njit(**NO_NRT)
+def _follow_one(pdata, cdata, geo, fx, fy, ox, oy, n, scratch):  # pragma: no cover - numba
+    """Gauss-Newton from the displacement (ox, oy) of the feature at (fx, fy) (steps 0 and
+    5c): at the frame's level, and where that does not converge within a pixel, coarse to
+    fine from the coarsest level whose pixels hold the template (a level where it cannot run
+    or does not converge starts again from (ox, oy) a level finer). Returns (converged,
+    converged at the frame's level first, x, y): (x, y) the match of the template centred at
+    the rounded point. One call of the refinement in the loop: LLVM inlines each call
+    (compile time)."""
+    levels = geo.shape[0]
+    ax = int(np.rint(fx))
+    ay = int(np.rint(fy))
+    k = 0
+    first = True
+    have = False
+    dx = dy = 0.0
+    while True:
+        scale = 2.0 ** k
+        kx = int(np.rint(fx / scale))
+        ky = int(np.rint(fy / scale))
+        if have:
+            dx *= 2.0
+            dy *= 2.0
+        elif k == 0 and not first:
+            break  # no coarse level helped: the first attempt's own call, which failed
+        else:
+            dx = ox / scale
+            dy = oy / scale
+        have, xk, yk = _refine_at(pdata, cdata, geo, k, kx, ky, kx + dx, ky + dy, n,
+                                  scratch, THIRD if k == 0 else NO_THIRD)
+        if have:
+            dx = xk - kx
+            dy = yk - ky
+        if k > 0:
+            k -= 1
+        elif have or not first or levels == 1:
+            break
+        else:
+            first = False
+            k = levels - 1
+    return have, first, ax + dx, ay + dy
 
 
 @nb.njit(**NO_NRT)
@@ -934,6 +959,154 @@ def _take(which, status, ssd, pos, out_status, out_ssd, out_pos):  # pragma: no 
             out_ssd[f] = ssd[f]
             out_pos[f, 0] = pos[f, 0]
             out_pos[f, 1] = pos[f, 1]
+
+
+@nb.njit(cache=True, nogil=True)
+def _way_back(pdata, cdata, geo, pts, out_pos, offset, check, n, s, wts, exhaustive, ratio,
+              allowance, reject_border, subpixel, scratch, seen, fb_bound, out_status,
+              budget):  # pragma: no cover - numba
+    """Step 4 for the matches ``check``: status FB where the way back fails."""
+    n_feat = pts.shape[0]
+    back = np.zeros((n_feat, 2), np.float64)
+    mirrored = np.zeros((n_feat, 2), np.float64)
+    checks = 0
+    for f in range(n_feat):
+        if check[f]:
+            checks += 1
+            for c in range(2):
+                back[f, c] = out_pos[f, c]
+                mirrored[f, c] = out_pos[f, c] - offset[f, c]
+    if checks > 0 and subpixel:
+        checks = _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts,
+                             exhaustive, ratio, allowance, reject_border, scratch,
+                             fb_bound, out_status, budget)
+    if checks > 0:
+        posb = np.empty((n_feat, 2), np.float64)
+        ssdb = np.empty(n_feat, np.float64)
+        stb = np.empty(n_feat, np.int8)
+        _match(cdata, pdata, geo, back, mirrored, check, n, s, wts, exhaustive, ratio,
+               allowance, reject_border, subpixel, scratch, seen, posb, ssdb, stb, budget)
+        for f in range(n_feat):
+            if not check[f]:
+                continue
+            ex = posb[f, 0] - pts[f, 0]
+            ey = posb[f, 1] - pts[f, 1]
+            if stb[f] == OVER:
+                out_status[f] = OVER
+            elif stb[f] != OK or ex * ex + ey * ey > fb_bound * fb_bound:
+                out_status[f] = FB
+
+
+@nb.njit(cache=True, nogil=True)
+def _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, s, wts, exhaustive,
+            ratio, allowance, reject_border, scratch, seen, fb_bound, fit,
+            budget):  # pragma: no cover - numba
+    """Step 5c: each match rejected by a test of its search (BORDER, AMBIGUOUS, RUNAWAY, FB,
+    DISAGREES) whose NEIGHBOURS nearest matches move as one surface (their displacements fit
+    a similarity to within ``fit`` px rms) is followed by Gauss-Newton from the displacement
+    that similarity gives at its point (:func:`_follow_one`, coarse to fine where it does
+    not converge at the frame's level). It is taken where it lands within RESCUE_NEAR_PX (or
+    3 rms, where larger) of that displacement and its way back (step 4, the same search and
+    tests, mirrored by that displacement) returns to within ``fb_bound`` of its start; else
+    it keeps its status.
+
+    A search fails where its coarse level aliases a repetitive texture or its reach misses a
+    motion the prediction did not foresee (a shaking camera: every frame jolted by up to 6 px
+    at random, the prediction 12 px off at the median), and the way back or the consensus
+    then rejects a match that Lucas-Kanade from the neighbours' motion finds to a few
+    hundredths of a pixel. Followed from there, as Lucas-Kanade is, it is kept.
+
+    Returns (rescued, status before), each (N,)."""
+    n_feat = pts.shape[0]
+    rescued = np.zeros(n_feat, np.bool_)
+    was = np.empty(n_feat, np.int8)
+    rejected = 0
+    for f in range(n_feat):
+        st = out_status[f]
+        was[f] = st
+        rejected += (st == BORDER or st == AMBIGUOUS or st == RUNAWAY or st == FB
+                     or st == DISAGREES)
+    if rejected == 0:  # most frames: nothing to rescue, no list of matches made
+        return rescued, was
+    idx, xs, ys, dxs, dys = _matches(pts, out_pos, out_status)
+    c = idx.shape[0]
+    if c <= NEIGHBOURS:
+        return rescued, was
+    uniform, _, _ = _weights_info(wts)
+    h = geo[0, 1]
+    w = geo[0, 2]
+    pf = pdata[0:h * w]
+    cf = cdata[0:h * w]
+    offset = np.zeros((n_feat, 2), np.float64)
+    near = np.empty(NEIGHBOURS, np.int64)
+    near_d = np.empty(NEIGHBOURS, np.float64)
+    last = NEIGHBOURS - 1
+    count = 0
+    for f in range(n_feat):
+        st = out_status[f]
+        if not (st == BORDER or st == AMBIGUOUS or st == RUNAWAY or st == FB
+                or st == DISAGREES):
+            continue
+        # its NEIGHBOURS nearest matches (a handful of features a frame: by brute force)
+        near_d[:] = np.inf
+        near[:] = 0
+        for b in range(c):
+            ex = xs[b] - pts[f, 0]
+            ey = ys[b] - pts[f, 1]
+            d = ex * ex + ey * ey
+            if d >= near_d[last]:
+                continue
+            u = last
+            while u > 0 and near_d[u - 1] > d:
+                near_d[u] = near_d[u - 1]
+                near[u] = near[u - 1]
+                u -= 1
+            near_d[u] = d
+            near[u] = b
+        a, b, rms = _similarity(xs, ys, dxs, dys, near)
+        if not rms <= fit:
+            continue  # not one surface (a motion boundary): its motion is not theirs
+        cx = cy = mx = my = 0.0
+        for u in range(NEIGHBOURS):
+            cx += xs[near[u]]
+            cy += ys[near[u]]
+            mx += dxs[near[u]]
+            my += dys[near[u]]
+        qx0 = pts[f, 0] - cx / NEIGHBOURS
+        qy0 = pts[f, 1] - cy / NEIGHBOURS
+        mx = mx / NEIGHBOURS + a * qx0 - b * qy0
+        my = my / NEIGHBOURS + b * qx0 + a * qy0
+        lim = max(RESCUE_NEAR_PX, 3.0 * rms)
+        good, _, x, y = _follow_one(pdata, cdata, geo, pts[f, 0], pts[f, 1], mx, my, n,
+                                    scratch)
+        if not good:
+            continue
+        ax = int(np.rint(pts[f, 0]))
+        ay = int(np.rint(pts[f, 1]))
+        px = pts[f, 0] + (x - ax)
+        py = pts[f, 1] + (y - ay)
+        if (px - pts[f, 0] - mx) ** 2 + (py - pts[f, 1] - my) ** 2 > lim * lim:
+            continue
+        if not _keep(pf, cf, w, h, ax, ay, x, y, px, py, n, wts, uniform, f, out_pos, out_ssd):
+            continue
+        rescued[f] = True
+        count += 1
+        out_status[f] = OK
+        offset[f, 0] = mx
+        offset[f, 1] = my
+    if count == 0:
+        return rescued, was
+    _way_back(pdata, cdata, geo, pts, out_pos, offset, rescued.copy(), n, s, wts, exhaustive,
+              ratio, allowance, reject_border, True, scratch, seen, fb_bound, out_status,
+              budget)
+    for f in range(n_feat):
+        if rescued[f] and out_status[f] != OK:
+            rescued[f] = False
+            out_status[f] = was[f]
+            out_pos[f, 0] = np.nan
+            out_pos[f, 1] = np.nan
+            out_ssd[f] = np.inf
+    return rescued, was
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1926,7 +2099,7 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
                                 search == "exhaustive", float(uniqueness), float(allowance),
                                 bool(reject_border), bool(guided_retry), float(max_fb_error),
                                 float(consensus), float(DOMINANT_PX), float(AFFINE_FIT_PX),
-                                bool(subpixel),
+                                float(RESCUE_FIT_PX), bool(subpixel),
                                 int(wide_half), acc, float(agree), float(straddle),
                                 float(floor), budget, pos, ssd, status))
         if found < 0:  # a point or prediction out of bounds, which the kernel would not use

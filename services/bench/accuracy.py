@@ -24,9 +24,11 @@ sequences seen by a camera whose auto-exposure hunts (``, exposure``: gain +-8 %
 the same paths through a shutter open half the frame interval (``, blur 0.5``: motion blur of
 up to 6 px that changes with the speed, :func:`~vistrack.common.rendered.motion_blurred`), a
 bump in a steady run (``, jerk``, :func:`~vistrack.common.rendered.jerk`), an approach
-(``, approach``, :func:`~vistrack.common.rendered.approach`) and a view turning 3 degrees a
+(``, approach``, :func:`~vistrack.common.rendered.approach`), a view turning 3 degrees a
 frame about its centre (``, roll``, :func:`~vistrack.common.rendered.roll`: a robot turning on
-the spot under a camera that looks at the floor).
+the spot under a camera that looks at the floor) and a slow path seen by a camera that shakes,
+each frame jolted by up to 6 px and 2 degrees at random (``, shake``,
+:func:`~vistrack.common.rendered.shake`: a vibrating mount, a rough floor, a hand).
 """
 
 from __future__ import annotations
@@ -269,10 +271,11 @@ def scoreboard(params: TrackerParams | None = None, *, n_frames: int = 60,
     # a bump in a steady run, and an approach (see rendered.jerk, rendered.approach)
     jerks = [rendered.jerk(image, f"{name} rendered") for name, image in sources]
     approaches = [rendered.approach(image, f"{name} rendered") for name, image in sources]
-    # and a turn about the view's centre (see rendered.roll)
+    # a turn about the view's centre, and a camera that shakes (see rendered.roll, .shake)
     rolls = [rendered.roll(image, f"{name} rendered") for name, image in sources]
+    shakes = [rendered.shake(image, f"{name} rendered") for name, image in sources]
     for seq in [*longs, *(rendered.with_exposure(s) for s in longs), *blurred, *jerks,
-                *approaches, *rolls]:
+                *approaches, *rolls, *shakes]:
         ours, lk, rej = run_sequence(seq.frames, _step_of(seq), params, end_truth=_end_of(seq))
         rows.append(Row(seq.name, len(seq), ours, lk, rej))
         if progress:
@@ -329,7 +332,8 @@ def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[
             + ("_blur" if ", blur" in r.sequence else "") \
             + ("_jerk" if r.sequence.endswith(", jerk") else "") \
             + ("_approach" if r.sequence.endswith(", approach") else "") \
-            + ("_roll" if r.sequence.endswith(", roll") else "")
+            + ("_roll" if r.sequence.endswith(", roll") else "") \
+            + ("_shake" if r.sequence.endswith(", shake") else "")
         fig.update({f"{key}_median": o.median_epe, f"{key}_lk_median": lk.median_epe,
                     f"{key}_gross": o.gross, f"{key}_lk_gross": lk.gross,
                     f"{key}_pairs": float(o.pairs), f"{key}_lk_pairs": float(lk.pairs)})

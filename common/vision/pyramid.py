@@ -80,12 +80,13 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
    consensus) whose NEIGHBOURS nearest matches move as one surface (a similarity fits their
    displacements to within RESCUE_FIT_PX rms) is followed by Gauss-Newton from the
    displacement that similarity gives at its point, as Lucas-Kanade would be from a good
-   guess, and kept where it lands within the consensus's bound of it and its way back (step
-   4) returns to its start (:func:`_rescue`). A search fails where its prediction was far
-   off and its coarse level aliased a repetitive texture: a camera shaking by up to 6 px a
-   frame at random (the prediction 12 px off at the median) lost 64 of RubberWhale's
-   features to the way back, the consensus and ambiguity in 30 frames, where Lucas-Kanade
-   from the neighbours' motion found 98 % of them to within 0.5 px. Where the neighbours
+   guess, and kept where it lands within RESCUE_NEAR_PX of it and its way back returns to
+   within FOLLOW_FB ``max_fb_error`` of its start, as a followed match's must
+   (:func:`_rescue`). A search fails where its prediction was far off and its coarse level
+   aliased a repetitive texture: a camera shaking by up to 6 px a frame at random (the
+   prediction 12 px off at the median) lost 64 of RubberWhale's features to the way back,
+   the consensus and ambiguity in 30 frames, where Lucas-Kanade from the neighbours' motion
+   found 98 % of them to within 0.5 px. Where the neighbours
    are not one surface (a motion boundary) their motion is not the feature's: there it
    keeps its status;
 6. **wide sub-pixel window**: Gauss-Newton again over a wider window (21 px by default), whose
@@ -766,11 +767,37 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
     # held to the same tests as the forward search
     if fb_bound > 0.0:
         check = np.empty(n_feat, np.bool_)
+        back = np.zeros((n_feat, 2), np.float64)
+        mirrored = np.zeros((n_feat, 2), np.float64)
+        checks = 0
         for f in range(n_feat):
             check[f] = out_status[f] == OK and active[f]
-        _way_back(pdata, cdata, geo, pts, out_pos, offset, check, n, s, wts, exhaustive,
-                  ratio, allowance, reject_border, subpixel, scratch, seen, fb_bound,
-                  out_status, budget)
+            if check[f]:
+                checks += 1
+                for c in range(2):
+                    back[f, c] = out_pos[f, c]
+                    mirrored[f, c] = out_pos[f, c] - offset[f, c]
+        if checks > 0 and subpixel:
+            # the coarse search back, then Gauss-Newton at the frame's level from where the
+            # feature started; the full way back only where that cannot run (_back_check)
+            checks = _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts,
+                                 exhaustive, ratio, allowance, reject_border, scratch,
+                                 fb_bound, out_status, budget)
+        if checks > 0:
+            posb = np.empty((n_feat, 2), np.float64)
+            ssdb = np.empty(n_feat, np.float64)
+            stb = np.empty(n_feat, np.int8)
+            _match(cdata, pdata, geo, back, mirrored, check, n, s, wts, exhaustive, ratio,
+                   allowance, reject_border, subpixel, scratch, seen, posb, ssdb, stb, budget)
+            for f in range(n_feat):
+                if not check[f]:
+                    continue
+                ex = posb[f, 0] - pts[f, 0]
+                ey = posb[f, 1] - pts[f, 1]
+                if stb[f] == OVER:
+                    out_status[f] = OVER  # not checked: not trusted
+                elif stb[f] != OK or ex * ex + ey * ey > fb_bound * fb_bound:
+                    out_status[f] = FB
     # 5. consensus: a match must move as its nearest neighbours do
     judged = np.empty(0, np.int64)
     judged_near = np.empty((0, NEIGHBOURS), np.int64)
@@ -782,8 +809,8 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
                               uniform, ratio, allowance, dominant)
     # 5c. a match rejected where its neighbours move as one surface: followed from their motion
     if rescue_fit > 0.0 and fb_bound > 0.0 and consensus > 0.0 and subpixel:
-        _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, s, wts, exhaustive,
-                ratio, allowance, reject_border, scratch, seen, fb_bound, rescue_fit, budget)
+        _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, wts, scratch,
+                fb_bound, rescue_fit)
     # 6. the wide window's sub-pixel estimate, where it agrees
     ok = np.empty(n_feat, np.bool_)
     found = 0
@@ -870,25 +897,32 @@ def _follow_each(pdata, cdata, geo, pts, preds, held, n, wts, uniform, fb_bound,
         # the way back (FOLLOW_NEAR: not for a match where measured motion predicted it;
         # a track's first pair predicts no motion, exactly 0): the match's template in
         # frame t+1, from the start in frame t
-        bx = int(np.rint(px))
-        by = int(np.rint(py))
         near = (first and (ox != 0.0 or oy != 0.0)
                 and (px - preds[f, 0]) ** 2 + (py - preds[f, 1]) ** 2 <= FOLLOW_NEAR ** 2)
-        if not near:
-            good, xb, yb = _refine_with(curr, prev, bx, by, bx + (pts[f, 0] - px),
-                                        by + (pts[f, 1] - py), n, scratch, NO_THIRD)
-            if not good:
-                continue
-            ex = px + (xb - bx) - pts[f, 0]
-            ey = py + (yb - by) - pts[f, 1]
-            lim = FOLLOW_FB * fb_bound
-            if ex * ex + ey * ey > lim * lim:
-                continue
+        if not near and not _returns(prev, curr, pts[f, 0], pts[f, 1], px, py, n, scratch,
+                                     FOLLOW_FB * fb_bound):
+            continue
         if not _keep(pf, cf, w, h, ax, ay, x, y, px, py, n, wts, uniform, f, out_pos, out_ssd):
             continue
         took[f] = True
         taken += 1
     return count, taken
+
+
+@nb.njit(**NO_NRT)
+def _returns(prev, curr, sx, sy, px, py, n, scratch, lim):  # pragma: no cover - numba
+    """The way back of a match followed by Gauss-Newton (steps 0 and 5c): the template at
+    (px, py) of frame t+1 (``curr``), refined in frame t (``prev``) from the start (sx, sy),
+    returns to within ``lim`` px of it."""
+    bx = int(np.rint(px))
+    by = int(np.rint(py))
+    good, xb, yb = _refine_with(curr, prev, bx, by, bx + (sx - px), by + (sy - py), n, scratch,
+                                NO_THIRD)
+    if not good:
+        return False
+    ex = px + (xb - bx) - sx
+    ey = py + (yb - by) - sy
+    return ex * ex + ey * ey <= lim * lim
 
 
 @nb.njit(**NO_NRT)
@@ -962,53 +996,17 @@ def _take(which, status, ssd, pos, out_status, out_ssd, out_pos):  # pragma: no 
 
 
 @nb.njit(cache=True, nogil=True)
-def _way_back(pdata, cdata, geo, pts, out_pos, offset, check, n, s, wts, exhaustive, ratio,
-              allowance, reject_border, subpixel, scratch, seen, fb_bound, out_status,
-              budget):  # pragma: no cover - numba
-    """Step 4 for the matches ``check``: status FB where the way back fails."""
-    n_feat = pts.shape[0]
-    back = np.zeros((n_feat, 2), np.float64)
-    mirrored = np.zeros((n_feat, 2), np.float64)
-    checks = 0
-    for f in range(n_feat):
-        if check[f]:
-            checks += 1
-            for c in range(2):
-                back[f, c] = out_pos[f, c]
-                mirrored[f, c] = out_pos[f, c] - offset[f, c]
-    if checks > 0 and subpixel:
-        checks = _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts,
-                             exhaustive, ratio, allowance, reject_border, scratch,
-                             fb_bound, out_status, budget)
-    if checks > 0:
-        posb = np.empty((n_feat, 2), np.float64)
-        ssdb = np.empty(n_feat, np.float64)
-        stb = np.empty(n_feat, np.int8)
-        _match(cdata, pdata, geo, back, mirrored, check, n, s, wts, exhaustive, ratio,
-               allowance, reject_border, subpixel, scratch, seen, posb, ssdb, stb, budget)
-        for f in range(n_feat):
-            if not check[f]:
-                continue
-            ex = posb[f, 0] - pts[f, 0]
-            ey = posb[f, 1] - pts[f, 1]
-            if stb[f] == OVER:
-                out_status[f] = OVER
-            elif stb[f] != OK or ex * ex + ey * ey > fb_bound * fb_bound:
-                out_status[f] = FB
-
-
-@nb.njit(cache=True, nogil=True)
-def _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, s, wts, exhaustive,
-            ratio, allowance, reject_border, scratch, seen, fb_bound, fit,
-            budget):  # pragma: no cover - numba
+def _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, wts, scratch, fb_bound,
+            fit):  # pragma: no cover - numba
     """Step 5c: each match rejected by a test of its search (BORDER, AMBIGUOUS, RUNAWAY, FB,
     DISAGREES) whose NEIGHBOURS nearest matches move as one surface (their displacements fit
     a similarity to within ``fit`` px rms) is followed by Gauss-Newton from the displacement
     that similarity gives at its point (:func:`_follow_one`, coarse to fine where it does
     not converge at the frame's level). It is taken where it lands within RESCUE_NEAR_PX (or
-    3 rms, where larger) of that displacement and its way back (step 4, the same search and
-    tests, mirrored by that displacement) returns to within ``fb_bound`` of its start; else
-    it keeps its status.
+    3 rms, where larger) of that displacement and its way back returns to within FOLLOW_FB
+    ``fb_bound`` of its start, as a followed match's must (:func:`_returns`); else it keeps
+    its status. Landing that near its neighbours' motion, it cannot be a lookalike farther
+    off; the way back and the residual test (:mod:`.tracker`) see an occluded patch.
 
     A search fails where its coarse level aliases a repetitive texture or its reach misses a
     motion the prediction did not foresee (a shaking camera: every frame jolted by up to 6 px
@@ -1016,28 +1014,26 @@ def _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, s, wts, exh
     then rejects a match that Lucas-Kanade from the neighbours' motion finds to a few
     hundredths of a pixel. Followed from there, as Lucas-Kanade is, it is kept.
 
-    Returns (rescued, status before), each (N,)."""
+    Returns how many were rescued."""
     n_feat = pts.shape[0]
-    rescued = np.zeros(n_feat, np.bool_)
-    was = np.empty(n_feat, np.int8)
     rejected = 0
     for f in range(n_feat):
         st = out_status[f]
-        was[f] = st
         rejected += (st == BORDER or st == AMBIGUOUS or st == RUNAWAY or st == FB
                      or st == DISAGREES)
     if rejected == 0:  # most frames: nothing to rescue, no list of matches made
-        return rescued, was
+        return 0
     idx, xs, ys, dxs, dys = _matches(pts, out_pos, out_status)
     c = idx.shape[0]
     if c <= NEIGHBOURS:
-        return rescued, was
+        return 0
     uniform, _, _ = _weights_info(wts)
     h = geo[0, 1]
     w = geo[0, 2]
     pf = pdata[0:h * w]
     cf = cdata[0:h * w]
-    offset = np.zeros((n_feat, 2), np.float64)
+    prev = pf.reshape((h, w))
+    curr = cf.reshape((h, w))
     near = np.empty(NEIGHBOURS, np.int64)
     near_d = np.empty(NEIGHBOURS, np.float64)
     last = NEIGHBOURS - 1
@@ -1050,9 +1046,9 @@ def _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, s, wts, exh
         # its NEIGHBOURS nearest matches (a handful of features a frame: by brute force)
         near_d[:] = np.inf
         near[:] = 0
-        for b in range(c):
-            ex = xs[b] - pts[f, 0]
-            ey = ys[b] - pts[f, 1]
+        for j in range(c):
+            ex = xs[j] - pts[f, 0]
+            ey = ys[j] - pts[f, 1]
             d = ex * ex + ey * ey
             if d >= near_d[last]:
                 continue
@@ -1062,7 +1058,7 @@ def _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, s, wts, exh
                 near[u] = near[u - 1]
                 u -= 1
             near_d[u] = d
-            near[u] = b
+            near[u] = j
         a, b, rms = _similarity(xs, ys, dxs, dys, near)
         if not rms <= fit:
             continue  # not one surface (a motion boundary): its motion is not theirs
@@ -1087,26 +1083,14 @@ def _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, s, wts, exh
         py = pts[f, 1] + (y - ay)
         if (px - pts[f, 0] - mx) ** 2 + (py - pts[f, 1] - my) ** 2 > lim * lim:
             continue
+        if not _returns(prev, curr, pts[f, 0], pts[f, 1], px, py, n, scratch,
+                        FOLLOW_FB * fb_bound):
+            continue
         if not _keep(pf, cf, w, h, ax, ay, x, y, px, py, n, wts, uniform, f, out_pos, out_ssd):
             continue
-        rescued[f] = True
-        count += 1
         out_status[f] = OK
-        offset[f, 0] = mx
-        offset[f, 1] = my
-    if count == 0:
-        return rescued, was
-    _way_back(pdata, cdata, geo, pts, out_pos, offset, rescued.copy(), n, s, wts, exhaustive,
-              ratio, allowance, reject_border, True, scratch, seen, fb_bound, out_status,
-              budget)
-    for f in range(n_feat):
-        if rescued[f] and out_status[f] != OK:
-            rescued[f] = False
-            out_status[f] = was[f]
-            out_pos[f, 0] = np.nan
-            out_pos[f, 1] = np.nan
-            out_ssd[f] = np.inf
-    return rescued, was
+        count += 1
+    return count
 
 
 @nb.njit(cache=True, nogil=True)

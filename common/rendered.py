@@ -316,14 +316,14 @@ def shake(source: np.ndarray, name: str, *, jolt_px: float = 6.0, jolt_deg: floa
     path = homographies((source.shape[1], source.shape[0]), size, n, max_step=4.0, seed=3,
                         travel=0.1)
     cx, cy = (size[0] - 1) / 2.0, (size[1] - 1) / 2.0
-    hs = []
+    jolted = []
     for h in path:
         t, a = rng.uniform(-jolt_px, jolt_px, 2), np.deg2rad(rng.uniform(-jolt_deg, jolt_deg))
         c, s = np.cos(a), np.sin(a)
         jolt = np.array([[c, -s, t[0] + cx - c * cx + s * cy],
                          [s, c, t[1] + cy - s * cx - c * cy], [0.0, 0.0, 1.0]])
-        hs.append(jolt @ h)
-    hs = np.array(hs)
+        jolted.append(jolt @ h)
+    hs = np.array(jolted)
     # the jolted views' corners, in the source: inside it, or the frames would show its edge
     w, h = size
     corners = np.array([[0.0, 0.0, 1.0], [w - 1.0, 0.0, 1.0], [0.0, h - 1.0, 1.0],

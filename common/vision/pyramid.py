@@ -86,9 +86,8 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
    aliased a repetitive texture: a camera shaking by up to 6 px a frame at random (the
    prediction 12 px off at the median) lost 64 of RubberWhale's features to the way back,
    the consensus and ambiguity in 30 frames, where Lucas-Kanade from the neighbours' motion
-   found 98 % of them to within 0.5 px. Where the neighbours
-   are not one surface (a motion boundary) their motion is not the feature's: there it
-   keeps its status;
+   found 98 % of them to within 0.5 px. Where the neighbours are not one surface (a motion
+   boundary) their motion is not the feature's: there it keeps its status;
 6. **wide sub-pixel window**: Gauss-Newton again over a wider window (21 px by default), whose
    estimate is taken where it agrees with the correlation window's (:func:`_widen`) to within
    a bound that grows with the camera's noise (:func:`agreement`), or where each side of its
@@ -318,9 +317,10 @@ AFFINE_FIT_PX = 0.2
 #: step 5c follows a rejected match from its NEIGHBOURS nearest matches' motion where their
 #: displacements fit a similarity to within this, px rms: one surface moving as one, as step 7
 #: asks (0: off). Where they need not (a median of theirs, or a fit to within 0.5 px), the
-#: pairs' motion boundaries paid: Urban2's feature there took its neighbours' motion, 3 of
+#: pairs' motion boundaries paid: Urban2's features there took their neighbours' motion, 3 of
 #: 76 pairs off by more than 2 px -> 6 of 81 (with up to 500 features, 12 of 399 -> 19 of
-#: 442); at 0.2, 3 of 78 and 17 of 436 (:func:`_rescue`)
+#: 442); at 0.2, 3 of 78 and 17 of 436 with the consensus's 2 px as RESCUE_NEAR_PX, and 3 of
+#: 77 and 12 of 411 with 0.5 (:func:`_rescue`)
 RESCUE_FIT_PX = AFFINE_FIT_PX
 #: ... and takes it where it lands within this of their motion, px (or 3 times their fit's
 #: rms, where more): a feature next to an occluding patch, taken with the consensus's 2 px,

@@ -15,8 +15,9 @@ Per frame t -> t+1:
 3. a feature is lost when its window leaves the image, and rejected (lost too) when its match
    cannot be trusted: the minimum on the search window's border, a second minimum nearly as
    good, a failed refinement, a forward-backward error above ``max_fb_error`` or an RMS
-   residual above ``max_residual`` grey levels. The counts by reason are kept
-   (:attr:`Tracker.lost_by`);
+   residual above ``max_residual`` grey levels, unless Gauss-Newton from the motion of its
+   neighbours (where they move as one surface) finds it and returns (step 5c of
+   :mod:`.pyramid`). The counts by reason are kept (:attr:`Tracker.lost_by`);
 4. when fewer than ``redetect_fraction * max_features`` survive, new features are chosen among
    the frame's candidates (:mod:`.features`) away from the survivors; ids are never reused, and a
    feature keeps its id while it is tracked;

@@ -316,11 +316,12 @@ NEIGHBOURS = 6
 AFFINE_FIT_PX = 0.2
 #: step 5c follows a rejected match from its NEIGHBOURS nearest matches' motion where their
 #: displacements fit a similarity to within this, px rms: one surface moving as one, as step 7
-#: asks (0: off). Where they need not (a median of theirs, or a fit to within 0.5 px), the
-#: pairs' motion boundaries paid: Urban2's features there took their neighbours' motion, 3 of
-#: 76 pairs off by more than 2 px -> 6 of 81 (with up to 500 features, 12 of 399 -> 19 of
-#: 442); at 0.2, 3 of 78 and 17 of 436 with the consensus's 2 px as RESCUE_NEAR_PX, and 3 of
-#: 77 and 12 of 411 with 0.5 (:func:`_rescue`)
+#: asks (0: off). Followed from their median where no similarity fits them within 0.5 px,
+#: the pairs' motion boundaries paid: Urban2's features there took their neighbours' motion, 3
+#: of 76 pairs off by more than 2 px -> 6 of 81 (with up to 500 features, 12 of 399 -> 19 of
+#: 442); only where one fits within 0.5 px, 3 of 78 and 18 of 437; within 0.2, 3 of 78 and 17
+#: of 436 with the consensus's 2 px as RESCUE_NEAR_PX, and 3 of 77 and 12 of 411 with 0.5
+#: (:func:`_rescue`)
 RESCUE_FIT_PX = AFFINE_FIT_PX
 #: ... and takes it where it lands within this of their motion, px (or 3 times their fit's
 #: rms, where more): a feature next to an occluding patch, taken with the consensus's 2 px,

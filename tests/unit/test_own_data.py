@@ -70,3 +70,29 @@ def test_a_flow_of_another_size_is_a_one_line_error(own_data):
     assert out.stderr.strip().splitlines() == [
         f"vistrack bench accuracy: {folder}: frame11.png is 256x256 and flow10.flo 12x10: "
         "expected frame10.png's 256x256"]
+
+
+def test_a_pair_with_no_ground_truth_where_the_features_are_is_shown_not_counted(own_data,
+                                                                                real_image):
+    """Sparse ground truth (KITTI's: known on a quarter of the pixels) can leave a pair with no
+    tracked feature to score: its row shows '-' where there is nothing to compare, and the
+    totals and targets are those of the other rows, not NaN."""
+    folder = own_data / "middlebury" / "Sparse"
+    _own_pair(folder, real_image, (3, 2))
+    _write_flo(folder / "flow10.flo", np.full((256, 256, 2), 1e10, np.float32))  # all unknown
+    out = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "bench", "accuracy"],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    sparse, = (line for line in lines if line.startswith("Sparse (pair)"))
+    cols = sparse.split()  # pairs, median, >2px, survival, drift, rejected | the same, LK
+    assert cols[4:9] == ["0", "-", "-", "-", "-"] and cols[11:] == [
+        "0", "-", "-", "-", "-", "|", "-"], sparse
+    mine, = (line for line in lines if line.startswith("MyCorridor (pair)"))
+    assert mine.split()[-1] == "yes", mine
+    total, = (line for line in lines if line.startswith("all sequences:"))
+    assert "nan" not in total and "0.00 % off" in total, total
+    targets, = (line for line in lines if line.startswith("targets:"))
+    assert targets.startswith("targets: median <= LK's on every sequence: met (1 without pairs "
+                              "on one side, not counted); pairs off by > 2 px <= 2 % on every "
+                              "sequence: met (worst 0.00 %), over all: met"), targets

@@ -201,21 +201,26 @@ def test_an_aliased_texture_moving_unlike_the_frame_is_not_matched_a_period_off(
         assert off >= 2, off
 
 
-@pytest.mark.parametrize("dominant", [pyramid.DOMINANT_PX, np.inf])
+@pytest.mark.parametrize(("dominant", "reach"), [(pyramid.DOMINANT_PX, 0),
+                                                  (np.inf, pyramid.PERIOD_REACH),
+                                                  (np.inf, 0)])
 def test_a_texture_a_coarse_level_aliases_is_not_matched_a_period_off(sources, monkeypatch,
-                                                                      dominant):
+                                                                      dominant, reach):
     """A first pair moved by (10, 3) px: on RubberWhale's knit (a period of ~11 px down its
     stripes, which the coarsest level aliases), a patch of features took the wrong period,
     ~11 px off, agreeing with each other (no consensus) and both ways (no forward-backward
-    error). Step 5b, the frame's dominant motion tested as a second minimum, rejects them;
-    with it off (``dominant`` inf) they are reported."""
+    error). Step 5b rejects them by either of its tests: the frame's dominant motion as a
+    second minimum, or the template's own period in frame t (its best self-match, here
+    ~(2, 11) px) either way of the match; with both off (``dominant`` inf, ``reach`` 0) they
+    are reported (6 of 89)."""
     monkeypatch.setattr(pyramid, "DOMINANT_PX", dominant)
+    monkeypatch.setattr(pyramid, "PERIOD_REACH", reach)
     gross = {}
     for name, image in sources:
         (errors, started), = track_path(image, [(0, 0), (-10, -3)], TrackerParams())
         assert len(errors) >= 0.6 * started, (name, len(errors), started)
         gross[name] = int(np.sum(errors > 2.0))
-    if np.isfinite(dominant):
+    if np.isfinite(dominant) or reach:
         assert sum(gross.values()) == 0, gross
     else:
         assert gross["RubberWhale"] >= 3, gross

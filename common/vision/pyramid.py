@@ -727,18 +727,16 @@ def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, 
 def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wts, exhaustive,
                  ratio, allowance, reject_border, guided_retry, fb_bound, consensus, dominant,
                  dominant_follow, reach, depart, arbiter, affine_fit, rescue_fit, subpixel, wide,
-                 acc,
-                 agree, straddle, floor, budget, out_pos, out_ssd,
+                 acc, agree, straddle, floor, budget, out_pos, out_ssd,
                  out_status):  # pragma: no cover - numba
     """The whole of :func:`track_pyramid` (steps 0 to 7 of the module notes), returning how
     many were found; ``acc``: the integer type of the sub-pixel sums
     (:func:`.ssd.refine_acc`); ``dominant``, ``dominant_follow``, ``reach``, ``depart``,
     ``arbiter``, ``affine_fit`` and ``rescue_fit``: DOMINANT_PX, DOMINANT_FOLLOW_PX,
     PERIOD_REACH, PERIOD_DEPART_PX, the wide window's half-width where WIDE_ARBITER (else 0),
-    AFFINE_FIT_PX and RESCUE_FIT_PX (read
-    where it is called, so that a test can turn steps 5b, its Gauss-Newton, its period and its
-    wide window, 7 and 5c off);
-    ``budget``: (1,) int64, what is left of the frame's searches
+    AFFINE_FIT_PX and RESCUE_FIT_PX (read where it is called, so that a test can turn steps
+    5b, its Gauss-Newton, its period test and its wide window, 7 and 5c off); ``budget``:
+    (1,) int64, what is left of the frame's searches
     (:data:`FRAME_WORK`), drawn on here.
     Returns -1, having done nothing, where a point or prediction is not finite within
     +-MAX_COORD (NaN fails the comparison too): one given to the search indexed memory at

@@ -18,14 +18,15 @@ from vistrack.common.vision import pyramid
 from vistrack.services.bench.accuracy import run_sequence
 
 
+def _run(image, name, make=rendered.shake):
+    """(ours, LK) over ``make``'s sequence of ``image`` (the shake by default)."""
+    seq = make(image, f"{name} rendered")
+    return run_sequence(seq.frames, lambda p, k: seq.map(p, k, k + 1), TrackerParams(),
+                        end_truth=lambda p: seq.map(p, 0, len(seq) - 1))[:2]
+
+
 def scores(sources):
-    out = {}
-    for name, image in sources:
-        seq = rendered.shake(image, f"{name} rendered")
-        out[name] = run_sequence(seq.frames, lambda p, k, s=seq: s.map(p, k, k + 1),
-                                 TrackerParams(),
-                                 end_truth=lambda p, s=seq: s.map(p, 0, len(s) - 1))[:2]
-    return out
+    return {name: _run(image, name) for name, image in sources}
 
 
 def test_a_shaking_camera_keeps_its_features(sources):
@@ -50,10 +51,7 @@ def test_without_the_rescue_a_shake_loses_features(sources, monkeypatch):
 
 
 def _one(sources, name, make):
-    image = dict(sources)[name]
-    seq = make(image, f"{name} rendered")
-    return run_sequence(seq.frames, lambda p, k: seq.map(p, k, k + 1), TrackerParams(),
-                        end_truth=lambda p: seq.map(p, 0, len(seq) - 1))[0]
+    return _run(dict(sources)[name], name, make)[0]
 
 
 @pytest.mark.parametrize("reach", [pyramid.PERIOD_REACH, 0])

@@ -41,9 +41,10 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
    follow and the matches found moved more than the search's reach otherwise than predicted
    (:func:`_broke`: the step back after a jump, where the few found first misguided the
    others): every feature is tracked again, steps 1 to 6, around the frame-wide shift that
-   phase correlation finds (:func:`frame_shift`, in :func:`track_pyramid`), and the run that
-   found more is kept. Crops of the shared frames moved 42 to 52 px between the first two
-   (beyond the coarsest search's 4 x 7 px): 60 % or more found, against almost none;
+   phase correlation finds (:func:`frame_shift`, in :func:`track_pyramid`), and that run is
+   kept where it found more by more than RETRY_MARGIN of the features. Crops of the shared
+   frames moved 42 to 52 px between the first two (beyond the coarsest search's 4 x 7 px):
+   60 % or more found, against almost none;
 4. **forward-backward check** (Kalal, Mikolajczyk and Matas 2010): every match is tracked
    back from frame t+1 to frame t the same way, its prediction mirrored, held to the same
    tests; it is rejected when it does not return to within ``max_fb_error`` px of where it
@@ -93,8 +94,9 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
 5c. **rescue** (``consensus`` and ``max_fb_error`` > 0, sub-pixel): a match rejected by a
    test of its search (steps 1 to 5b: border, ambiguous, runaway, the way back, the
    consensus) whose NEIGHBOURS nearest matches move as one surface (a similarity fits their
-   displacements to within RESCUE_FIT_PX rms) is followed by Gauss-Newton from the
-   displacement that similarity gives at its point, as Lucas-Kanade would be from a good
+   displacements to within RESCUE_FIT_PX rms, else an affine map those of its
+   RESCUE_AFFINE_NEAR nearest) is followed by Gauss-Newton from the displacement that fit
+   gives at its point, as Lucas-Kanade would be from a good
    guess, and kept where it lands within RESCUE_NEAR_PX of it and its way back returns to
    within FOLLOW_FB ``max_fb_error`` of its start, as a followed match's must
    (:func:`_rescue`). A search fails where its prediction was far off and its coarse level
@@ -102,7 +104,11 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
    prediction 12 px off at the median) lost 64 of RubberWhale's features to the way back,
    the consensus and ambiguity in 30 frames, where Lucas-Kanade from the neighbours' motion
    found 98 % of them to within 0.5 px. Where the neighbours are not one surface (a motion
-   boundary) their motion is not the feature's: there it keeps its status;
+   boundary) their motion is not the feature's: there it keeps its status. A rolling shutter
+   that shakes shears a neighbourhood's motion (each row exposed at its own jolt), which no
+   similarity fits: with the affine fit RubberWhale's shake read out over 0.9 of the frame
+   interval kept 0.47 of its features, not 0.27 (LK 0.72), and Urban2's 0.69, not 0.51
+   (LK 0.87);
 6. **wide sub-pixel window**: Gauss-Newton again over a wider window (21 px by default), whose
    estimate is taken where it agrees with the correlation window's (:func:`_widen`) to within
    a bound that grows with the camera's noise (:func:`agreement`), or where each side of its
@@ -308,10 +314,16 @@ BACK_MARGIN = 1
 #: tracked again around the frame-wide shift (:func:`frame_shift`)
 BROKEN = 0.5
 #: ... and only where more than this share of the features was not found: the run again keeps
-#: whichever found more, so where the first lost fewer it can win no more than that (the step
-#: back after the built-in replay's jump: 70 of 71 found, and a second run of every feature,
-#: ~1.1 ms, for the 71st; re-detection refills a feature lost)
+#: the second only where it found more (RETRY_MARGIN), so where the first lost fewer it can
+#: win no more than that (the step back after the built-in replay's jump: 70 of 71 found, and
+#: a second run of every feature, ~1.1 ms, for the 71st; re-detection refills a feature lost)
 RETRY_GAIN = 0.05
+#: the second run is kept where it found more than the first by more than this share of the
+#: features: a few more are within the two runs' noise, and a run from another start brings
+#: its own errors. On Urban2's pair (500 features) a retry around the foreground's shift
+#: found 442 against 425, 3 more of them on motion boundaries taking the foreground's motion,
+#: 2 to 10 px off
+RETRY_MARGIN = 0.05
 #: the side, px, of the coarsest level :func:`frame_shift` correlates: enough pixels for a
 #: clear peak (at 256 x 256 with 3 levels, 64 x 64, ~40 us)
 SHIFT_SIDE = 32
@@ -365,6 +377,11 @@ RESCUE_FIT_PX = AFFINE_FIT_PX
 #: rms, where more): a feature next to an occluding patch, taken with the consensus's 2 px,
 #: was followed to 1.2 px off
 RESCUE_NEAR_PX = 0.5
+#: where its NEIGHBOURS nearest fit no similarity, step 5c fits an affine map to this many
+#: nearest matches (0: off): a neighbourhood that shears (a rolling shutter that shakes, each
+#: row exposed at its own moment) or a plane in perspective. Ten points leave the fit's six
+#: parameters 14 residuals to judge it by; with six, every neighbourhood fitted
+RESCUE_AFFINE_NEAR = 10
 #: where the neighbourhood is no similarity, step 7 fits an affine map (a plane in
 #: perspective scales along x and y apart) and corrects by it where that fits instead
 AFFINE_GENERAL = True
@@ -726,16 +743,17 @@ def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, 
 @nb.njit(cache=True, nogil=True)
 def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wts, exhaustive,
                  ratio, allowance, reject_border, guided_retry, fb_bound, consensus, dominant,
-                 dominant_follow, reach, depart, arbiter, affine_fit, rescue_fit, subpixel, wide,
-                 acc, agree, straddle, floor, budget, out_pos, out_ssd,
+                 dominant_follow, reach, depart, arbiter, affine_fit, rescue_fit, rescue_near,
+                 subpixel, wide, acc, agree, straddle, floor, budget, out_pos, out_ssd,
                  out_status):  # pragma: no cover - numba
     """The whole of :func:`track_pyramid` (steps 0 to 7 of the module notes), returning how
     many were found; ``acc``: the integer type of the sub-pixel sums
     (:func:`.ssd.refine_acc`); ``dominant``, ``dominant_follow``, ``reach``, ``depart``,
-    ``arbiter``, ``affine_fit`` and ``rescue_fit``: DOMINANT_PX, DOMINANT_FOLLOW_PX,
-    PERIOD_REACH, PERIOD_DEPART_PX, the wide window's half-width where WIDE_ARBITER (else 0),
-    AFFINE_FIT_PX and RESCUE_FIT_PX (read where it is called, so that a test can turn steps
-    5b, its Gauss-Newton, its period test and its wide window, 7 and 5c off); ``budget``:
+    ``arbiter``, ``affine_fit``, ``rescue_fit`` and ``rescue_near``: DOMINANT_PX,
+    DOMINANT_FOLLOW_PX, PERIOD_REACH, PERIOD_DEPART_PX, the wide window's half-width where
+    WIDE_ARBITER (else 0), AFFINE_FIT_PX, RESCUE_FIT_PX and RESCUE_AFFINE_NEAR (read where it
+    is called, so that a test can turn steps 5b, its Gauss-Newton, its period test and its
+    wide window, 7, 5c and its affine fit off); ``budget``:
     (1,) int64, what is left of the frame's searches
     (:data:`FRAME_WORK`), drawn on here.
     Returns -1, having done nothing, where a point or prediction is not finite within
@@ -859,7 +877,7 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
     # 5c. a match rejected where its neighbours move as one surface: followed from their motion
     if rescue_fit > 0.0 and fb_bound > 0.0 and consensus > 0.0 and subpixel:
         _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, wts, scratch,
-                fb_bound, rescue_fit)
+                fb_bound, rescue_fit, rescue_near)
     # 6. the wide window's sub-pixel estimate, where it agrees
     ok = np.empty(n_feat, np.bool_)
     found = 0
@@ -1046,22 +1064,31 @@ def _take(which, status, ssd, pos, out_status, out_ssd, out_pos):  # pragma: no 
 
 @nb.njit(cache=True, nogil=True)
 def _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, wts, scratch, fb_bound,
-            fit):  # pragma: no cover - numba
+            fit, affine_near):  # pragma: no cover - numba
     """Step 5c: each match rejected by a test of its search (BORDER, AMBIGUOUS, RUNAWAY, FB,
     DISAGREES) whose NEIGHBOURS nearest matches move as one surface (their displacements fit
-    a similarity to within ``fit`` px rms) is followed by Gauss-Newton from the displacement
-    that similarity gives at its point (:func:`_follow_one`, coarse to fine where it does
-    not converge at the frame's level). It is taken where it lands within RESCUE_NEAR_PX (or
-    3 rms, where larger) of that displacement and its way back returns to within FOLLOW_FB
-    ``fb_bound`` of its start, as a followed match's must (:func:`_returns`); else it keeps
-    its status. Landing that near its neighbours' motion, it cannot be a lookalike farther
-    off; the way back and the residual test (:mod:`.tracker`) see an occluded patch.
+    a similarity to within ``fit`` px rms, else, with ``affine_near`` more than NEIGHBOURS,
+    the ``affine_near`` nearest fit an affine map to within ``fit``) is followed by
+    Gauss-Newton from the displacement that fit gives at its point (:func:`_follow_one`,
+    coarse to fine where it does not converge at the frame's level). It is taken where it
+    lands within RESCUE_NEAR_PX (or 3 rms, where larger) of that displacement and its way
+    back returns to within FOLLOW_FB ``fb_bound`` of its start, as a followed match's must
+    (:func:`_returns`); else it keeps its status. Landing that near its neighbours' motion,
+    it cannot be a lookalike farther off; the way back and the residual test
+    (:mod:`.tracker`) see an occluded patch.
 
     A search fails where its coarse level aliases a repetitive texture or its reach misses a
     motion the prediction did not foresee (a shaking camera: every frame jolted by up to 6 px
     at random, the prediction 12 px off at the median), and the way back or the consensus
     then rejects a match that Lucas-Kanade from the neighbours' motion finds to a few
     hundredths of a pixel. Followed from there, as Lucas-Kanade is, it is kept.
+
+    A rolling shutter that shakes exposes each row at its own jolt: a neighbourhood's motion
+    shears, no similarity fits it, and RubberWhale's shake with a readout of 0.9 of the frame
+    interval kept 0.29 of its first frame's features against LK's 0.66; with the affine fit
+    0.54. Over NEIGHBOURS points an affine fits nearly anything (Urban2's pair, 500 features:
+    12 of 411 pairs off by more than 2 px -> 17 of 443); over RESCUE_AFFINE_NEAR it must
+    fit (15 more found, 1 more off).
 
     Returns how many were rescued."""
     n_feat = pts.shape[0]
@@ -1083,16 +1110,18 @@ def _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, wts, scratc
     cf = cdata[0:h * w]
     prev = pf.reshape((h, w))
     curr = cf.reshape((h, w))
-    near = np.empty(NEIGHBOURS, np.int64)
-    near_d = np.empty(NEIGHBOURS, np.float64)
-    last = NEIGHBOURS - 1
+    k = max(NEIGHBOURS, min(affine_near, c))  # the nearest matches listed
+    near = np.empty(k, np.int64)
+    near_d = np.empty(k, np.float64)
+    last = k - 1
+    fit_pts = np.empty((4, k), np.float64)
     count = 0
     for f in range(n_feat):
         st = out_status[f]
         if not (st == BORDER or st == AMBIGUOUS or st == RUNAWAY or st == FB
                 or st == DISAGREES):
             continue
-        # its NEIGHBOURS nearest matches (a handful of features a frame: by brute force)
+        # its k nearest matches (a handful of features a frame: by brute force)
         near_d[:] = np.inf
         near[:] = 0
         for j in range(c):
@@ -1108,19 +1137,34 @@ def _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, wts, scratc
                 u -= 1
             near_d[u] = d
             near[u] = j
-        a, b, rms = _similarity(xs, ys, dxs, dys, near)
+        # the displacement the neighbourhood's map gives at the feature's point: the map's
+        # linear part (a11, a12; a21, a22) about the neighbours' mean
+        a, b, rms = _similarity(xs, ys, dxs, dys, near[:NEIGHBOURS])
+        used = NEIGHBOURS
+        a11, a12, a21, a22 = a, -b, b, a
         if not rms <= fit:
-            continue  # not one surface (a motion boundary): its motion is not theirs
+            if k <= NEIGHBOURS:
+                continue  # not one surface (a motion boundary): its motion is not theirs
+            for u in range(k):
+                fit_pts[0, u] = xs[near[u]]
+                fit_pts[1, u] = ys[near[u]]
+                fit_pts[2, u] = dxs[near[u]]
+                fit_pts[3, u] = dys[near[u]]
+            a, b, p, q, rms = _affine(fit_pts)
+            if not rms <= fit:
+                continue
+            used = k
+            a11, a12, a21, a22 = a + p, q - b, q + b, a - p
         cx = cy = mx = my = 0.0
-        for u in range(NEIGHBOURS):
+        for u in range(used):
             cx += xs[near[u]]
             cy += ys[near[u]]
             mx += dxs[near[u]]
             my += dys[near[u]]
-        qx0 = pts[f, 0] - cx / NEIGHBOURS
-        qy0 = pts[f, 1] - cy / NEIGHBOURS
-        mx = mx / NEIGHBOURS + a * qx0 - b * qy0
-        my = my / NEIGHBOURS + b * qx0 + a * qy0
+        qx0 = pts[f, 0] - cx / used
+        qy0 = pts[f, 1] - cy / used
+        mx = mx / used + a11 * qx0 + a12 * qy0
+        my = my / used + a21 * qx0 + a22 * qy0
         lim = max(RESCUE_NEAR_PX, 3.0 * rms)
         good, _, x, y = _follow_one(pdata, cdata, geo, pts[f, 0], pts[f, 1], mx, my, n,
                                     scratch)
@@ -2283,7 +2327,7 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
                                 float(PERIOD_DEPART_PX),
                                 int(wide_half) if WIDE_ARBITER and subpixel else 0,
                                 float(AFFINE_FIT_PX),
-                                float(RESCUE_FIT_PX), bool(subpixel),
+                                float(RESCUE_FIT_PX), int(RESCUE_AFFINE_NEAR), bool(subpixel),
                                 int(wide_half), acc, float(agree), float(straddle),
                                 float(floor), budget, pos, ssd, status))
         if found < 0:  # a point or prediction out of bounds, which the kernel would not use
@@ -2297,14 +2341,14 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
                 and _broke(pts, preds, pos, status, float(search_half)))):
         # most predictions broke, or most features tracked before did not follow and the
         # matches found moved otherwise than they predicted: track every feature again
-        # around the frame-wide shift, where it differs from the predictions, and keep
-        # whichever run found more
+        # around the frame-wide shift, where it differs from the predictions, and keep the
+        # second run where it found clearly more (RETRY_MARGIN)
         shift = frame_shift(prev, curr)
         if shift is not None and np.abs(np.median(preds - pts, axis=0) - shift).max() >= 2.0:
             pos2, ssd2, status2 = np.empty_like(pos), np.empty_like(ssd), np.empty_like(status)
             lost = np.zeros(n_feat, np.bool_)
             if run(pts + shift, np.zeros(n_feat, np.bool_), False, pos2, ssd2, status2,
-                   lost) > found:
+                   lost) > found + RETRY_MARGIN * n_feat:
                 pos, ssd, status = pos2, ssd2, status2
                 taken[:] = False
     return pos, ssd, status

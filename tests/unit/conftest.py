@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from vistrack.common import groundtruth, rendered
+from vistrack.common.params import TrackerParams
 from vistrack.common.vision import to_gray
+from vistrack.services.bench.accuracy import run_sequence
 
 
 def load_pair(sequence: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -35,6 +37,22 @@ def rendered_sequences(n: int, names: tuple[str, ...]) -> list[rendered.Rendered
         pytest.skip("Middlebury frames not found: set VISTRACK_DATA or put the shared data at "
                     "../shared/data")
     return seqs
+
+
+def against_lk(seq: rendered.RenderedSequence, params: TrackerParams | None = None):
+    """(ours, LK) over a rendered sequence, LK started from our features at every step, the
+    ground truth its ``map`` (:func:`.accuracy.run_sequence`)."""
+    return run_sequence(seq.frames, lambda p, k: seq.map(p, k, k + 1),
+                        params if params is not None else TrackerParams(),
+                        end_truth=lambda p: seq.map(p, 0, len(seq) - 1))[:2]
+
+
+def assert_holds_lk(name: str, ours, lk, *, gross: float) -> None:
+    """Issue 12's targets against LK on a sequence: median error at most LK's, at most
+    ``gross`` of the pairs off by more than 2 px, and at least half LK's survival."""
+    assert ours.median_epe <= lk.median_epe, (name, ours, lk)
+    assert ours.gross <= gross, (name, ours.gross)
+    assert ours.survival >= 0.5 * lk.survival, (name, ours.survival, lk.survival)
 
 
 def source_image(name: str) -> np.ndarray:

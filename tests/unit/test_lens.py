@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from vistrack.common import rendered
-from vistrack.common.params import TrackerParams
 from vistrack.common.vision import pyramid
-from vistrack.services.bench.accuracy import run_sequence
+
+from conftest import against_lk, assert_holds_lk
 
 
 def _grid(size: int = 256, step: int = 7) -> np.ndarray:
@@ -74,9 +74,7 @@ def test_a_dot_seen_through_the_lens_lies_where_the_lens_puts_it():
 
 
 def _shaken(image: np.ndarray, name: str):
-    seq = rendered.with_lens(rendered.shake(image, f"{name} rendered"), 0.25)
-    return run_sequence(seq.frames, lambda p, k: seq.map(p, k, k + 1), TrackerParams(),
-                        end_truth=lambda p: seq.map(p, 0, len(seq) - 1))[:2]
+    return against_lk(rendered.with_lens(rendered.shake(image, f"{name} rendered"), 0.25))
 
 
 def test_a_shaking_wide_angle_camera_is_tracked(sources):
@@ -84,10 +82,7 @@ def test_a_shaking_wide_angle_camera_is_tracked(sources):
     LK's (0.039 to 0.058 px; LK 0.081 to 0.127), none off by more than 2 px (LK up to
     0.59 %), and at least half of LK's survival (0.55 to 0.87 times)."""
     for name, image in sources:
-        ours, lk = _shaken(image, name)
-        assert ours.median_epe <= lk.median_epe, (name, ours, lk)
-        assert ours.gross <= 0.0025, (name, ours.gross)
-        assert ours.survival >= 0.5 * lk.survival, (name, ours.survival, lk.survival)
+        assert_holds_lk(name, *_shaken(image, name), gross=0.0025)
 
 
 def test_without_the_period_test_the_knit_is_matched_a_period_off(sources, monkeypatch):

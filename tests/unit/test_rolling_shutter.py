@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from vistrack.common import rendered
-from vistrack.common.params import TrackerParams
 from vistrack.common.vision import pyramid
-from vistrack.services.bench.accuracy import run_sequence
+
+from conftest import against_lk, assert_holds_lk
 
 
 def _dot_source() -> np.ndarray:
@@ -73,10 +73,8 @@ def test_a_dot_lies_where_its_rows_moment_puts_it():
 
 
 def _shaken(image: np.ndarray, name: str):
-    seq = rendered.with_rolling_shutter(image, rendered.shake(image, f"{name} rendered", n=31),
-                                        0.9)
-    return run_sequence(seq.frames, lambda p, k: seq.map(p, k, k + 1), TrackerParams(),
-                        end_truth=lambda p: seq.map(p, 0, len(seq) - 1))[:2]
+    return against_lk(rendered.with_rolling_shutter(
+        image, rendered.shake(image, f"{name} rendered", n=31), 0.9))
 
 
 def test_a_shaking_rolling_shutter_is_tracked(sources):
@@ -85,10 +83,7 @@ def test_a_shaking_rolling_shutter_is_tracked(sources):
     than 2 px (0 to 0.17 %; LK up to 1.2 %), and at least half of LK's survival (0.65 to 0.91
     times)."""
     for name, image in sources:
-        ours, lk = _shaken(image, name)
-        assert ours.median_epe <= lk.median_epe, (name, ours, lk)
-        assert ours.gross <= 0.005, (name, ours.gross)
-        assert ours.survival >= 0.5 * lk.survival, (name, ours.survival, lk.survival)
+        assert_holds_lk(name, *_shaken(image, name), gross=0.005)
 
 
 def test_without_the_affine_rescue_the_knit_is_lost(sources, monkeypatch):

@@ -13,16 +13,14 @@ from __future__ import annotations
 import pytest
 
 from vistrack.common import rendered
-from vistrack.common.params import TrackerParams
 from vistrack.common.vision import pyramid
-from vistrack.services.bench.accuracy import run_sequence
+
+from conftest import against_lk
 
 
 def _run(image, name, make=rendered.shake):
     """(ours, LK) over ``make``'s sequence of ``image`` (the shake by default)."""
-    seq = make(image, f"{name} rendered")
-    return run_sequence(seq.frames, lambda p, k: seq.map(p, k, k + 1), TrackerParams(),
-                        end_truth=lambda p: seq.map(p, 0, len(seq) - 1))[:2]
+    return against_lk(make(image, f"{name} rendered"))
 
 
 def scores(sources):

@@ -28,7 +28,10 @@ bump in a steady run (``, jerk``, :func:`~vistrack.common.rendered.jerk`), an ap
 frame about its centre (``, roll``, :func:`~vistrack.common.rendered.roll`: a robot turning on
 the spot under a camera that looks at the floor) and a slow path seen by a camera that shakes,
 each frame jolted by up to 6 px and 2 degrees at random (``, shake``,
-:func:`~vistrack.common.rendered.shake`: a vibrating mount, a rough floor, a hand).
+:func:`~vistrack.common.rendered.shake`: a vibrating mount, a rough floor, a hand), and that
+shake seen by a rolling shutter that reads its rows out over 0.9 of the frame interval
+(``, shake, rolling shutter 0.9``, :func:`~vistrack.common.rendered.with_rolling_shutter`:
+a CMOS camera, each row at its own jolt).
 """
 
 from __future__ import annotations
@@ -49,6 +52,9 @@ from ...common.vision import Tracker, to_gray, warm_up
 #: The Middlebury pairs of the shared data.
 PAIRS = ("Dimetrodon", "RubberWhale", "Venus", "Grove2", "Urban2")
 GROSS_PX = 2.0
+#: the scoreboard's rolling shutter reads its rows out over this share of the frame interval
+#: (CMOS sensors: most of it at their full frame rate)
+ROLLING_READOUT = 0.9
 
 #: ``truth(points, k)``: the true positions in frame k + 1 of points (N, 2) of frame k.
 Truth = Callable[[np.ndarray, int], np.ndarray]
@@ -274,8 +280,12 @@ def scoreboard(params: TrackerParams | None = None, *, n_frames: int = 60,
     # a turn about the view's centre, and a camera that shakes (see rendered.roll, .shake)
     rolls = [rendered.roll(image, f"{name} rendered") for name, image in sources]
     shakes = [rendered.shake(image, f"{name} rendered") for name, image in sources]
+    # the shake through a rolling shutter (see rendered.with_rolling_shutter)
+    rolling = [rendered.with_rolling_shutter(
+        image, rendered.shake(image, f"{name} rendered", n=31), ROLLING_READOUT)
+        for name, image in sources]
     for seq in [*longs, *(rendered.with_exposure(s) for s in longs), *blurred, *jerks,
-                *approaches, *rolls, *shakes]:
+                *approaches, *rolls, *shakes, *rolling]:
         ours, lk, rej = run_sequence(seq.frames, _step_of(seq), params, end_truth=_end_of(seq))
         rows.append(Row(seq.name, len(seq), ours, lk, rej))
         if progress:
@@ -319,10 +329,11 @@ def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[
         print("(no Middlebury data found: set VISTRACK_DATA or put the shared data at "
               "../shared/data)", file=out)
         return {}
-    print(f"{'sequence':32s} {'frames':>6s} | {'pairs':>6s} {'median':>7s} {'>2px':>6s} "
+    side = max(32, *(len(r.sequence) for r in rows))  # the sequence column's width
+    print(f"{'sequence':{side}s} {'frames':>6s} | {'pairs':>6s} {'median':>7s} {'>2px':>6s} "
           f"{'surv':>5s} {'drift':>6s} {'rej':>5s} | {'pairs':>6s} {'median':>7s} "
           f"{'>2px':>6s} {'surv':>5s} {'drift':>6s} | {'EPE ok':>6s}", file=out)
-    print(f"{'':32s} {'':6s} | {'ours':^42s} | {'LK':^35s} |", file=out)
+    print(f"{'':{side}s} {'':6s} | {'ours':^42s} | {'LK':^35s} |", file=out)
     fig: dict[str, float] = {}
     for r in rows:
         o, lk = r.ours, r.lk
@@ -330,7 +341,7 @@ def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[
         # truth is sparse, KITTI's) has nothing to compare: '-', and no target counts it
         verdict = ("-" if not _compared(r) else
                    "yes" if o.median_epe <= lk.median_epe else "NO")
-        print(f"{r.sequence:32s} {r.frames:6d} | {o.pairs:6d} {_fmt(o.median_epe, '7.3f')} "
+        print(f"{r.sequence:{side}s} {r.frames:6d} | {o.pairs:6d} {_fmt(o.median_epe, '7.3f')} "
               f"{_pct(o.gross)} {_fmt(o.survival, '5.2f')} {_fmt(o.drift, '6.2f')} "
               f"{r.rejected:5d} | {lk.pairs:6d} {_fmt(lk.median_epe, '7.3f')} {_pct(lk.gross)} "
               f"{_fmt(lk.survival, '5.2f')} {_fmt(lk.drift, '6.2f')} | {verdict:>6s}",
@@ -341,7 +352,8 @@ def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[
             + ("_jerk" if r.sequence.endswith(", jerk") else "") \
             + ("_approach" if r.sequence.endswith(", approach") else "") \
             + ("_roll" if r.sequence.endswith(", roll") else "") \
-            + ("_shake" if r.sequence.endswith(", shake") else "")
+            + ("_shake" if ", shake" in r.sequence else "") \
+            + ("_rolling" if ", rolling shutter" in r.sequence else "")
         fig.update({f"{key}_median": o.median_epe, f"{key}_lk_median": lk.median_epe,
                     f"{key}_gross": o.gross, f"{key}_lk_gross": lk.gross,
                     f"{key}_pairs": float(o.pairs), f"{key}_lk_pairs": float(lk.pairs)})

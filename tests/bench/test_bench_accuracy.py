@@ -27,7 +27,7 @@ def test_bench_accuracy(capsys):
         print("\n" + buf.getvalue())
     for name in PAIRS:
         for kind in ("pair", "long", "long_exposure", "long_blur", "long_jerk",
-                     "long_approach", "long_roll", "long_shake"):
+                     "long_approach", "long_roll", "long_shake", "long_shake_rolling"):
             for what in ("median", "lk_median", "gross"):
                 assert math.isfinite(fig[f"{name}_{kind}_{what}"]), (name, kind, what)
         assert 0 <= fig[f"{name}_long_survival"] <= 1

@@ -9,7 +9,10 @@ Per frame t -> t+1:
    ``x_pred = x_t + (x_t - x_{t-1})``; a feature's first step is predicted by the image motion
    of the frame before, its scale step about the tracked features' centroid included (zero
    on a track's second frame, and always with the paper's tracker,
-   :meth:`TrackerParams.paper`);
+   :meth:`TrackerParams.paper`). Frames skipped (``seq`` jumping: a camera that dropped
+   frames, a pipeline that took the latest) count: the velocity, the zoom and the turn are
+   extrapolated over the frames since the last one tracked, per frame of the step they were
+   measured over (at most MAX_GAP frames);
 2. coarse-to-fine SSD search of Eq. (1) around the prediction, refined to sub-pixel
    (:mod:`.pyramid`, :mod:`.ssd`);
 3. a feature is lost when its window leaves the image, and rejected (lost too) when its match
@@ -53,6 +56,10 @@ from .ssd import BORDER, LEFT, OK, OVER, RESIDUAL, STATUS_NAMES, track_ssd, wind
 #: an approach of up to 25 % a frame either way (the tests run 15 %); beyond, the frame's
 #: incremental motion is more likely wrong than the camera that fast.
 ZOOM_RANGE = (0.8, 1.25)
+#: the most frames a prediction extrapolates the motion over where frames were skipped
+#: (``seq`` jumping): beyond a quarter of a second at 30 fps, constant velocity is a guess, and
+#: the guided retry's frame-wide shift finds what it missed
+MAX_GAP = 8
 #: frame t is scaled by the zoom of the frame before (:func:`_zoomed`) where that zoom departs
 #: from 1 by more than this
 ZOOM_WARP = 0.02
@@ -158,6 +165,8 @@ class Tracker:
         self._acc_scale = 1.0
         self._motion = (0.0, 0.0)  # the image motion of the last frame, px
         self._zoom = 1.0  # its scale step, about the features' centroid in frame t+1
+        self._seq: int | None = None  # the last frame's ``seq``, where given
+        self._span = 1  # the frames the last step's motion (velocities, zoom, turn) spans
         # and its turn, radians (clockwise on the screen: x right, y down), and the turn of the
         # frame before it; NaN: not measured (no frame pair yet)
         self._turn = self._turn_before = np.nan
@@ -258,12 +267,15 @@ class Tracker:
                              f"{self._prev.shape[::-1]} (width, height)")
         # the paper's tracker needs no pyramid (see _track)
         pyr = None if _single_level(p) else build_pyramid(frame, p.levels)
+        gap = self._gap(seq)
         if first:
             self._add_features(pre, frame.shape)
         else:
-            self._track(frame, pyr)
+            self._track(frame, pyr, gap / self._span)
+            self._span = gap
             if len(self._pos) < p.redetect_fraction * p.max_features:
                 self._add_features(pre, frame.shape)
+        self._seq = None if seq is None else int(seq)
         self._prev = frame
         self._prev_pyr = pyr
         if p.subpixel and p.refine_half and self._frame - self._noise_at >= NOISE_EVERY:
@@ -285,6 +297,13 @@ class Tracker:
         self._frame += 1
         return est
 
+    def _gap(self, seq: int | None) -> int:
+        """Frames from the last frame to this one: ``seq``'s step, 1 where either has no
+        ``seq`` or it did not move on (a new track starts there), at most MAX_GAP."""
+        if seq is None or self._seq is None or int(seq) <= self._seq:
+            return 1
+        return min(int(seq) - self._seq, MAX_GAP)
+
     def settle(self) -> None:
         """Work the last frame left for later, which its estimate does not wait for: the
         camera's noise read from it (every NOISE_EVERY frames, ~0.2 ms at 256 x 256 back to
@@ -297,8 +316,13 @@ class Tracker:
             self._noise_due = None
             self.noise = noise_level(frame, blur_sigma)
 
-    def _track(self, frame: np.ndarray, pyr: Pyramid | None) -> None:
+    def _track(self, frame: np.ndarray, pyr: Pyramid | None, ahead: float = 1.0) -> None:
+        """Track the features into ``frame``, their motion extrapolated ``ahead`` times the
+        last step's (frames skipped, :meth:`_gap`)."""
         p = self._params
+        vel, zoom = self._vel, self._zoom
+        if ahead != 1.0:
+            vel, zoom = vel * ahead, zoom ** ahead
         assert self._prev is not None
         if len(self._pos) == 0:
             self._motion = (0.0, 0.0)
@@ -309,7 +333,7 @@ class Tracker:
             # the paper's tracker: its single-level search straight from track_ssd, no pyramid
             # (the same matches as track_pyramid at one level, tested; but not its per-frame
             # overhead, which the paper's factorial design would time)
-            anchors, centers = _predict(self._pos, self._vel)
+            anchors, centers = _predict(self._pos, vel)
             why = np.empty(len(anchors), np.int8)
             match, ssd, ok = track_ssd(self._prev, frame, anchors, centers,
                                        corr_half=p.corr_half, search_half=p.search_half,
@@ -322,19 +346,19 @@ class Tracker:
             if prev is None or prev.levels != pyr.levels:  # the levels changed with the params
                 prev = build_pyramid(self._prev, p.levels)
             pts = self._pos
-            turn = self._turn_ahead()
-            zoomed = abs(self._zoom - 1.0) > ZOOM_WARP or abs(turn) > TURN_WARP
+            turn = self._turn_ahead() * ahead
+            zoomed = abs(zoom - 1.0) > ZOOM_WARP or abs(turn) > TURN_WARP
             if zoomed:
                 # an approach (or a retreat), a roll: frame t scaled and turned by the zoom and
                 # turn of the frame before, about the features' centroid, so that each
                 # template shows its patch at the size and angle it has in frame t+1; the
                 # features where that puts them
-                prev, pts = _zoomed(self._prev, pts, self._zoom, p.levels, turn)
+                prev, pts = _zoomed(self._prev, pts, zoom, p.levels, turn)
                 self.zoom_warps += 1
             mapped = self._exposed(prev, pyr)
             self.exposure_steps += mapped is not prev
             prev = mapped
-            found, ssd, status, taken = self._search(prev, pyr, pts, self._pos + self._vel)
+            found, ssd, status, taken = self._search(prev, pyr, pts, self._pos + vel)
             retry = None if zoomed else _zoom_retry(self._pos, found, status)
             if retry is not None:
                 # a zoom or a turn no frame before measured (a track's first pair taken in an

@@ -380,7 +380,7 @@ RESCUE_NEAR_PX = 0.5
 #: where its NEIGHBOURS nearest fit no similarity, step 5c fits an affine map to this many
 #: nearest matches (0: off): a neighbourhood that shears (a rolling shutter that shakes, each
 #: row exposed at its own moment) or a plane in perspective. Ten points leave the fit's six
-#: parameters 14 residuals to judge it by; with six, every neighbourhood fitted
+#: parameters 14 residuals to judge it by; over six, nearly every neighbourhood fitted
 RESCUE_AFFINE_NEAR = 10
 #: where the neighbourhood is no similarity, step 7 fits an affine map (a plane in
 #: perspective scales along x and y apart) and corrects by it where that fits instead
@@ -1085,10 +1085,11 @@ def _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, wts, scratc
 
     A rolling shutter that shakes exposes each row at its own jolt: a neighbourhood's motion
     shears, no similarity fits it, and RubberWhale's shake with a readout of 0.9 of the frame
-    interval kept 0.29 of its first frame's features against LK's 0.66; with the affine fit
-    0.54. Over NEIGHBOURS points an affine fits nearly anything (Urban2's pair, 500 features:
-    12 of 411 pairs off by more than 2 px -> 17 of 443); over RESCUE_AFFINE_NEAR it must
-    fit (15 more found, 1 more off).
+    interval (the scoreboard's) kept 0.27 of its first frame's features against LK's 0.72;
+    with the affine fit 0.47. Over NEIGHBOURS points an affine fits nearly anything (Urban2's
+    pair, 500 features: 12 of 411 pairs off by more than 2 px -> 17 of 443); over
+    ``affine_near`` (or as many matches as there are, fewer) it must fit (15 more found, 1
+    more off).
 
     Returns how many were rescued."""
     n_feat = pts.shape[0]
@@ -1986,9 +1987,10 @@ def _centroids_of(prev, pts, took, cen, idx, n, wts, uniform, a, cq, have):  # p
 @nb.njit(**NO_NRT)
 def _affine(fit):  # pragma: no cover - numba
     """The least-squares affine map of the displacements fit[2:4] of the points fit[0:2]
-    (NEIGHBOURS of them), its matrix less the identity split into scale a, turn b, stretch p
-    and shear s ([[a + p, s - b], [s + b, a - p]]), and the rms of its residuals over the 2 k
-    coordinates: (a, b, p, s, rms); rms infinite where the points lie on a line."""
+    (k of them: NEIGHBOURS, or step 5c's RESCUE_AFFINE_NEAR), its matrix less the identity
+    split into scale a, turn b, stretch p and shear s ([[a + p, s - b], [s + b, a - p]]), and
+    the rms of its residuals over the 2 k coordinates: (a, b, p, s, rms); rms infinite where
+    the points lie on a line."""
     k = fit.shape[1]
     mx = my = mu = mv = 0.0
     for u in range(k):

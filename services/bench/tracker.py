@@ -16,12 +16,15 @@ median end-point error of ours (default parameters) and of LK against the Middle
 truth. Last, the default tracker's SSD tracking of one frame pair and LK's (its defaults) after
 an idle gap (:data:`GAPS_S`): a service's frames come after one, and this machine runs work
 after an idle gap slower than back to back (measured: OpenCV's calls by a near fixed ~0.1 ms
-after 33 ms, ours by about twice that).
+after 33 ms, ours by about twice that). And the tracker over frames a camera dropped at
+random (:data:`SKIPS`), told their numbers (``seq``, as motion-estimation is) against not
+told: how many features follow their prediction, and the time a frame.
 Everything runs on one core (OpenCV's threads set to 1; numba kernels are single-threaded).
 """
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from collections.abc import Callable
@@ -29,7 +32,7 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from ...common import groundtruth, synthetic
+from ...common import groundtruth, rendered, synthetic
 from ...common.params import TrackerParams
 from ...common.vision import Tracker, preprocess, to_gray, track_ssd, warm_up, window_weights
 from ...common.vision.pyramid import build_pyramid, track_pyramid, wide_tests
@@ -89,6 +92,36 @@ def _after_gaps(steps: dict[str, Callable[[int], object]], n: int,
                     step(i)
                     times[name][j].append(time.perf_counter() - t0)
     return {name: [float(np.median(t)) for t in by_gap] for name, by_gap in times.items()}
+
+
+#: Frames a camera drops before each one it sends, drawn at random (seed 7) along the
+#: scoreboard's rendered path: none (half the time), one or two.
+SKIPS = (0, 0, 1, 2)
+
+
+def _skipping(params: TrackerParams) -> tuple[list, list[int]] | None:
+    """RubberWhale's rendered 60-frame path (up to 12 px a frame) as a camera dropping
+    :data:`SKIPS` frames at random sends it: (the frames kept, pre-processed; their numbers),
+    or None without the shared data."""
+    found = rendered.middlebury_sources(("RubberWhale",))
+    if not found:
+        return None
+    name, image = found[0]
+    seq = rendered.sequence(image, f"{name} rendered", n=60)
+    rng = np.random.default_rng(7)
+    kept = [0]
+    while (nxt := kept[-1] + 1 + int(rng.choice(SKIPS))) < len(seq):
+        kept.append(nxt)
+    return [preprocess(seq.frames[k], params) for k in kept], kept
+
+
+def _skipping_run(params: TrackerParams, frames: list, kept: list[int], told: bool) -> int:
+    """One run of a fresh tracker over ``frames``, given their numbers (``told``) or not:
+    the features that followed their prediction."""
+    tracker = Tracker(params)
+    for pre, k in zip(frames, kept, strict=True):
+        tracker.update(pre, seq=k if told else None)
+    return tracker.followed
 
 
 def _whole_after_first(frames: list[np.ndarray], params: TrackerParams,
@@ -368,6 +401,22 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
         print(f"{gap * 1e3:6.1f}ms {ours:16.1f} us {peer:9.1f} us {ours / peer:9.2f}x "
               f"  ({ours / (gaps['ours'][0] * 1e6):.2f}x and {peer / (gaps['lk'][0] * 1e6):.2f}x"
               " back to back)", file=out)
+    skipping = _skipping(params)
+    if skipping is not None:
+        frames_kept, kept = skipping
+        runs = _interleaved({t: functools.partial(_skipping_run, params, frames_kept, kept,
+                                                  t == "told") for t in ("told", "blind")},
+                            rounds=5)
+        followed = {t: _skipping_run(params, frames_kept, kept, t == "told")
+                    for t in ("told", "blind")}
+        per = {t: runs[t] / len(kept) * 1e6 for t in runs}
+        fig["skipping_told"], fig["skipping_blind"] = per["told"], per["blind"]
+        print(f"\nframes dropped at random (RubberWhale's rendered path, {len(kept)} of 60 "
+              f"frames kept, 0 to 2 dropped before each), the tracker told their seq "
+              f"{per['told']:.1f} us a frame, not told {per['blind']:.1f} us "
+              f"({per['told'] / per['blind']:.2f}x); "
+              f"features that followed their prediction {followed['told']} against "
+              f"{followed['blind']}", file=out)
     acc = _accuracy()
     if acc:
         print("\nmedian end-point error vs Middlebury ground truth (px), same features:",

@@ -10,6 +10,7 @@ import math
 
 import pytest
 
+from vistrack.common import groundtruth
 from vistrack.services.bench.tracker import bench_tracker
 
 pytestmark = pytest.mark.bench
@@ -29,3 +30,6 @@ def test_bench_tracker(capsys):
                 "default_ssd_gap_0ms", "default_ssd_gap_1.1ms", "default_ssd_gap_33ms",
                 "lk_default_gap_0ms", "lk_default_gap_1.1ms", "lk_default_gap_33ms"):
         assert math.isfinite(fig[key]) and fig[key] > 0
+    if groundtruth.data_dir() is not None:  # the frames dropped at random need the shared data
+        for key in ("skipping_told", "skipping_blind"):
+            assert math.isfinite(fig[key]) and fig[key] > 0

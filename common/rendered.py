@@ -515,8 +515,8 @@ class RollingShutterSequence(RenderedSequence):
     def from_source(self, source_points: np.ndarray, k: int) -> np.ndarray:
         """Where the source's points (N, 2) are seen in frame k: the row that sees a point is
         the row the homography of its own moment puts it in."""
-        s = np.column_stack([np.asarray(source_points, np.float64).reshape(-1, 2),
-                             np.ones(len(np.asarray(source_points).reshape(-1, 2)))])
+        src = np.asarray(source_points, np.float64).reshape(-1, 2)
+        s = np.column_stack([src, np.ones(len(src))])
         q = s @ self.homographies[k].T
         q = q[:, :2] / q[:, 2:3]
         for _ in range(100):

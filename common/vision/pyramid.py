@@ -1358,6 +1358,7 @@ def _dominant_alternative(pdata, cdata, geo, pts, pos, ssd, status, searched, n,
     gx, gy = _dominant(pts, pos, status)
     prev = _level(pdata, geo, 0)
     curr = _level(cdata, geo, 0)
+    wide_allowance = _wide_allowance(wts, allowance, arbiter)
     h, w = prev.shape
     pf = prev.ravel()
     cf = curr.ravel()
@@ -1389,7 +1390,7 @@ def _dominant_alternative(pdata, cdata, geo, pts, pos, ssd, status, searched, n,
                 break
         if status[f] == OK and apart < np.inf and _alternative_holds(
                 pdata, cdata, geo, prev, curr, pts, pos, f, gx, gy, n, wts, ratio, allowance,
-                apart, arbiter, scratch):
+                apart, arbiter, wide_allowance, scratch):
             status[f] = AMBIGUOUS
 
 
@@ -1411,6 +1412,7 @@ def _period_alternative(pdata, cdata, geo, pts, pos, status, searched, offset, n
     (:data:`FRAME_WORK`); a match it cannot pay for is not tested."""
     prev = _level(pdata, geo, 0)
     curr = _level(cdata, geo, 0)
+    wide_allowance = _wide_allowance(wts, allowance, arbiter)
     h, w = prev.shape
     pf = prev.ravel()
     gate = PERIOD_SELF * allowance
@@ -1449,20 +1451,21 @@ def _period_alternative(pdata, cdata, geo, pts, pos, status, searched, offset, n
         for sign in (-1.0, 1.0):
             if _alternative_holds(pdata, cdata, geo, prev, curr, pts, pos, f, mx + sign * vx,
                                   my + sign * vy, n, wts, ratio, allowance, apart, arbiter,
-                                  scratch):
+                                  wide_allowance, scratch):
                 status[f] = AMBIGUOUS
                 break
 
 
 @nb.njit(**NO_NRT)
 def _alternative_holds(pdata, cdata, geo, prev, curr, pts, pos, f, sx, sy, n, wts, ratio,
-                       allowance, apart, arbiter, scratch):  # pragma: no cover - numba
+                       allowance, apart, arbiter, wide_allowance,
+                       scratch):  # pragma: no cover - numba
     """Whether feature f's match ``pos[f]`` has a rival: Gauss-Newton from the displacement
     (sx, sy) (:func:`_follow_one`) converges more than ``apart`` px from it, and the rival's
     S at its sub-pixel position (:func:`_ssd_bilinear`) is at most ``ratio`` times the
     match's plus ``allowance``, the uniqueness test's bound; unless the wide window of
-    half-width ``arbiter`` (0: none) scores the rival clearly worse, by the same bound
-    scaled to its pixels."""
+    half-width ``arbiter`` (0: none) scores the rival clearly worse, by the same bound with
+    ``wide_allowance`` (:func:`_wide_allowance`)."""
     h, w = prev.shape
     ax = int(np.rint(pts[f, 0]))
     ay = int(np.rint(pts[f, 1]))
@@ -1480,14 +1483,22 @@ def _alternative_holds(pdata, cdata, geo, prev, curr, pts, pos, f, sx, sy, n, wt
             or ay + arbiter >= h or not _bilinear_fits(x, y, arbiter, w, h)
             or not _bilinear_fits(ox, oy, arbiter, w, h)):
         return True
+    own = _ssd_bilinear(prev, curr, ax, ay, ox, oy, arbiter, wts)
+    rival = _ssd_bilinear(prev, curr, ax, ay, x, y, arbiter, wts)
+    return rival <= ratio * own + wide_allowance
+
+
+@nb.njit(**NO_NRT)
+def _wide_allowance(wts, allowance, arbiter):  # pragma: no cover - numba
+    """``allowance`` (what noise adds to S over the correlation window's weights ``wts``)
+    scaled to the wide window of half-width ``arbiter``, whose pixels weigh one each: once a
+    frame, not once a rival."""
     m = 2 * arbiter + 1
     wsum = 0.0
     for j in range(wts.shape[0]):
         for i in range(wts.shape[1]):
             wsum += wts[j, i]
-    own = _ssd_bilinear(prev, curr, ax, ay, ox, oy, arbiter, wts)
-    rival = _ssd_bilinear(prev, curr, ax, ay, x, y, arbiter, wts)
-    return rival <= ratio * own + allowance * (m * m) / wsum
+    return allowance * (m * m) / wsum
 
 
 @nb.njit(**NO_NRT)

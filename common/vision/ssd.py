@@ -28,8 +28,9 @@ Two searches return the same argmin (ties going to the first in row-major order,
     * a displacement's sum is abandoned as soon as its partial sum exceeds the best so far (the
       terms are non-negative, so it can no longer win); all arithmetic is in integers.
 
-On ~100 features of a 256x256 real frame (one core): (15, 9) ~67 us pruned, ~150 us
-exhaustive; the reference windows (50, 30) ~0.6 ms pruned, ~10 ms exhaustive.
+On ~100 features of a 256x256 real frame (one core, ``vistrack bench tracker``): (15, 9) ~41
+us pruned, ~165 us exhaustive; the reference windows (50, 30) ~0.55 ms pruned, ~12 ms
+exhaustive.
 
 Performance notes (numba compiles with LLVM's loop vectoriser only, no SLP vectoriser): the hot
 loops are long, contiguous and indexed from 0 by the loop variable (offsets go into slices: a
@@ -485,43 +486,74 @@ def _scaled_dots(typingctx, gx, gy, scale, pix, offsets, size):  # pragma: no co
         context, builder, signature, args, True)
 
 
+#: window rows summed (:func:`_rows_squares`) between two tests of a sum against its bound
+#: (fewer tests against rows summed in vain: 2, 3, 5 and 9 rows measured the same to within
+#: the rounds' spread, 3 at the front)
+ROW_GROUP = 3
+
+
 @intrinsic
-def _row_squares(typingctx, pf, poff, cf, coff, count):  # pragma: no cover - numba
-    """The sum, int64, of ``(pf[poff + i] - cf[coff + i])^2`` for i < ``count`` (at most
-    LANES): 1-D C uint8 arrays, LANES bytes read from each offset (inside the arrays:
-    unchecked), the lanes from ``count`` on masked out. One vector load of each row,
-    widening, subtraction, multiplication and a horizontal add, where a loop over the 9 pixels
-    of a (15, 9) window's row ran pixel by pixel (LLVM leaves so short a loop scalar)."""
+def _rows_squares(typingctx, pf, poff, cf, coff, count, step, rows):  # pragma: no cover
+    """The sum, int64, of ``(pf[poff + r step + i] - cf[coff + r step + i])^2`` for i <
+    ``count`` (at most LANES) and r < ``rows``: 1-D C uint8 arrays, LANES bytes read from each
+    row's offset (inside the arrays: unchecked), the lanes from ``count`` on masked out.
+
+    A row is one vector load from each frame, widened to 16 bits, subtracted, masked and
+    squared in the pairs of a 16-bit multiply-add (vpmaddwd; the even products added to the
+    odd, as in :func:`_pixel_dots`); the rows' pairs are added as vectors and their lanes
+    once, at the end. A row's 9 pixels summed pixel by pixel ran scalar (LLVM leaves so short
+    a loop alone); one vector a row, with 32-bit multiplies (vpmulld) and its lanes added a
+    row at a time, was the first version: the (15, 9) search's S summed ROW_GROUP rows a call
+    took it from ~46 to ~41 us a frame pair (old and new in turn, three rounds each, the
+    same outputs bit for bit)."""
     if not (isinstance(pf, types.Array) and isinstance(cf, types.Array) and pf.ndim == 1
             and cf.ndim == 1 and pf.layout == "C" and cf.layout == "C"
             and pf.dtype == types.uint8 and cf.dtype == types.uint8
-            and all(isinstance(t, types.Integer) for t in (poff, coff, count))):
+            and all(isinstance(t, types.Integer) for t in (poff, coff, count, step, rows))):
         return None
-    sig = types.int64(pf, poff, cf, coff, count)
+    sig = types.int64(pf, poff, cf, coff, count, step, rows)
 
     def codegen(context, builder, signature, args):
         narrow = ir.VectorType(ir.IntType(8), LANES)
         i32 = ir.IntType(32)
+        short = ir.VectorType(ir.IntType(16), LANES)
         wide = ir.VectorType(i32, LANES)
-        rows = []
-        for k in (0, 2):
-            ptr = _flat_at(context, builder, signature.args[k], args[k], args[k + 1])
-            ptr = builder.bitcast(ptr, narrow.as_pointer())
-            rows.append(builder.zext(builder.load(ptr, align=1), wide))
-        d = builder.sub(rows[0], rows[1])
-        sq = builder.mul(d, d)
-        n32 = context.cast(builder, args[4], signature.args[4], types.int32)
+        half = ir.VectorType(i32, LANES // 2)
+        tys = signature.args
+        intp = context.get_value_type(types.intp)
+        p0 = context.cast(builder, args[1], tys[1], types.intp)
+        c0 = context.cast(builder, args[3], tys[3], types.intp)
+        stride = context.cast(builder, args[5], tys[5], types.intp)
+        nrows = context.cast(builder, args[6], tys[6], types.intp)
+        zero = context.get_constant(types.intp, 0)
+        pbase = _flat_at(context, builder, tys[0], args[0], zero)
+        cbase = _flat_at(context, builder, tys[2], args[2], zero)
+        n16 = context.cast(builder, args[4], tys[4], types.int16)
         splat = builder.shuffle_vector(
-            builder.insert_element(ir.Constant(wide, None), n32, ir.Constant(i32, 0)),
-            ir.Constant(wide, None), ir.Constant(wide, [0] * LANES))
-        lanes = ir.Constant(wide, list(range(LANES)))
-        kept = builder.select(builder.icmp_unsigned("<", lanes, splat), sq,
-                              ir.Constant(wide, [0] * LANES))
-        fnty = ir.FunctionType(i32, [wide])
-        fn = cgutils.get_or_insert_function(builder.module, fnty,
-                                            f"llvm.vector.reduce.add.v{LANES}i32")
-        # at most LANES * 255^2: positive in int32
-        return builder.zext(builder.call(fn, [kept]), ir.IntType(64))
+            builder.insert_element(ir.Constant(short, None), n16, ir.Constant(i32, 0)),
+            ir.Constant(short, None), ir.Constant(wide, [0] * LANES))
+        keep = builder.icmp_unsigned("<", ir.Constant(short, list(range(LANES))), splat)
+        even = ir.Constant(half, list(range(0, LANES, 2)))
+        odd = ir.Constant(half, list(range(1, LANES, 2)))
+        total = cgutils.alloca_once_value(builder, ir.Constant(half, [0] * (LANES // 2)))
+        with cgutils.for_range(builder, nrows, intp=intp) as loop:
+            at = builder.mul(loop.index, stride)
+            rows = []
+            for base, off in ((pbase, p0), (cbase, c0)):
+                ptr = builder.gep(base, [builder.add(off, at)])
+                ptr = builder.bitcast(ptr, narrow.as_pointer())
+                rows.append(builder.zext(builder.load(ptr, align=1), short))
+            d = builder.select(keep, builder.sub(rows[0], rows[1]),
+                               ir.Constant(short, [0] * LANES))
+            d = builder.sext(d, wide)
+            sq = builder.mul(d, d)
+            pair = builder.add(builder.shuffle_vector(sq, sq, even),
+                               builder.shuffle_vector(sq, sq, odd))
+            builder.store(builder.add(builder.load(total), pair), total)
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(i32, [half]),
+                                            f"llvm.vector.reduce.add.v{LANES // 2}i32")
+        # at most rows * LANES * 255^2: positive in int32 for up to 2063 rows
+        return builder.zext(builder.call(fn, [builder.load(total)]), ir.IntType(64))
 
     return sig, codegen
 
@@ -563,8 +595,9 @@ def _ssd_inline(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound):  # pragma: n
     """S of Eq. (1) between the window at (ax, ay) in frame t and at (qx, qy) in frame t+1,
     given as flat arrays ``pf``, ``cf`` of rows ``w`` long.
 
-    Stops once a row takes the partial sum above ``bound`` (the terms are non-negative, so the
-    window can no longer win) and returns that partial sum, which is > ``bound``.
+    Stops once a row (with uniform weights, ROW_GROUP rows: :func:`_rows_squares`) takes the
+    partial sum above ``bound`` (the terms are non-negative, so the window can no longer win)
+    and returns that partial sum, which is > ``bound``.
 
     Indices are unsigned: numba then skips its negative-index fix-up on every load (the
     windows are inside the frames), 20 % of the time of this loop.
@@ -583,14 +616,18 @@ def _ssd_inline(pf, cf, w, ax, ay, qx, qy, n, wts, uniform, bound):  # pragma: n
     chunks = (m + LANES - 1) // LANES
     last = np.uint64((m - 1) * w + chunks * LANES)
     if uniform and t0 + last <= np.uint64(pf.shape[0]) and c0 + last <= np.uint64(cf.shape[0]):
-        for _ in range(m):
+        j = 0
+        while j < m:
+            k = min(ROW_GROUP, m - j)
             for c in range(chunks):
                 off = np.uint64(c * LANES)
-                acc += _row_squares(pf, t0 + off, cf, c0 + off, min(m - c * LANES, LANES))
+                acc += _rows_squares(pf, t0 + off, cf, c0 + off, min(m - c * LANES, LANES),
+                                     step, k)
             if acc > bound:
                 return acc
-            t0 += step
-            c0 += step
+            t0 += step * np.uint64(k)
+            c0 += step * np.uint64(k)
+            j += k
         return acc
     for j in range(m):
         if uniform:

@@ -255,6 +255,54 @@ def test_exhaustive_and_pruned_equal_bruteforce_on_real_frames(real_image, corr_
     assert found >= count // 3
 
 
+@pytest.mark.parametrize("corr_size,kind", [(3, "uniform"), (5, "uniform"), (9, "uniform"),
+                                             (15, "uniform"), (31, "uniform"),
+                                             (9, "gaussian")])
+def test_bounds_are_the_row_sums_bound(real_image, corr_size, kind):
+    """The pruned search's bounds (paired rows with uniform weights) are exactly
+    sum_j wmin_j min((T_j - I_j)^2, cap_j), T_j and I_j the row sums of template and window,
+    computed here with numpy, and at most m S."""
+    n, s = corr_size // 2, 7
+    m = 2 * n + 1
+    wts = window_weights(kind, n)
+    curr = cv2.warpAffine(real_image, np.float32([[1, 0, 1.6], [0, 1, -2.3]]),
+                          real_image.shape[::-1], borderMode=cv2.BORDER_REFLECT)
+    h, w = curr.shape
+    rng = np.random.default_rng(corr_size)
+    centers = rng.integers(n + s + 1, min(h, w) - n - s - 1, (6, 2))
+    rs = np.empty(h * w + w + ssd.VEC, np.int16)
+    bufs = np.empty((2, ssd.ROW_BLOCK + w + 2 * m), np.int16)
+    ssd._row_sums(curr, n, s, centers, rs, bufs)
+    uniform, wmin, _ = ssd._weights_info(wts)
+    caps, unit = ssd._bound_caps(wmin, uniform)
+    assert unit == (kind == "uniform")
+    side = 2 * s + 1
+    width = (side + ssd.LANES - 1) // ssd.LANES * ssd.LANES
+    blk = np.empty(2 * ((side + m + ssd.VEC // ssd.LANES) * width + ssd.VEC), np.int16)
+    bnd = np.empty((side * width + ssd.VEC - 1) // ssd.VEC * ssd.VEC, np.int32)
+    prev64 = real_image.astype(np.int64)
+    rows = np.lib.stride_tricks.sliding_window_view(curr.astype(np.int64), m, axis=1).sum(-1)
+    for cx, cy in centers:
+        ax, ay = cx + 2, cy - 1
+        trs = prev64[ay - n:ay + n + 1, ax - n:ax + n + 1].sum(1).astype(np.int32)
+        tpairs = np.zeros(m + 1, np.int16)
+        tpairs[:m] = trs
+        lo_x, lo_y = cx - s, cy - s
+        total = ssd._bounds(rs, w, trs, tpairs, wmin, caps, unit, lo_x, lo_y, side, side,
+                            width, n, blk, bnd)
+        assert total >= side * width
+        got = bnd[:side * width].reshape(side, width)[:, :side].astype(np.int64)
+        # window centred at (lo_x + k, lo_y + r): its row j sums curr row lo_y + r - n + j
+        # from column lo_x + k - n
+        win = np.stack([rows[lo_y - n + j:lo_y - n + j + side, lo_x - n:lo_x - n + side]
+                        for j in range(m)])
+        want = (wmin[:, None, None]
+                * np.minimum((trs[:, None, None] - win) ** 2, caps[:, None, None])).sum(0)
+        np.testing.assert_array_equal(got, want)
+        surface = brute_ssd(real_image, curr, (ax, ay), (cx, cy), n, s, wts)
+        assert np.all(got <= m * surface)
+
+
 def test_searches_agree_on_many_features_of_real_frames(real_image):
     """Many more features than the brute force can afford: the two searches agree exactly."""
     nxt = np.roll(real_image, (-1, 2), axis=(0, 1))

@@ -287,11 +287,12 @@ def _copy_pair(typingctx, dst, doff, src, soff, step):  # pragma: no cover - num
 
 @intrinsic
 def _pair_squares(typingctx, acc, total, pairs, width, temps, m):  # pragma: no cover
-    """``acc[q] = sum_{j < m} (temps[j] - pairs[2 (j width + q) + ...])^2`` for q < ``total``
-    (a multiple of LANES): the bounds of a uniform window (:func:`_bounds`), ``pairs`` the
-    search area's row sums as :func:`_copy_pair` lays them out (rows ``width`` lanes long,
-    row j and j + 1 interleaved), ``temps`` the template's row sums as int16 (one more,
-    ignored, where m is odd); ``acc`` int32, all 1-D C, read inside them (unchecked).
+    """``acc[q] = sum_{j < m} (temps[j] - I_j[q])^2`` for q < ``total`` (a multiple of
+    LANES), ``I_j[q] = pairs[2 ((j - j % 2) width + q) + j % 2]``: the bounds of a uniform
+    window (:func:`_bounds`), ``pairs`` the search area's row sums as :func:`_copy_pair` lays
+    them out (rows ``width`` lanes long, each row interleaved with the next), ``temps`` the
+    template's row sums as int16 (one more, ignored, where m is odd: that row's odd lanes are
+    masked out); ``acc`` int32, all 1-D C, read inside them (unchecked).
 
     Two rows' terms of a lane are one 16-bit multiply-add (vpmaddwd, the pattern of
     :func:`_pixel_dots`), where the plain loop widened each difference to 32 bits and squared

@@ -144,7 +144,6 @@ def run(tmp_path_factory, free_port_module):
                 finally:
                     cam.stop()
                     est.sub.undeclare()
-                    cmd.sub.undeclare()
                 # every estimate, and the throttled frames and their overlays: the bridge
                 # sends those at its next period, maybe after the last estimate
                 client.receive(lambda c: c.received[f"/{ROOT}/motion/estimate"] >= FRAMES
@@ -160,6 +159,9 @@ def run(tmp_path_factory, free_port_module):
                     params.wait(lambda items: len(items) >= 2, timeout=10)
                 finally:
                     params.sub.undeclare()
+                    # the commands until now, the recorder still recording: those of the
+                    # estimates and the stop the controller repeats once they are stale
+                    cmd.sub.undeclare()
             assert _stop(rec) == 0, "\n".join(rec.lines)
             assert _stop(bridge) == 0, "\n".join(bridge.lines)
             for p in fresh:
@@ -223,14 +225,17 @@ def test_the_recording_decodes_with_mcap_ros2(run):
     for _, e in estimates:
         assert [(p.x, p.y) for p in features[_stamp(e.header)].points] == \
             [(f.x, f.y) for f in e.features]
-    # commands (fewer than estimates: the controller skips stale ones) as a plain subscriber
-    # saw them while the camera ran; the recorder went on to the watchdog's stop commands
+    # commands as a plain subscriber saw them until the recorder was about to stop: those of
+    # the estimates (fewer: the controller takes its estimates latest-only, of a lockstep
+    # camera's full speed what it can: 47 to 60 of 60 on a quiet machine, 4 in a loaded CI
+    # run) and then the stop it repeats every STALE_REPEAT_S once they are stale; the
+    # recorder went on a little longer
     commands = [(m.sequence, m.publish_time, t.linear.x, t.linear.y, t.angular.z)
                 for m, t in by_topic[f"/{ROOT}/control/cmd_vel"]]
     live_commands = [(c["seq"], c["stamp_ns"], c["vx"], c["vy"], c["wz"])
                      for c in run["commands"]]
-    # the controller takes its estimates latest-only: of a lockstep camera's full speed, what
-    # it can (47 to 60 of 60 on a quiet machine, 17 in a loaded CI run); enough to compare
+    assert any(not c["stale"] for c in run["commands"])  # the estimates' commands
+    assert any(c["stale"] for c in run["commands"])  # and the stop's
     assert len(live_commands) >= 5
     assert commands[:len(live_commands)] == live_commands
     assert by_topic[f"/{ROOT}/tuner/params"][0][1].search_size == 15

@@ -306,13 +306,14 @@ def _match_signatures() -> list[tuple[Any, tuple]]:
 
     from ..common.vision import pyramid
 
-    u8_2, i64, i32_1 = t.Array(t.uint8, 2, "C"), t.int64, t.Array(t.int32, 1, "C")
+    u8_2, i64 = t.Array(t.uint8, 2, "C"), t.int64
     wts = t.Array(t.int32, 2, "C")
     u8_1, f64_1, f64_2 = t.Array(t.uint8, 1, "C"), t.Array(t.float64, 1, "C"), t.Array(
         t.float64, 2, "C")
-    # .ssd._refine_scratch's (wpad, tp, cp, g, q, cen, fast): the patches in uint8, g in int16
-    # and q in int32 (the sums of the default windows)
-    scratch = t.Tuple((i32_1, u8_1, u8_1, t.Array(t.int16, 2, "C"), wts, f64_1, t.boolean))
+    # .ssd._refine_scratch's (wpad, tp, cp, g, q, cen, fast): the weights in int16, the
+    # patches in uint8, g in int16 and q in int32 (the sums of the default windows)
+    scratch = t.Tuple((t.Array(t.int16, 1, "C"), u8_1, u8_1, t.Array(t.int16, 2, "C"), wts,
+                       f64_1, t.boolean))
     b_1 = t.Array(t.boolean, 1, "C")
     return [(pyramid._descend, (u8_2, u8_2, *[i64] * 5, wts, t.boolean, t.literal(3),
                                 t.Array(t.int64, 2, "C"))),

@@ -1269,12 +1269,12 @@ def _patch(img, x0, y0, rows, cols, out, stride):  # pragma: no cover - numba
 
 
 @nb.njit(**NO_NRT)
-def _corners(gx, gy, cp, off, stride):  # pragma: no cover - numba
+def _corners(gx, gy, cp, off, stride, used):  # pragma: no cover - numba
     """Correlations of ``gx`` and ``gy`` with ``cp`` at the four corners of a pixel, in one
-    pass: offsets off, off + 1, off + stride, off + stride + 1 (:func:`_pixel_dots`), as
-    int64."""
+    pass: offsets off, off + 1, off + stride, off + stride + 1 (:func:`_pixel_dots`) over the
+    first ``used`` lanes, as int64."""
     sx00, sx01, sx10, sx11, sy00, sy01, sy10, sy11 = _pixel_dots(
-        gx, gy, cp, (off, off + 1, off + stride, off + stride + 1), gx.shape[0])
+        gx, gy, cp, (off, off + 1, off + stride, off + stride + 1), used)
     return (np.int64(sx00), np.int64(sx01), np.int64(sx10), np.int64(sx11), np.int64(sy00),
             np.int64(sy01), np.int64(sy10), np.int64(sy11))
 
@@ -1293,7 +1293,7 @@ def _refine_scratch(wts, acc):  # pragma: no cover - numba
     half = m // 2
     stride = m + 4
     rsize = (m * stride + VEC - 1) // VEC * VEC
-    wpad = np.zeros(rsize, np.int32)
+    wpad = _padded_weights(acc, rsize)
     q = np.zeros((2, rsize), acc.dtype)
     for j in range(m):
         for i in range(m):
@@ -1326,6 +1326,21 @@ def _gradients_typed(acc, size):  # pragma: no cover - numba
     if acc.dtype == types.int32:
         return lambda acc, size: np.zeros((4, size), np.int16)
     return lambda acc, size: np.zeros((4, size), np.int64)
+
+
+def _padded_weights(acc, size):  # pragma: no cover - numba: compiled through the overload
+    """The weights in :func:`_refine`'s layout, (size,): int16 where the sums are int32 (every
+    weight then fits it, see :func:`refine_acc`), so that the gradients are made in 16-bit
+    lanes, with no narrowing of each weight from 32 bits (a third of that loop); else
+    int32."""
+    raise NotImplementedError
+
+
+@overload(_padded_weights)
+def _padded_weights_typed(acc, size):  # pragma: no cover - numba
+    if acc.dtype == types.int32:
+        return lambda acc, size: np.zeros(size, np.int16)
+    return lambda acc, size: np.zeros(size, np.int32)
 
 
 def refine_acc(*windows: np.ndarray) -> np.ndarray:
@@ -1403,6 +1418,9 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
     m = 2 * n + 1
     stride = m + 4
     size = wpad.shape[0]
+    # the sums run over the lanes up to the window's last pixel, in whole steps of
+    # _pixel_dots: the gradients are zero beyond it (544 of a 21 px window's 640 lanes)
+    used = ((m - 1) * stride + m + DOT_LANES - 1) // DOT_LANES * DOT_LANES
     if ax - n - 1 < 0 or ay - n - 1 < 0 or ax + n + 1 >= w or ay + n + 1 >= h:
         return False, x0, y0
     ix = int(np.floor(x0))
@@ -1427,7 +1445,7 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
     # pairs of a 16-bit multiply-add (:func:`_pixel_dots`). The normal matrix's and the
     # second differences' sums are made of them: Sum gx (right - left) = xr - xl, and so on.
     xr, xl, xd, xu, xm, yr, yl, yd, yu, ym = _pixel_dots(
-        gx, gy, tp, (c + 1, c - 1, c + stride, c - stride, c), size)
+        gx, gy, tp, (c + 1, c - 1, c + stride, c - stride, c), used)
     h11 = acc(xr - xl)
     h12 = acc(xd - xu)
     h22 = acc(yd - yu)
@@ -1449,7 +1467,7 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
         # the gradients' products with the differences 4 px wide, less twice the normal
         # matrix's sums (below); summed a pixel at a time, as above
         xr2, xl2, xd2, xu2, yr2, yl2, yd2, yu2 = _pixel_dots(
-            gx, gy, tp, (c + 2, c - 2, c + 2 * stride, c - 2 * stride), size)
+            gx, gy, tp, (c + 2, c - 2, c + 2 * stride, c - 2 * stride), used)
         bxx = acc(xr2 - xl2)
         bxy = acc(xd2 - xu2)
         byx = acc(yr2 - yl2)
@@ -1468,9 +1486,9 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
             # and the same of gy. Each call: both gradients times i (or j) with the pixels
             # right, left, down and up (x then y: 8 sums)
             kr, kl, kd, ku, lr, ll, ld, lu = _scaled_dots(
-                gx, gy, g[2], tp, (c + 1, c - 1, c + stride, c - stride), size)
+                gx, gy, g[2], tp, (c + 1, c - 1, c + stride, c - stride), used)
             mr, ml, md, mu, nr, nl, nd, nu = _scaled_dots(
-                gx, gy, g[3], tp, (c + 1, c - 1, c + stride, c - stride), size)
+                gx, gy, g[3], tp, (c + 1, c - 1, c + stride, c - stride), used)
             vx = np.int64(np.int32(np.int32(kr - kl) + np.int32(md - mu)))
             vy = np.int64(np.int32(np.int32(lr - ll) + np.int32(nd - nu)))
             wx = np.int64(np.int32(np.int32(kd - ku) - np.int32(mr - ml)))
@@ -1533,7 +1551,7 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
         fy = y - by0
         if bx0 != cbx or by0 != cby:
             off = (by0 - iy + 1) * stride + bx0 - ix + 1
-            sx00, sx01, sx10, sx11, sy00, sy01, sy10, sy11 = _corners(gx, gy, cp, off, stride)
+            sx00, sx01, sx10, sx11, sy00, sy01, sy10, sy11 = _corners(gx, gy, cp, off, stride, used)
             cbx = bx0
             cby = by0
         w00 = (1 - fx) * (1 - fy)

@@ -16,7 +16,10 @@ ground truth:
 
 Sequences: the Middlebury pairs of the shared data (ground truth: the ``.flo`` flow; any other
 folder of ``frame10.png``, ``frame11.png`` and ``flow10.flo`` put beside them under
-``$VISTRACK_DATA/middlebury/`` is scored too: your own sequences), the
+``$VISTRACK_DATA/middlebury/`` is scored too: your own sequences), the same pairs at the
+end of a running track where the folder also holds the frames before frame10 (``, running
+from frame07``: Middlebury's "other" sequences hold frame07 to frame14; the features held and
+followed from their velocity into the pair, as on a robot, only the pair's step scored), the
 long sequences of :mod:`vistrack.common.rendered` (real frames seen through smooth
 homographies, translation up to 12 px a frame; exact ground truth), and the same long
 sequences seen by a camera whose auto-exposure hunts (``, exposure``: gain +-8 % and offset
@@ -230,6 +233,52 @@ def _middlebury_pairs() -> Iterator[tuple[str, list[np.ndarray], np.ndarray, Tru
         yield name, frames, flow, step
 
 
+#: the earliest frame a running track starts from (Middlebury's "other" sequences hold frame07
+#: to frame14, the ground truth between frame10 and frame11)
+RUN_FROM = 7
+
+
+def _middlebury_runs() -> Iterator[tuple[str, list[np.ndarray], np.ndarray, Truth]]:
+    """Each Middlebury pair whose folder also holds the frames before frame10 (frame09,
+    frame08, ... down to RUN_FROM, as many as follow on from frame10): its name, those frames
+    through frame11, its flow, and a step truth known only for the step from frame10 to
+    frame11 (NaN elsewhere, so :func:`run_sequence` scores that step alone). The pair is then
+    scored as a robot's tracker meets it, in a running track: its features held and followed
+    from the frames before, not chosen in frame10 and searched from no motion.
+
+    Raises
+    ------
+    groundtruth.DataError
+        As :func:`_middlebury_pairs`, and for an earlier frame whose size is not frame10's.
+    """
+    for name, pair, flow, step in _middlebury_pairs():
+        folder = groundtruth.middlebury(name)
+        if folder is None:
+            continue
+        before: list[np.ndarray] = []
+        for k in range(9, RUN_FROM - 1, -1):
+            path = folder / f"frame{k:02d}.png"
+            if not path.is_file():
+                break
+            image = _gray(path)
+            if image.shape != pair[0].shape:
+                h, w = pair[0].shape
+                raise groundtruth.DataError(f"{path}: {image.shape[1]}x{image.shape[0]}, "
+                                            f"expected frame10.png's {w}x{h}")
+            before.insert(0, image)
+        if not before:
+            continue
+        last = len(before)  # the index of frame10, the step with ground truth
+
+        def run_step(points: np.ndarray, k: int, step: Truth = step,
+                     last: int = last) -> np.ndarray:
+            if k == last:
+                return step(points, 0)
+            return np.full((len(points), 2), np.nan)
+
+        yield name, [*before, *pair], flow, run_step
+
+
 #: :func:`dense_pairs`' features: as many as a pair's texture gives, up to this many
 DENSE_FEATURES = 500
 
@@ -268,6 +317,15 @@ def scoreboard(params: TrackerParams | None = None, *, n_frames: int = 60,
         rows.append(Row(f"{name} (pair)", 2, ours, lk, rej))
         if progress:
             progress(name)
+    # the same pairs at the end of a running track, where the folder has the frames before
+    for name, frames, flow, step in _middlebury_runs():
+        ours, lk, rej = run_sequence(frames, step, params,
+                                     single=one_motion(flow, params.corr_half))
+        first = 11 - (len(frames) - 1)
+        rows.append(Row(f"{name} (pair, running from frame{first:02d})", len(frames), ours, lk,
+                        rej))
+        if progress:
+            progress(f"{name}, running")
     longs = rendered.middlebury_sequences(n_frames)
     # the same views through a camera whose auto-exposure hunts (see rendered.with_exposure)
     # and through a shutter open half the frame interval (see rendered.motion_blurred)
@@ -346,14 +404,7 @@ def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[
               f"{r.rejected:5d} | {lk.pairs:6d} {_fmt(lk.median_epe, '7.3f')} {_pct(lk.gross)} "
               f"{_fmt(lk.survival, '5.2f')} {_fmt(lk.drift, '6.2f')} | {verdict:>6s}",
               file=out)
-        key = r.sequence.split(" ")[0] + ("_pair" if r.frames == 2 else "_long") \
-            + ("_exposure" if r.sequence.endswith(", exposure") else "") \
-            + ("_blur" if ", blur" in r.sequence else "") \
-            + ("_jerk" if r.sequence.endswith(", jerk") else "") \
-            + ("_approach" if r.sequence.endswith(", approach") else "") \
-            + ("_roll" if r.sequence.endswith(", roll") else "") \
-            + ("_shake" if ", shake" in r.sequence else "") \
-            + ("_rolling" if ", rolling shutter" in r.sequence else "")
+        key = _key(r)
         fig.update({f"{key}_median": o.median_epe, f"{key}_lk_median": lk.median_epe,
                     f"{key}_gross": o.gross, f"{key}_lk_gross": lk.gross,
                     f"{key}_pairs": float(o.pairs), f"{key}_lk_pairs": float(lk.pairs)})
@@ -375,11 +426,13 @@ def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[
     if pairs_rows:
         print(f"pairs off by > {GROSS_PX:g} px whose correlation window holds one motion "
               f"(its ground truth varying by < {GROSS_PX:g} px across it), ours / LK: "
-              + ", ".join(f"{r.sequence.split(' ')[0]} {100 * (r.ours.gross_one_motion or 0):.2f}"
+              + ", ".join(f"{r.sequence.split(' ')[0]}"
+                          f"{' running' if ', running' in r.sequence else ''} "
+                          f"{100 * (r.ours.gross_one_motion or 0):.2f}"
                           f" / {100 * (r.lk.gross_one_motion or 0):.2f} %"
                           for r in pairs_rows), file=out)
         for r in pairs_rows:
-            key = r.sequence.split(" ")[0] + "_pair"
+            key = _key(r)
             fig[f"{key}_gross_one_motion"] = r.ours.gross_one_motion or 0.0
             fig[f"{key}_lk_gross_one_motion"] = r.lk.gross_one_motion or 0.0
     dense = dense_pairs(params)
@@ -405,6 +458,23 @@ def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[
              else "NOT met")
           + f"; {time.perf_counter() - t0:.1f} s", file=out)
     return fig
+
+
+def _key(row: Row) -> str:
+    """The row's prefix in :func:`bench_accuracy`'s figures: ``<source>_pair``,
+    ``<source>_running`` (the pair after a running track) or ``<source>_long`` and the
+    rendered sequence's kind (``_exposure``, ``_blur``, ...)."""
+    name, seq = row.sequence.split(" ")[0], row.sequence
+    if ", running from" in seq:
+        return f"{name}_running"
+    return name + ("_pair" if row.frames == 2 else "_long") \
+        + ("_exposure" if seq.endswith(", exposure") else "") \
+        + ("_blur" if ", blur" in seq else "") \
+        + ("_jerk" if seq.endswith(", jerk") else "") \
+        + ("_approach" if seq.endswith(", approach") else "") \
+        + ("_roll" if seq.endswith(", roll") else "") \
+        + ("_shake" if ", shake" in seq else "") \
+        + ("_rolling" if ", rolling shutter" in seq else "")
 
 
 def _compared(row: Row) -> bool:

@@ -75,7 +75,7 @@ TURN_STEADY = 0.5
 #: a frame pair searched without a zoom or a turn is searched again with them
 #: (:func:`_zoom_retry`) where fewer than this share of its features were found, at least
 #: ZOOM_FOUND of them, and they zoom (ZOOM_WARP) or turn (TURN_WARP); the segments between
-#: pairs of them measured are ZOOM_RADIUS px long or more (:func:`_steps`)
+#: pairs of them measured are ZOOM_RADIUS px long or more (:func:`_turn_step`)
 ZOOM_RETRY_SHARE = 0.75
 ZOOM_FOUND = 8
 ZOOM_RADIUS = 10.0
@@ -510,7 +510,7 @@ def _zoom_retry(pos: np.ndarray, found: np.ndarray, status: np.ndarray
     1241 x 376): the similarity is the one most matches agree with, to within RETRY_FIT_PX
     (each segment between two matches, half or a third of the list apart and ZOOM_RADIUS px
     long or more, proposes the similarity that maps it; the one most matches fit wins), then
-    fitted to those matches by least squares. Medians over the segments, as :func:`_steps`
+    fitted to those matches by least squares. Medians over the segments, as :func:`_turn_step`
     takes them of a frame's checked matches, broke down there: Venus's zoom of 1.10 came out
     1.02, and 7 of its 46 matches were off by more than 2 px."""
     ok = status == OK
@@ -600,7 +600,7 @@ def _advance(pos, found, ssd, status, ids, wsum, max_residual):  # pragma: no co
     motion of the survivors.
 
     Returns (positions, velocities, ids of the survivors, losses (len(STATUS_NAMES),) by
-    status, whether any survived, dx, dy, scale, turn (:func:`_steps`)).
+    status, whether any survived, dx, dy, scale, turn (:func:`_turn_step`)).
     """
     n = pos.shape[0]
     keep = np.empty(n, np.bool_)
@@ -631,23 +631,23 @@ def _advance(pos, found, ssd, status, ids, wsum, max_residual):  # pragma: no co
     scale = 1.0
     if kept:
         dx, dy, scale = _incremental_motion(before, new_pos)
-    return new_pos, vel, new_ids, lost, kept > 0, dx, dy, scale, _steps(before, new_pos)[1]
+    return new_pos, vel, new_ids, lost, kept > 0, dx, dy, scale, _turn_step(before, new_pos)
 
 
 @nb.njit(cache=True, nogil=True)
-def _steps(a, b):  # pragma: no cover - numba
-    """How far the points ``a`` (frame t) zoomed and turned (radians) to ``b`` (frame t+1):
-    the medians of the ratios of the lengths, and of the angles by which they turned, of the
-    segments between pairs of them (each point paired with the ones half and a third of the
-    list away), over the segments at least ZOOM_RADIUS px long in frame t (shorter, a
-    pixel's error is a large ratio or angle). Pairs need no centre of the zoom or the turn,
-    and the medians are robust to a few wrong matches (the per-axis median point, tried
-    first, is no centre of a turn: 5 wrong matches of 40 made a 7 degree turn 2). (1, 0)
-    where fewer than ZOOM_FOUND segments are that long."""
+def _turn_step(a, b):  # pragma: no cover - numba
+    """How far the points ``a`` (frame t) turned (radians) to ``b`` (frame t+1): the median
+    of the angles by which the segments between pairs of them turned (each point paired with
+    the ones half and a third of the list away), over the segments at least ZOOM_RADIUS px
+    long in frame t (shorter, a pixel's error is a large angle). Pairs need no centre of the
+    turn, and the median is robust to a few wrong matches (the per-axis median point, tried
+    first, is no centre of a turn: 5 wrong matches of 40 made a 7 degree turn 2). 0 where
+    fewer than ZOOM_FOUND segments are that long. (The frame's zoom is Eq. (2)'s scatter
+    ratio, :func:`.motion.incremental_motion`; the median of the segments' length ratios,
+    once computed here beside the turn, was never read.)"""
     n = a.shape[0]
     if n < ZOOM_FOUND:
-        return 1.0, 0.0
-    ratios = np.empty(2 * n, np.float64)
+        return 0.0
     angles = np.empty(2 * n, np.float64)
     k = 0
     for stride in (n // 2, n // 3):
@@ -655,17 +655,15 @@ def _steps(a, b):  # pragma: no cover - numba
             j = (i + stride) % n
             ux = a[j, 0] - a[i, 0]
             uy = a[j, 1] - a[i, 1]
-            u2 = ux * ux + uy * uy
-            if u2 < ZOOM_RADIUS * ZOOM_RADIUS:
+            if ux * ux + uy * uy < ZOOM_RADIUS * ZOOM_RADIUS:
                 continue
             vx = b[j, 0] - b[i, 0]
             vy = b[j, 1] - b[i, 1]
-            ratios[k] = np.sqrt((vx * vx + vy * vy) / u2)
             angles[k] = np.arctan2(ux * vy - uy * vx, ux * vx + uy * vy)
             k += 1
     if k < ZOOM_FOUND:
-        return 1.0, 0.0
-    return np.median(ratios[:k]), np.median(angles[:k])
+        return 0.0
+    return np.median(angles[:k])
 
 
 def track_frames(frames: Iterable[np.ndarray], params: TrackerParams | None = None) -> list[

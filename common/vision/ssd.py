@@ -256,6 +256,17 @@ def _pairs_typed(a, b) -> bool:
         and b.dtype == types.int16
 
 
+def _add_pairs(builder, v):
+    """The vector ``v`` (2k lanes) with each even lane added to the odd lane after it (k
+    lanes): the pairs of a 16-bit multiply-add (vpmaddwd, vpdpwssd) when ``v`` holds 32-bit
+    products of 16-bit values, the pattern LLVM turns into that instruction."""
+    half = v.type.count // 2
+    lanes = ir.VectorType(ir.IntType(32), half)
+    return builder.add(
+        builder.shuffle_vector(v, v, ir.Constant(lanes, list(range(0, 2 * half, 2)))),
+        builder.shuffle_vector(v, v, ir.Constant(lanes, list(range(1, 2 * half, 2)))))
+
+
 @intrinsic
 def _copy_pair(typingctx, dst, doff, src, soff, step):  # pragma: no cover - numba
     """``dst[doff + 2 i] = src[soff + i]``, ``dst[doff + 2 i + 1] = src[soff + step + i]``
@@ -321,8 +332,6 @@ def _pair_squares(typingctx, acc, total, pairs, width, temps, m):  # pragma: no 
         m = context.cast(builder, args[5], tys[5], types.intp)
         full = builder.lshr(m, ir.Constant(intp, 1))
         odd = builder.trunc(m, ir.IntType(1))
-        evens = ir.Constant(ir.VectorType(i32, LANES), list(range(0, 2 * LANES, 2)))
-        odds = ir.Constant(ir.VectorType(i32, LANES), list(range(1, 2 * LANES, 2)))
         splat = ir.Constant(ir.VectorType(i32, 2 * LANES), [0, 1] * LANES)
         last = ir.Constant(pair, [-1, 0] * LANES)
 
@@ -339,8 +348,7 @@ def _pair_squares(typingctx, acc, total, pairs, width, temps, m):  # pragma: no 
                 d = builder.and_(d, mask)
             d = builder.sext(d, ir.VectorType(i32, 2 * LANES))
             sq = builder.mul(d, d)
-            return builder.add(total, builder.add(builder.shuffle_vector(sq, sq, evens),
-                                                  builder.shuffle_vector(sq, sq, odds)))
+            return builder.add(total, _add_pairs(builder, sq))
 
         with cgutils.for_range_slice(builder, zero, n, ir.Constant(intp, LANES)) as (q2, _):
             sums = cgutils.alloca_once_value(builder, ir.Constant(out, [0] * LANES))
@@ -538,8 +546,6 @@ def _dots_codegen(context, builder, signature, args, scaled: bool):
     half = ir.VectorType(isum, lanes // 2 if bits == 32 else lanes)
     grads = ir.VectorType(ir.IntType(16 if bits == 32 else 64), lanes).as_pointer()
     pixels = ir.VectorType(ir.IntType(8), lanes).as_pointer()
-    even = ir.Constant(ir.VectorType(ir.IntType(32), lanes // 2), list(range(0, lanes, 2)))
-    odd = ir.Constant(ir.VectorType(ir.IntType(32), lanes // 2), list(range(1, lanes, 2)))
     intp = context.get_value_type(types.intp)
     zero = context.get_constant(types.intp, 0)
     bases = [_flat_at(context, builder, tys[j], args[j], zero) for j in range(3)]
@@ -561,9 +567,7 @@ def _dots_codegen(context, builder, signature, args, scaled: bool):
             p = builder.zext(builder.load(builder.bitcast(at, pixels), align=1), wide)
             for side, g in enumerate(gs):
                 prod = builder.mul(g, p)
-                pair = prod if bits == 64 else builder.add(
-                    builder.shuffle_vector(prod, prod, even),
-                    builder.shuffle_vector(prod, prod, odd))
+                pair = prod if bits == 64 else _add_pairs(builder, prod)
                 slot = sums[side * k + j]
                 builder.store(builder.add(builder.load(slot), pair), slot)
     fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(isum, [half]),
@@ -651,8 +655,6 @@ def _rows_squares(typingctx, pf, poff, cf, coff, count, step, rows):  # pragma: 
             builder.insert_element(ir.Constant(short, None), n16, ir.Constant(i32, 0)),
             ir.Constant(short, None), ir.Constant(wide, [0] * LANES))
         keep = builder.icmp_unsigned("<", ir.Constant(short, list(range(LANES))), splat)
-        even = ir.Constant(half, list(range(0, LANES, 2)))
-        odd = ir.Constant(half, list(range(1, LANES, 2)))
         total = cgutils.alloca_once_value(builder, ir.Constant(half, [0] * (LANES // 2)))
         with cgutils.for_range(builder, nrows, intp=intp) as loop:
             at = builder.mul(loop.index, stride)
@@ -665,9 +667,7 @@ def _rows_squares(typingctx, pf, poff, cf, coff, count, step, rows):  # pragma: 
                                ir.Constant(short, [0] * LANES))
             d = builder.sext(d, wide)
             sq = builder.mul(d, d)
-            pair = builder.add(builder.shuffle_vector(sq, sq, even),
-                               builder.shuffle_vector(sq, sq, odd))
-            builder.store(builder.add(builder.load(total), pair), total)
+            builder.store(builder.add(builder.load(total), _add_pairs(builder, sq)), total)
         fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(i32, [half]),
                                             f"llvm.vector.reduce.add.v{LANES // 2}i32")
         # at most rows * LANES * 255^2: positive in int32 for up to 2063 rows
@@ -1293,7 +1293,11 @@ def _refine_scratch(wts, acc):  # pragma: no cover - numba
     half = m // 2
     stride = m + 4
     rsize = (m * stride + VEC - 1) // VEC * VEC
-    wpad = _padded_weights(acc, rsize)
+    # the weights in the gradients' type: int16 where the sums are int32 (every weight then
+    # fits it, see refine_acc), so that the gradients are made in 16-bit lanes with no
+    # narrowing of each weight from 32 bits (a third of that loop)
+    g = _gradients(acc, rsize)
+    wpad = np.zeros(rsize, g.dtype)
     q = np.zeros((2, rsize), acc.dtype)
     for j in range(m):
         for i in range(m):
@@ -1302,7 +1306,6 @@ def _refine_scratch(wts, acc):  # pragma: no cover - numba
             q[1, j * stride + i] = j - half
     tp = np.zeros(rsize + 4 * stride + 4, np.uint8)
     cp = np.zeros(rsize + 3 * stride + 3, np.uint8)
-    g = _gradients(acc, rsize)
     for k in range(rsize):
         g[2, k] = q[0, k]
         g[3, k] = q[1, k]
@@ -1326,21 +1329,6 @@ def _gradients_typed(acc, size):  # pragma: no cover - numba
     if acc.dtype == types.int32:
         return lambda acc, size: np.zeros((4, size), np.int16)
     return lambda acc, size: np.zeros((4, size), np.int64)
-
-
-def _padded_weights(acc, size):  # pragma: no cover - numba: compiled through the overload
-    """The weights in :func:`_refine`'s layout, (size,): int16 where the sums are int32 (every
-    weight then fits it, see :func:`refine_acc`), so that the gradients are made in 16-bit
-    lanes, with no narrowing of each weight from 32 bits (a third of that loop); else
-    int32."""
-    raise NotImplementedError
-
-
-@overload(_padded_weights)
-def _padded_weights_typed(acc, size):  # pragma: no cover - numba
-    if acc.dtype == types.int32:
-        return lambda acc, size: np.zeros(size, np.int16)
-    return lambda acc, size: np.zeros(size, np.int32)
 
 
 def refine_acc(*windows: np.ndarray) -> np.ndarray:

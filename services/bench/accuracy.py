@@ -238,45 +238,38 @@ def _middlebury_pairs() -> Iterator[tuple[str, list[np.ndarray], np.ndarray, Tru
 RUN_FROM = 7
 
 
-def _middlebury_runs() -> Iterator[tuple[str, list[np.ndarray], np.ndarray, Truth]]:
-    """Each Middlebury pair whose folder also holds the frames before frame10 (frame09,
-    frame08, ... down to RUN_FROM, as many as follow on from frame10): its name, those frames
-    through frame11, its flow, and a step truth known only for the step from frame10 to
-    frame11 (NaN elsewhere, so :func:`run_sequence` scores that step alone). The pair is then
-    scored as a robot's tracker meets it, in a running track: its features held and followed
-    from the frames before, not chosen in frame10 and searched from no motion.
+def _frames_before(name: str, shape: tuple[int, ...]) -> list[np.ndarray]:
+    """The frames before frame10 in a Middlebury pair's folder, in order: frame09, frame08,
+    ... down to RUN_FROM, as many as follow on from frame10 (Middlebury's "other" sequences
+    hold frame07 to frame14); empty where there is no frame09.
 
     Raises
     ------
     groundtruth.DataError
-        As :func:`_middlebury_pairs`, and for an earlier frame whose size is not frame10's.
+        For a frame that does not read, or whose size is not frame10's ``shape``.
     """
-    for name, pair, flow, step in _middlebury_pairs():
-        folder = groundtruth.middlebury(name)
-        if folder is None:
-            continue
-        before: list[np.ndarray] = []
-        for k in range(9, RUN_FROM - 1, -1):
-            path = folder / f"frame{k:02d}.png"
-            if not path.is_file():
-                break
-            image = _gray(path)
-            if image.shape != pair[0].shape:
-                h, w = pair[0].shape
-                raise groundtruth.DataError(f"{path}: {image.shape[1]}x{image.shape[0]}, "
-                                            f"expected frame10.png's {w}x{h}")
-            before.insert(0, image)
-        if not before:
-            continue
-        last = len(before)  # the index of frame10, the step with ground truth
+    folder = groundtruth.middlebury(name)
+    before: list[np.ndarray] = []
+    for k in range(9, RUN_FROM - 1, -1):
+        path = folder / f"frame{k:02d}.png" if folder is not None else None
+        if path is None or not path.is_file():
+            break
+        image = _gray(path)
+        if image.shape != shape:
+            raise groundtruth.DataError(f"{path}: {image.shape[1]}x{image.shape[0]}, "
+                                        f"expected frame10.png's {shape[1]}x{shape[0]}")
+        before.insert(0, image)
+    return before
 
-        def run_step(points: np.ndarray, k: int, step: Truth = step,
-                     last: int = last) -> np.ndarray:
-            if k == last:
-                return step(points, 0)
-            return np.full((len(points), 2), np.nan)
 
-        yield name, [*before, *pair], flow, run_step
+def _last_step_only(step: Truth, last: int) -> Truth:
+    """``step`` (a pair's truth) at step ``last`` of a longer run, NaN at every other step, so
+    that :func:`run_sequence` scores that step alone."""
+    def run_step(points: np.ndarray, k: int) -> np.ndarray:
+        if k == last:
+            return step(points, 0)
+        return np.full((len(points), 2), np.nan)
+    return run_step
 
 
 #: :func:`dense_pairs`' features: as many as a pair's texture gives, up to this many
@@ -311,14 +304,21 @@ def scoreboard(params: TrackerParams | None = None, *, n_frames: int = 60,
     """
     params = params if params is not None else TrackerParams()
     rows = []
+    runs = []
     for name, frames, flow, step in _middlebury_pairs():
         ours, lk, rej = run_sequence(frames, step, params,
                                      single=one_motion(flow, params.corr_half))
         rows.append(Row(f"{name} (pair)", 2, ours, lk, rej))
         if progress:
             progress(name)
-    # the same pairs at the end of a running track, where the folder has the frames before
-    for name, frames, flow, step in _middlebury_runs():
+        before = _frames_before(name, frames[0].shape)
+        if before:
+            runs.append((name, [*before, *frames], flow,
+                         _last_step_only(step, len(before))))
+    # the same pairs at the end of a running track where the folder has the frames before
+    # (a robot's tracker meets real frames so: its features held and followed from their
+    # velocity, not chosen in frame10 and searched from no motion), scored after all pairs
+    for name, frames, flow, step in runs:
         ours, lk, rej = run_sequence(frames, step, params,
                                      single=one_motion(flow, params.corr_half))
         first = 11 - (len(frames) - 1)

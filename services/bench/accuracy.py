@@ -12,7 +12,10 @@ ground truth:
 * **survival** (long sequences): the share of the first frame's features still tracked at the
   last frame (LK: each point followed by LK alone from the first frame, lost at status 0 or
   when it leaves the image), and the median **drift** of the survivors from their true
-  position there.
+  position there;
+* on the pairs, of the pairs off by more than 2 px: the share whose correlation window holds
+  one motion (:func:`one_motion`), and how many measured the ground truth of a pixel next to
+  the feature's (:func:`beside_truth`: a feature on a motion contour).
 
 Sequences: the Middlebury pairs of the shared data (ground truth: the ``.flo`` flow; any other
 folder of ``frame10.png``, ``frame11.png`` and ``flow10.flo`` put beside them under
@@ -75,6 +78,9 @@ class Score:
     # pairs: the share of pairs off by more than GROSS_PX whose correlation window holds one
     # motion (its ground truth varies by less than GROSS_PX across it)
     gross_one_motion: float | None = None
+    # pairs: the share of pairs off by more than GROSS_PX whose displacement is the ground
+    # truth of a pixel next to the point's, to within BESIDE_PX (:func:`beside_truth`)
+    gross_beside: float | None = None
 
 
 @dataclass(frozen=True)
@@ -98,12 +104,15 @@ def lk_track(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> tuple[np.ndarr
     return p1, (st.reshape(-1) == 1) & inside & np.isfinite(p1).all(axis=1)
 
 
-def _score(errors: np.ndarray, one_motion: np.ndarray | None = None) -> Score:
+def _score(errors: np.ndarray, one_motion: np.ndarray | None = None,
+           beside: np.ndarray | None = None) -> Score:
     e = np.asarray(errors, np.float64)
+
+    def gross_and(flags: np.ndarray | None) -> float | None:
+        return None if flags is None or not len(e) else float(np.mean((e > GROSS_PX) & flags))
     return Score(pairs=len(e), median_epe=float(np.median(e)) if len(e) else float("nan"),
                  gross=float(np.mean(e > GROSS_PX)) if len(e) else float("nan"),
-                 gross_one_motion=None if one_motion is None or not len(e)
-                 else float(np.mean((e > GROSS_PX) & one_motion)))
+                 gross_one_motion=gross_and(one_motion), gross_beside=gross_and(beside))
 
 
 def one_motion(flow: np.ndarray, n: int) -> Callable[[np.ndarray, int], np.ndarray]:
@@ -125,17 +134,46 @@ def one_motion(flow: np.ndarray, n: int) -> Callable[[np.ndarray, int], np.ndarr
     return f
 
 
+#: a pair's displacement within this of the ground truth at a pixel next to its point's, px,
+#: is that pixel's motion (:func:`beside_truth`)
+BESIDE_PX = 0.5
+
+
+def beside_truth(flow: np.ndarray) -> Callable[[np.ndarray, np.ndarray, int], np.ndarray]:
+    """``f(points, moved, k)``: whether each displacement ``moved`` (N, 2) of the points
+    (N, 2) is within BESIDE_PX of the ground truth ``flow`` (H, W, 2) at one of the 3 x 3
+    pixels around the point's own (rounded, as the error is taken), where it is known. A
+    pair off by more than GROSS_PX that is has measured the motion of the surface beside
+    its pixel: a feature on a motion contour (an occluding edge moves with its occluder,
+    and the ground truth of the pixels along it is one surface's or the other's), not a
+    false match."""
+    h, w = flow.shape[:2]
+
+    def f(points: np.ndarray, moved: np.ndarray, k: int) -> np.ndarray:
+        out = np.zeros(len(points), bool)
+        for j, (x, y) in enumerate(np.rint(points).astype(int)):
+            win = flow[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2].reshape(-1, 2)
+            win = win[(np.abs(win) < 1e9).all(axis=1)]  # .flo marks unknown flow by 1e9
+            if len(win) and 0 <= x < w and 0 <= y < h:
+                out[j] = np.hypot(*(win - moved[j]).T).min() <= BESIDE_PX
+        return out
+    return f
+
+
 def run_sequence(frames: Sequence[np.ndarray], step_truth: Truth, params: TrackerParams, *,
                  end_truth: Callable[[np.ndarray], np.ndarray] | None = None,
-                 single: Callable[[np.ndarray, int], np.ndarray] | None = None
+                 single: Callable[[np.ndarray, int], np.ndarray] | None = None,
+                 beside: Callable[[np.ndarray, np.ndarray, int], np.ndarray] | None = None
                  ) -> tuple[Score, Score, int]:
     """Ours and LK over ``frames``.
 
     ``step_truth(points, k)`` gives the true positions in frame k + 1 of points (N, 2) of frame
     k (NaN where unknown); ``end_truth(points)``, for long sequences, those in the last frame
     of points of the first, for the survival and drift; ``single(points, k)`` (pairs,
-    :func:`one_motion`), whether each point's window in frame k holds one motion. Returns
-    (ours, LK, features ours rejected).
+    :func:`one_motion`), whether each point's window in frame k holds one motion;
+    ``beside(points, moved, k)`` (pairs, :func:`beside_truth`), whether each displacement is
+    the ground truth of a pixel next to its point's. Returns (ours, LK, features ours
+    rejected).
     """
     tracker = Tracker(params)
     est = tracker.process(frames[0])
@@ -144,14 +182,18 @@ def run_sequence(frames: Sequence[np.ndarray], step_truth: Truth, params: Tracke
     lk_err: list[np.ndarray] = []
     ours_one: list[np.ndarray] = []
     lk_one: list[np.ndarray] = []
+    ours_near: list[np.ndarray] = []
+    lk_near: list[np.ndarray] = []
     lk_pts, lk_alive = est.points.copy(), np.ones(est.npi, bool)
 
-    def errors(found: np.ndarray, starts: np.ndarray, k: int, one: list[np.ndarray]
-               ) -> np.ndarray:
+    def errors(found: np.ndarray, starts: np.ndarray, k: int, one: list[np.ndarray],
+               near: list[np.ndarray]) -> np.ndarray:
         e = np.hypot(*(found - step_truth(starts, k)).reshape(-1, 2).T)
         known = np.isfinite(e)
         if single is not None:
             one.append(single(starts, k)[known])
+        if beside is not None:
+            near.append(beside(starts[known], (found - starts)[known], k))
         return e[known]
 
     for k in range(1, len(frames)):
@@ -159,7 +201,7 @@ def run_sequence(frames: Sequence[np.ndarray], step_truth: Truth, params: Tracke
         before = dict(zip(est.ids.tolist(), starts, strict=True))
         # LK from the same points as ours, this step
         p1, ok = lk_track(frames[k - 1], frames[k], starts)
-        lk_err.append(errors(p1[ok], starts[ok], k - 1, lk_one))
+        lk_err.append(errors(p1[ok], starts[ok], k - 1, lk_one, lk_near))
         # LK alone from the first frame's features, for its survival
         if end_truth is not None and lk_alive.any():
             q, ok = lk_track(frames[k - 1], frames[k], lk_pts)
@@ -169,14 +211,17 @@ def run_sequence(frames: Sequence[np.ndarray], step_truth: Truth, params: Tracke
         kept = [j for j, i in enumerate(est.ids.tolist()) if i in before]
         if kept:
             a = np.array([before[i] for i in est.ids[kept].tolist()])
-            ours_err.append(errors(est.points[kept], a, k - 1, ours_one))
+            ours_err.append(errors(est.points[kept], a, k - 1, ours_one, ours_near))
 
-    def score(err: list[np.ndarray], one: list[np.ndarray]) -> Score:
-        return _score(np.concatenate(err) if err else np.empty(0),
-                      (np.concatenate(one) if one else np.empty(0, bool))
-                      if single is not None else None)
-    ours = score(ours_err, ours_one)
-    lk = score(lk_err, lk_one)
+    def flags(lists: list[np.ndarray], wanted: object) -> np.ndarray | None:
+        return (np.concatenate(lists) if lists else np.empty(0, bool)) \
+            if wanted is not None else None
+
+    def score(err: list[np.ndarray], one: list[np.ndarray], near: list[np.ndarray]) -> Score:
+        return _score(np.concatenate(err) if err else np.empty(0), flags(one, single),
+                      flags(near, beside))
+    ours = score(ours_err, ours_one, ours_near)
+    lk = score(lk_err, lk_one, lk_near)
     if end_truth is not None and first:
         start = np.array(list(first.values()))
         where = {i: j for j, i in enumerate(est.ids.tolist())}
@@ -307,7 +352,8 @@ def scoreboard(params: TrackerParams | None = None, *, n_frames: int = 60,
     runs = []
     for name, frames, flow, step in _middlebury_pairs():
         ours, lk, rej = run_sequence(frames, step, params,
-                                     single=one_motion(flow, params.corr_half))
+                                     single=one_motion(flow, params.corr_half),
+                                     beside=beside_truth(flow))
         rows.append(Row(f"{name} (pair)", 2, ours, lk, rej))
         if progress:
             progress(name)
@@ -320,7 +366,8 @@ def scoreboard(params: TrackerParams | None = None, *, n_frames: int = 60,
     # velocity, not chosen in frame10 and searched from no motion), scored after all pairs
     for name, frames, flow, step in runs:
         ours, lk, rej = run_sequence(frames, step, params,
-                                     single=one_motion(flow, params.corr_half))
+                                     single=one_motion(flow, params.corr_half),
+                                     beside=beside_truth(flow))
         first = 11 - (len(frames) - 1)
         rows.append(Row(f"{name} (pair, running from frame{first:02d})", len(frames), ours, lk,
                         rej))
@@ -426,15 +473,22 @@ def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[
     if pairs_rows:
         print(f"pairs off by > {GROSS_PX:g} px whose correlation window holds one motion "
               f"(its ground truth varying by < {GROSS_PX:g} px across it), ours / LK: "
-              + ", ".join(f"{r.sequence.split(' ')[0]}"
-                          f"{' running' if ', running' in r.sequence else ''} "
+              + ", ".join(f"{_pair_name(r)} "
                           f"{100 * (r.ours.gross_one_motion or 0):.2f}"
                           f" / {100 * (r.lk.gross_one_motion or 0):.2f} %"
                           for r in pairs_rows), file=out)
+        print(f"pairs off by > {GROSS_PX:g} px whose displacement is the ground truth of a "
+              f"pixel next to the feature's, to within {BESIDE_PX:g} px (a feature on a "
+              "motion contour, which measured the surface beside its pixel), ours / LK: "
+              + ", ".join(f"{_pair_name(r)} {_count(r.ours, 'gross_beside')} of "
+                          f"{_count(r.ours, 'gross')} / {_count(r.lk, 'gross_beside')} of "
+                          f"{_count(r.lk, 'gross')}" for r in pairs_rows), file=out)
         for r in pairs_rows:
             key = _key(r)
             fig[f"{key}_gross_one_motion"] = r.ours.gross_one_motion or 0.0
             fig[f"{key}_lk_gross_one_motion"] = r.lk.gross_one_motion or 0.0
+            fig[f"{key}_gross_beside"] = r.ours.gross_beside or 0.0
+            fig[f"{key}_lk_gross_beside"] = r.lk.gross_beside or 0.0
     dense = dense_pairs(params)
     if dense:
         print(f"the pairs with up to {DENSE_FEATURES} features each, median end-point error, "
@@ -458,6 +512,16 @@ def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[
              else "NOT met")
           + f"; {time.perf_counter() - t0:.1f} s", file=out)
     return fig
+
+
+def _pair_name(row: Row) -> str:
+    """A pair's row in the summary lines: its source, and ``running`` for the running row."""
+    return row.sequence.split(" ")[0] + (" running" if ", running" in row.sequence else "")
+
+
+def _count(score: Score, share: str) -> int:
+    """How many of ``score``'s pairs its ``share`` (a field: a share of its pairs) counts."""
+    return round((getattr(score, share) or 0.0) * score.pairs)
 
 
 def _key(row: Row) -> str:

@@ -33,7 +33,8 @@ def test_bench_accuracy(capsys):
         assert 0 <= fig[f"{name}_long_survival"] <= 1
         folder = groundtruth.middlebury(name)
         if folder is not None and (folder / "frame09.png").is_file():  # RubberWhale's 07..14
-            for what in ("median", "lk_median", "gross", "gross_one_motion"):
+            for what in ("median", "lk_median", "gross", "gross_one_motion", "gross_beside"):
                 assert math.isfinite(fig[f"{name}_running_{what}"]), (name, what)
+        assert 0 <= fig[f"{name}_pair_gross_beside"] <= fig[f"{name}_pair_gross"]
         for what in ("dense_median", "dense_narrow_median", "dense_lk_median"):
             assert math.isfinite(fig[f"{name}_{what}"]), (name, what)

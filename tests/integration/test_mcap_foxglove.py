@@ -135,6 +135,14 @@ def run(tmp_path_factory, free_port_module):
                 client = FoxgloveClient(ws)
                 client.advertised({f"/{ROOT}/{s}" for s in (*r2.ROS_TYPES, *r2.OVERLAYS)})
                 client.subscribe_all()
+                # the parameters in force recorded before the first frame, as the replay
+                # needs them: the auto-tuner repeats them every second, and a camera started
+                # at once may beat that (the replay's first estimate then had params_id 0)
+                announced = Collector(session, f"{ROOT}/tuner/params")
+                try:
+                    announced.wait(lambda items: len(items) >= 1, timeout=10)
+                finally:
+                    announced.sub.undeclare()
                 est = Collector(session, f"{ROOT}/motion/estimate")
                 cmd = Collector(session, f"{ROOT}/control/cmd_vel")
                 start = time.monotonic()

@@ -1357,7 +1357,8 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
     Inverse-compositional Gauss-Newton for a translation (Baker and Matthews 2004): the template
     gradient and the 2x2 normal matrix are computed once, each iteration samples frame t+1
     bilinearly. Returns (converged, x, y); it gives up (False) if the window would leave the
-    image, the template has no texture, or the estimate strays more than 1 px from (x0, y0).
+    image, the template has no texture, or the estimate strays more than 1 px from (x0, y0)
+    (then (x, y) is where it strayed to, else (x0, y0)).
 
     Bilinear interpolation at a fraction f of a pixel adds f (1 - f) / 2 times the second
     derivative to a smooth image (exactly so for a quadratic one), which pulls a plain
@@ -1562,7 +1563,7 @@ def _refine(prev, curr, ax, ay, x0, y0, n, wpad, tp, cp, g, third, qs, cen,
         x -= ddx
         y -= ddy
         if abs(x - x0) > 1.0 or abs(y - y0) > 1.0:
-            return False, x0, y0
+            return False, x, y  # where it strayed to (:func:`.pyramid._follow_one`)
         if ddx * ddx + ddy * ddy < GN_STEP_PX * GN_STEP_PX:
             break
     return True, x, y

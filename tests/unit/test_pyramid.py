@@ -584,6 +584,36 @@ def test_a_tracks_first_pair_checks_the_way_back_of_what_it_follows(monkeypatch)
     wrong = ~(err < 0.5)
     assert not wrong.any(), (wrong.sum(), err[wrong])
 
+def test_a_first_pair_follows_features_at_the_edge_past_a_pixel(real_image, monkeypatch):
+    """A track's first pair predicts no motion; the scene moved 1.4 px, beyond the one pixel a
+    refinement reaches from its start, and a feature within 10 px of the frame's edge has no
+    coarser level that holds its window: Gauss-Newton runs once more at the frame's level
+    from where it strayed (FOLLOW_STRAY_PX), its way back checks it, and the feature is
+    followed, not searched, to the true motion (before: each searched coarse to fine)."""
+    seen = {}
+
+    def spy(*args, **kwargs):  # the real track_pyramid; what step 0 took, feature by feature
+        out = track_pyramid(*args, **kwargs)
+        seen["points"], seen["followed"], seen["pos"], seen["status"] = (
+            args[2].copy(), kwargs["followed"].copy(), out[0], out[2])
+        return out
+
+    monkeypatch.setattr(tracker_module, "track_pyramid", spy)
+    shift = np.array([1.4, -0.6])
+    tracker = Tracker(TrackerParams())
+    tracker.process(real_image)
+    tracker.process(shifted(real_image, *shift))
+    pts, taken = seen["points"], seen["followed"]
+    h, w = real_image.shape
+    # found near the edge (those 5 px from it moving out of the frame are not: their window
+    # leaves it, searched or followed)
+    edge = (np.minimum(np.minimum(pts[:, 0], w - 1 - pts[:, 0]),
+                       np.minimum(pts[:, 1], h - 1 - pts[:, 1])) < 10) & (seen["status"] == OK)
+    assert edge.sum() >= 10 and taken[edge].all(), (edge.sum(), taken[edge].sum())
+    err = np.hypot(*(seen["pos"][taken] - pts[taken] - shift).T)
+    assert taken.sum() >= 0.9 * len(pts) and err.max() < 0.25, (taken.sum(), err.max())
+
+
 def test_ring_fit_finds_a_second_motion_on_one_side_and_blur_all_round(real_image):
     """_ring_fit's residuals, by hand: the same texture moved by (2, 1) px is a perfect fit
     (0 everywhere); a second motion in the wide window's right side shows on that side, far

@@ -404,9 +404,13 @@ FOLLOW_FB = 0.25
 #: the pixel's reach of its start (the refinement's patch of frame t+1 holds a pixel's margin)
 #: for a point within this many px of it, and no coarser level can run (a template within
 #: 2^k (n + 1) px of the frame's edge does not fit level k), it runs once more from that
-#: point, as Lucas-Kanade iterates past a pixel at one level; the way back then checks the
-#: match (0: never). On the bench's first pair (the scene moving 1.3 px), 10 features 5 to 9
-#: px from the edge were searched coarse to fine for it: 185 -> 155 us. Not from a measured
+#: point, as Lucas-Kanade iterates past a pixel at one level, and takes a match within this
+#: many px of the start, which the way back then checks (0: never). On the bench's first pair
+#: (the scene moving 1.3 px), 10 features 5 to 9 px from the edge were searched coarse to fine
+#: for it: 185 -> 159 us. Beyond a couple of pixels the first step from no motion is no
+#: guide: on the five sources moved 1.5 to 4.3 px (120 first pairs, 32606 matches) a second
+#: run that went anywhere took 4 more matches off by more than 2 px than the search (31
+#: against 27, lookalikes near the edge), bounded here 1 (28). Nor from a measured
 #: prediction: one that missed by several px (a shake) lets such a second run converge onto a
 #: lookalike that its way back confirms (on Urban2's shake through a rolling shutter, 6
 #: features 7 px off), where the search would have found the feature or rejected it
@@ -1028,7 +1032,8 @@ def _follow_one(pdata, cdata, geo, fx, fy, ox, oy, n, scratch):  # pragma: no co
     fine from the coarsest level whose pixels hold the template (a level where it cannot run
     or does not converge starts again from (ox, oy) a level finer); from no motion (ox = oy =
     0), where the first call strayed past its pixel, to within FOLLOW_STRAY_PX, and no coarser
-    level helped, once more at the frame's level from there. Returns (converged,
+    level helped, once more at the frame's level from there, its match taken within
+    FOLLOW_STRAY_PX of the start. Returns (converged,
     converged at the frame's level first, x, y): (x, y) the match of the template centred at
     the rounded point. One call of the refinement in the loop: LLVM inlines each call
     (compile time)."""
@@ -1040,6 +1045,7 @@ def _follow_one(pdata, cdata, geo, fx, fy, ox, oy, n, scratch):  # pragma: no co
     have = False
     dx = dy = 0.0
     strayed = False  # the first attempt left its pixel's reach, for (sx, sy) (FOLLOW_STRAY_PX)
+    retried = False
     sx = sy = 0.0
     while True:
         scale = 2.0 ** k
@@ -1052,6 +1058,7 @@ def _follow_one(pdata, cdata, geo, fx, fy, ox, oy, n, scratch):  # pragma: no co
             if not strayed:
                 break  # no coarse level helped: the first attempt's own call, which failed
             strayed = False  # once more, from where the first attempt strayed to
+            retried = True
             dx = sx
             dy = sy
         else:
@@ -1061,6 +1068,8 @@ def _follow_one(pdata, cdata, geo, fx, fy, ox, oy, n, scratch):  # pragma: no co
         y0 = ky + dy
         have, xk, yk = _refine_at(pdata, cdata, geo, k, kx, ky, x0, y0, n,
                                   scratch, THIRD if k == 0 else NO_THIRD)
+        if retried and (xk - kx) ** 2 + (yk - ky) ** 2 > FOLLOW_STRAY_PX ** 2:
+            have = False  # beyond what the first step from no motion can be trusted for
         if have:
             dx = xk - kx
             dy = yk - ky

@@ -724,3 +724,55 @@ def test_a_frame_that_lost_few_features_is_not_tracked_all_over_again(real_image
     assert len(runs) == 2
     np.testing.assert_array_equal(status0, status)
     np.testing.assert_array_equal(pos0, pos)
+
+
+def _self_match_brute(img, ax, ay, n, wts, reach, cap):
+    """_self_match by its definition: every displacement in reach outside the 3 x 3 whose
+    window stays in the frame, S in full, the first minimum below ``cap`` (row-major)."""
+    h, w = img.shape
+    t = img[ay - n:ay + n + 1, ax - n:ax + n + 1].astype(np.int64)
+    best, vx, vy = cap, 0, 0
+    for dy in range(-reach, reach + 1):
+        for dx in range(-reach, reach + 1):
+            x, y = ax + dx, ay + dy
+            if (abs(dx) <= 1 and abs(dy) <= 1) or x - n < 0 or y - n < 0 or x + n >= w \
+                    or y + n >= h:
+                continue
+            c = img[y - n:y + n + 1, x - n:x + n + 1].astype(np.int64)
+            v = int((wts * (t - c) ** 2).sum())
+            if v < best:
+                best, vx, vy = v, dx, dy
+    return best, vx, vy
+
+
+@pytest.mark.parametrize("weights", ["uniform", "gaussian"])
+def test_the_self_match_is_the_minimum_of_every_displacement(real_image, weights):
+    """Step 5b's self-match (the texture's period) skips the displacements its row-sum bound
+    rules out: it finds what scoring all of them finds, S and displacement, on a real image,
+    on a texture that repeats every 7 px (S 0 a period away) and near the frame's edges, with
+    a cap and without."""
+    from vistrack.common.vision.pyramid import PERIOD_REACH, _self_match, _self_match_scratch
+    from vistrack.common.vision.ssd import BIG, _weights_info
+
+    n = 4
+    wts = window_weights(weights, n).astype(np.int32)
+    uniform = bool(_weights_info(wts)[0])
+    assert uniform == (weights == "uniform")
+    tile = np.ascontiguousarray(real_image[100:107, 60:67])
+    periodic = np.ascontiguousarray(np.tile(tile, (20, 20))[:120, :130])
+    rng = np.random.default_rng(5)
+    scratch = _self_match_scratch(n, PERIOD_REACH)
+    for img in (real_image, periodic):
+        h, w = img.shape
+        spots = [(int(x), int(y)) for x, y in rng.integers(n, (w - n, h - n), size=(25, 2))]
+        spots += [(n, n), (w - 1 - n, h - 1 - n), (n + 3, h // 2), (w // 2, n + 1)]
+        for ax, ay in spots:
+            for cap in (BIG, 20000, 500):
+                got = _self_match(img.ravel(), w, h, ax, ay, n, wts, uniform, PERIOD_REACH,
+                                  np.int64(cap), *scratch)
+                want = _self_match_brute(img, ax, ay, n, wts, PERIOD_REACH, cap)
+                assert tuple(int(v) for v in got) == want, (ax, ay, cap)
+    # the period is found: a displacement of whole periods (7 px), S 0
+    best, vx, vy = _self_match(periodic.ravel(), 130, 120, 60, 60, n, wts, uniform,
+                               PERIOD_REACH, BIG, *scratch)
+    assert best == 0 and vx % 7 == 0 and vy % 7 == 0 and (vx, vy) != (0, 0)

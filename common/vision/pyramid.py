@@ -353,7 +353,8 @@ PERIOD_REACH = 12
 #: texture that repeats; beyond, no period to fear) ...
 PERIOD_SELF = 30.0
 #: ... for a match that departs from its prediction by more than this, px (one that lands
-#: where it was predicted had no period to jump; and the self-match costs ~12 us a feature)
+#: where it was predicted had no period to jump; and the self-match cost ~3 us a feature
+#: on the pipeline's built-in frames, ~1 us since it is bounded, :func:`_self_match`)
 PERIOD_DEPART_PX = 2.0
 #: where step 5b's Gauss-Newton finds another minimum about as good by the correlation
 #: window, the wide window (``refine_size``) decides: the match stands where the other

@@ -1458,7 +1458,9 @@ def _period_alternative(pdata, cdata, geo, pts, pos, status, searched, offset, n
     pf = prev.ravel()
     gate = PERIOD_SELF * allowance
     cap0 = np.int64(gate) + 1 if gate < BIG else BIG
-    rsum, trow, low = _self_match_scratch(n, reach)
+    # the self-match's scratch, made at its size for the first match tested (most frames
+    # test none)
+    rsum, trow, low = _self_match_scratch(0, 0)
     for f in range(pts.shape[0]):
         if status[f] != OK or not searched[f]:
             continue
@@ -1470,6 +1472,8 @@ def _period_alternative(pdata, cdata, geo, pts, pos, status, searched, offset, n
         if budget[0] < cost:
             continue
         budget[0] -= cost
+        if low.shape[0] != 2 * reach + 1:
+            rsum, trow, low = _self_match_scratch(n, reach)
         best, vx, vy = _self_match(pf, w, h, int(np.rint(pts[f, 0])), int(np.rint(pts[f, 1])),
                                    n, wts, uniform, reach, cap0, rsum, trow, low)
         if best > gate:
@@ -1550,36 +1554,22 @@ def _row_window_sums(pf, w, h, x0, y0, m, out):  # pragma: no cover - numba
     ``w`` long, ``h`` of them) from column x0 + c, for every r and c of ``out`` whose pixels
     lie in the frame (a running sum along the row); the others are left as they are."""
     rows, cols = out.shape
-    inside = x0 >= 0 and x0 + cols - 1 + m <= w
+    # the columns whose m pixels lie in the frame: x0 + c >= 0 and x0 + c + m <= w
+    c_lo = max(0, -x0)
+    c_hi = min(cols, w - m - x0 + 1)
+    if c_hi <= c_lo:
+        return
     for r in range(rows):
         y = y0 + r
         if y < 0 or y >= h:
             continue
-        base = y * w
-        if inside:  # every column: no test a pixel
-            base += x0
-            s = np.int64(0)
-            for i in range(m):
-                s += np.int64(pf[base + i])
-            out[r, 0] = s
-            for c in range(1, cols):
-                s += np.int64(pf[base + c + m - 1]) - np.int64(pf[base + c - 1])
-                out[r, c] = s
-            continue
+        base = y * w + x0
         s = np.int64(0)
-        have = False
-        for c in range(cols):
-            x = x0 + c
-            if x < 0 or x + m > w:
-                have = False
-                continue
-            if not have:
-                s = np.int64(0)
-                for i in range(m):
-                    s += np.int64(pf[base + x + i])
-                have = True
-            else:
-                s += np.int64(pf[base + x + m - 1]) - np.int64(pf[base + x - 1])
+        for i in range(m):
+            s += np.int64(pf[base + c_lo + i])
+        out[r, c_lo] = s
+        for c in range(c_lo + 1, c_hi):
+            s += np.int64(pf[base + c + m - 1]) - np.int64(pf[base + c - 1])
             out[r, c] = s
 
 

@@ -480,9 +480,10 @@ def bench_accuracy(out=sys.stdout, params: TrackerParams | None = None) -> dict[
         print(f"pairs off by > {GROSS_PX:g} px whose displacement is the ground truth of a "
               f"pixel next to the feature's, to within {BESIDE_PX:g} px (a feature on a "
               "motion contour, which measured the surface beside its pixel), ours / LK: "
-              + ", ".join(f"{_pair_name(r)} {_count(r.ours, 'gross_beside')} of "
-                          f"{_count(r.ours, 'gross')} / {_count(r.lk, 'gross_beside')} of "
-                          f"{_count(r.lk, 'gross')}" for r in pairs_rows), file=out)
+              + ", ".join(f"{_pair_name(r)} {_count(r.ours.gross_beside, r.ours.pairs)} of "
+                          f"{_count(r.ours.gross, r.ours.pairs)} / "
+                          f"{_count(r.lk.gross_beside, r.lk.pairs)} of "
+                          f"{_count(r.lk.gross, r.lk.pairs)}" for r in pairs_rows), file=out)
         for r in pairs_rows:
             key = _key(r)
             fig[f"{key}_gross_one_motion"] = r.ours.gross_one_motion or 0.0
@@ -519,9 +520,9 @@ def _pair_name(row: Row) -> str:
     return row.sequence.split(" ")[0] + (" running" if ", running" in row.sequence else "")
 
 
-def _count(score: Score, share: str) -> int:
-    """How many of ``score``'s pairs its ``share`` (a field: a share of its pairs) counts."""
-    return round((getattr(score, share) or 0.0) * score.pairs)
+def _count(share: float | None, pairs: int) -> int:
+    """How many of ``pairs`` a ``share`` of them is (None: none)."""
+    return round((share or 0.0) * pairs)
 
 
 def _key(row: Row) -> str:

@@ -350,10 +350,15 @@ def scoreboard(params: TrackerParams | None = None, *, n_frames: int = 60,
     params = params if params is not None else TrackerParams()
     rows = []
     runs = []
+
+    def pair_run(frames: list[np.ndarray], step: Truth, flow: np.ndarray
+                 ) -> tuple[Score, Score, int]:
+        """:func:`run_sequence` on a Middlebury pair's frames, with its diagnostics."""
+        return run_sequence(frames, step, params, single=one_motion(flow, params.corr_half),
+                            beside=beside_truth(flow))
+
     for name, frames, flow, step in _middlebury_pairs():
-        ours, lk, rej = run_sequence(frames, step, params,
-                                     single=one_motion(flow, params.corr_half),
-                                     beside=beside_truth(flow))
+        ours, lk, rej = pair_run(frames, step, flow)
         rows.append(Row(f"{name} (pair)", 2, ours, lk, rej))
         if progress:
             progress(name)
@@ -365,9 +370,7 @@ def scoreboard(params: TrackerParams | None = None, *, n_frames: int = 60,
     # (a robot's tracker meets real frames so: its features held and followed from their
     # velocity, not chosen in frame10 and searched from no motion), scored after all pairs
     for name, frames, flow, step in runs:
-        ours, lk, rej = run_sequence(frames, step, params,
-                                     single=one_motion(flow, params.corr_half),
-                                     beside=beside_truth(flow))
+        ours, lk, rej = pair_run(frames, step, flow)
         first = 11 - (len(frames) - 1)
         rows.append(Row(f"{name} (pair, running from frame{first:02d})", len(frames), ours, lk,
                         rej))

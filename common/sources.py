@@ -53,6 +53,12 @@ class SourceError(ValueError):
     """A frame source cannot be opened or read; the message names the path and the problem."""
 
 
+class VideoCutShort(SourceError):
+    """A video ended well before the frame count of its header, once its readable frames were
+    used (:func:`_check_complete`): an error for a single pass, which has used what there was;
+    a looping camera plays those frames again instead (:func:`.camera.service.open_source`)."""
+
+
 def resize(frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """``frame`` scaled to ``size`` (width, height): by pixel area along a side that shrinks
     (``cv2.INTER_AREA``, which averages rather than aliases), bilinearly along one that grows.
@@ -213,8 +219,8 @@ def _check_complete(path: str, read: int, announced: float) -> None:
     say so once its readable frames have been used. Containers without an index estimate the
     count from the duration, so a shortfall of a frame or two percent is not an error."""
     if math.isfinite(announced) and announced > 0 and announced - read > max(1, 0.02 * announced):
-        raise SourceError(f"{path}: the video ends after {read} of the {announced:.0f} frames "
-                          "its header announces (cut short or damaged)")
+        raise VideoCutShort(f"{path}: the video ends after {read} of the {announced:.0f} "
+                            "frames its header announces (cut short or damaged)")
 
 
 @dataclass

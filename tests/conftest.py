@@ -59,3 +59,32 @@ def rubberwhale():
         pytest.skip("Middlebury RubberWhale not found: set VISTRACK_DATA or put the shared "
                     "data at ../shared/data")
     return folder
+
+
+@pytest.fixture
+def cut_video(tmp_path):
+    """A video cut short, as a recording that lost its end: (its path, the BGR frames it still
+    holds, read with OpenCV alone). Its header announces 10 frames (random, 64x48, MJPG); half
+    of its bytes are left."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(7)
+    full = tmp_path / "full.avi"
+    writer = cv2.VideoWriter(str(full), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48))
+    for _ in range(10):
+        writer.write(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    writer.release()
+    cut = tmp_path / "cut.avi"
+    data = full.read_bytes()
+    cut.write_bytes(data[:len(data) // 2])
+    cap = cv2.VideoCapture(str(cut))
+    held = []
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        held.append(img)
+    cap.release()
+    assert 0 < len(held) < 10
+    return cut, held

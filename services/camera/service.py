@@ -48,13 +48,14 @@ from ...common.sources import (
     BUILTIN,
     DeviceFrames,
     SourceError,
+    VideoCutShort,
     device_index,
     open_device,
     open_files,
     parse_size,
 )
 from ..runtime import Faults, add_service_args, ready, serve, wait_for_consumers
-from ..usage import add_number, print_error
+from ..usage import add_number, print_error, say_on_stderr
 from .ros2cam import default_domain, is_ros2, run_ros2, topic_of
 from .simcam import make_simulator, run_sim
 
@@ -128,15 +129,33 @@ def open_source(spec: str, size: tuple[int, int] | None, loop: bool) -> Iterator
     if not loop:
         return iter(frames)
     # a looping source is decoded once and replayed from memory while it fits comfortably,
-    # so the camera spends its CPU on publishing, not on decoding the same files again
+    # so the camera spends its CPU on publishing, not on decoding the same files again. A
+    # video cut short (a recording that lost its end) loops the frames it holds: said once,
+    # as a warning, where a single pass ends with the error
     cached: list[np.ndarray] = []
     total = 0
-    for f in frames:
-        cached.append(f)
-        total += f.nbytes
-        if total > LOOP_CACHE_BYTES:
-            return itertools.chain.from_iterable(itertools.repeat(frames))
+    try:
+        for f in frames:
+            cached.append(f)
+            total += f.nbytes
+            if total > LOOP_CACHE_BYTES:
+                return _passes(frames)
+    except VideoCutShort as e:
+        say_on_stderr("camera")(f"warning: {e}; looping the {len(cached)} frames it holds")
     return itertools.chain.from_iterable(itertools.repeat(cached))
+
+
+def _passes(frames: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
+    """``frames`` again and again, decoded each pass (a source too large to keep): a video cut
+    short is played to where it ends each time, which the log says once."""
+    warned = False
+    while True:
+        try:
+            yield from frames
+        except VideoCutShort as e:
+            if not warned:
+                log.warning("%s; looping the frames it holds", e)
+                warned = True
 
 
 class _Acks:

@@ -566,6 +566,32 @@ def test_the_simulator_refuses_bad_velocity_commands(pipeline, endpoint, session
         cam.stop()
 
 
+def test_a_looping_file_camera_plays_a_video_cut_short_again(endpoint, session, cut_video):
+    """A recording that lost its end (its header announces 10 frames, a few decode) looped by a
+    file camera: the frames it holds are published again and again, in order, with a
+    warning that names the shortfall; it was refused at start (exit 2), none of them sent."""
+    cut, held = cut_video
+    robot = "cutshort"
+    with collecting(session, f"vistrack/{robot}/camera/frame") as frames:
+        cam = Proc(["camera", "-e", endpoint, NS, "--robot", robot, "--source",
+                    f"file:{cut}", "--fps", "50", "--loop"])
+        try:
+            line = cam.wait_for("warning", timeout=60).rstrip("\n")
+            assert line == (f"vistrack camera: warning: {cut}: the video ends after "
+                            f"{len(held)} of the 10 frames its header announces (cut short or "
+                            f"damaged); looping the {len(held)} frames it holds")
+            got = frames.wait(lambda items: len(items) >= 3 * len(held) + 1, timeout=60)
+            assert cam.p.poll() is None, "\n".join(cam.lines[-20:])
+        finally:
+            cam.stop()
+    data = [msgpack.unpackb(payload)["data"] for _, payload in got]
+    assert len({bytes(d) for d in data}) == len(held)  # only the frames the file holds
+    seqs = [msgpack.unpackb(payload)["seq"] for _, payload in got]
+    first = seqs[0]
+    for k, d in enumerate(data):  # in the file's order, pass after pass
+        assert d == data[(seqs[k] - first) % len(held)]
+
+
 def status_of_robot(session: zenoh.Session, robot: str, service: str) -> dict:
     for reply in session.get(f"vistrack/{robot}/{service}/status", timeout=2.0):
         if reply.ok is not None:

@@ -62,29 +62,40 @@ def rubberwhale():
 
 
 @pytest.fixture
-def cut_video(tmp_path):
-    """A video cut short, as a recording that lost its end: (its path, the BGR frames it still
-    holds, read with OpenCV alone). Its header announces 10 frames (random, 64x48, MJPG); half
-    of its bytes are left."""
+def cut_video_of(tmp_path):
+    """Make a video cut short, as a recording that lost its end: ``make(frames)`` writes the
+    (H, W, 3) uint8 ``frames`` (MJPG, 10 fps), keeps half of the file's bytes, and returns (its
+    path, the BGR frames it still holds, read with OpenCV alone); its header still announces
+    them all."""
     import cv2
+
+    def make(frames, name: str = "cut.avi"):
+        h, w = frames[0].shape[:2]
+        full = tmp_path / f"full-{name}"
+        writer = cv2.VideoWriter(str(full), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h))
+        for f in frames:
+            writer.write(f)
+        writer.release()
+        cut = tmp_path / name
+        data = full.read_bytes()
+        cut.write_bytes(data[:len(data) // 2])
+        cap = cv2.VideoCapture(str(cut))
+        held = []
+        while True:
+            ok, img = cap.read()
+            if not ok:
+                break
+            held.append(img)
+        cap.release()
+        assert 0 < len(held) < len(frames)
+        return cut, held
+    return make
+
+
+@pytest.fixture
+def cut_video(cut_video_of):
+    """:func:`cut_video_of` of 10 random 64x48 frames."""
     import numpy as np
 
     rng = np.random.default_rng(7)
-    full = tmp_path / "full.avi"
-    writer = cv2.VideoWriter(str(full), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48))
-    for _ in range(10):
-        writer.write(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
-    writer.release()
-    cut = tmp_path / "cut.avi"
-    data = full.read_bytes()
-    cut.write_bytes(data[:len(data) // 2])
-    cap = cv2.VideoCapture(str(cut))
-    held = []
-    while True:
-        ok, img = cap.read()
-        if not ok:
-            break
-        held.append(img)
-    cap.release()
-    assert 0 < len(held) < 10
-    return cut, held
+    return cut_video_of([rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(10)])

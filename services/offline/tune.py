@@ -31,7 +31,7 @@ from typing import TextIO
 import numpy as np
 
 from ...common.params import FACTORS
-from ...common.sources import SourceError, open_files, parse_size
+from ...common.sources import SourceError, VideoCutShort, open_files, parse_size
 from ..auto_tuner.experiment import DEFAULT_REPEATS, METHODS, RESPONSES, bounce
 from ..auto_tuner.sensitivity import (
     BUFFER_RANGE,
@@ -117,11 +117,20 @@ def check_args(args: argparse.Namespace) -> None:
                          "error")
 
 
-def read_buffer(args: argparse.Namespace) -> tuple[list[np.ndarray], str]:
-    """The frames to tune on, per FRAMES, --resize, --max-frames and --bounce."""
+def read_buffer(args: argparse.Namespace
+                ) -> tuple[list[np.ndarray], str, VideoCutShort | None]:
+    """The frames to tune on, per FRAMES, --resize, --max-frames and --bounce, and the error
+    of a video cut short (its header announces more frames than it holds), or None: the tuning
+    runs on the frames it holds, and the error is said once the results are out, as
+    ``vistrack track`` says it after its frames."""
     size = parse_size(args.resize, "--resize") if args.resize else None
     source = open_files(args.frames, size)
-    frames = list(itertools.islice(iter(source), args.max_frames))
+    frames: list[np.ndarray] = []
+    cut: VideoCutShort | None = None
+    try:
+        frames.extend(itertools.islice(iter(source), args.max_frames))
+    except VideoCutShort as e:
+        cut = e
     if not frames:
         raise SourceError("no frame was read")
     what = source.description
@@ -132,7 +141,7 @@ def read_buffer(args: argparse.Namespace) -> tuple[list[np.ndarray], str]:
         frames = bounce(frames, args.max_frames)
     if len(frames) < 2:
         raise SourceError("tuning needs at least 2 frames (t1 and tf)")
-    return frames, what
+    return frames, what, cut
 
 
 class ProgressLine:
@@ -265,7 +274,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
         except OSError as e:
             raise ValueError(f"--out {args.out}: {e.strerror or e}") from None
     base = params_from_args(args)  # the search every timed run uses
-    frames, what = read_buffer(args)
+    frames, what, cut = read_buffer(args)
     seed = new_seed() if args.seed is None else args.seed
     # a first run compiles: said, not silent
     warm_up_kernels(say_on_stderr("tune", err), params=base)
@@ -295,6 +304,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
         if args.out:
             print(f"\n# plots in {args.out} ({time.perf_counter() - start:.1f} s in all)",
                   file=out)
+    if cut is not None:
+        raise cut
     return 0
 
 

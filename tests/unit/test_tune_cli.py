@@ -141,3 +141,24 @@ def _main(argv: list[str]) -> int:
         return cli.main(argv)
     except SystemExit as e:
         return int(e.code)
+
+
+def test_a_video_cut_short_is_tuned_on_then_reported(real_image, cut_video_of, capsys):
+    """The frames a cut video still holds are tuned on and the results printed; then the
+    one-line error, exit 2, as ``vistrack track`` does (it was the error alone: nothing
+    tuned)."""
+    import numpy as np
+
+    image = np.dstack([real_image] * 3)
+    frames = [np.ascontiguousarray(np.roll(image, (k, 2 * k), axis=(0, 1))) for k in range(16)]
+    cut, held = cut_video_of(frames)
+    code = _main(["tune", str(cut), "--step", "5", "--repeats", "1", "--seed", "1",
+                  "--format", "json"])
+    captured = capsys.readouterr()
+    assert code == 2
+    rep = json.loads(captured.out)
+    check_report(rep)
+    assert rep["frames"] == len(held)
+    assert captured.err.splitlines()[-1] == (
+        f"vistrack tune: error: {cut}: the video ends after {len(held)} of the 16 frames its "
+        "header announces (cut short or damaged)")

@@ -275,37 +275,48 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
     last: list[bytes] = []
     faults = Faults(node, log)
     device = frames if isinstance(frames, DeviceFrames) else None
-    for seq, image in enumerate(frames):
-        if node.stop.is_set():
-            log.info("stopped after %d frames", seq)
-            return 0
-        if period:
-            next_t += period
-            delay = next_t - time.perf_counter()
-            if delay > 0:
-                node.sleep(delay)
-            else:
-                next_t = time.perf_counter()  # late: do not burst to catch up
-        elif sent:
-            need = {keys.estimate: sent[0]} if len(sent) == window else {}
-            if window > 1:
-                need[keys.pre_done] = sent[-1]
-            if not _wait(node, acks, need, args.ack_timeout, last if lockstep else []):
-                sent.clear()  # lost downstream (a service restarted): go on
-        # a device's frame: when it was read from the device (its newest, not when sent)
-        stamp = device.capture_ns if device is not None else time.time_ns()
-        node.status.extra["frames"] = seq + 1
-        if not faults.call(keys.frame, seq, _publish, node, image, seq, stamp, last, reliable):
-            continue  # skipped (counted in failed): nothing to wait for
-        acks.sent = stamp
-        sent.append(stamp)
-        if period:
-            acks.drain()
-    if acks.sent >= 0 and not node.stop.is_set():
-        _wait(node, acks, {keys.estimate: acks.sent}, max(args.ack_timeout, 1.0),
-              last if lockstep else [])
+    try:
+        for seq, image in enumerate(frames):
+            if node.stop.is_set():
+                log.info("stopped after %d frames", seq)
+                return 0
+            if period:
+                next_t += period
+                delay = next_t - time.perf_counter()
+                if delay > 0:
+                    node.sleep(delay)
+                else:
+                    next_t = time.perf_counter()  # late: do not burst to catch up
+            elif sent:
+                need = {keys.estimate: sent[0]} if len(sent) == window else {}
+                if window > 1:
+                    need[keys.pre_done] = sent[-1]
+                if not _wait(node, acks, need, args.ack_timeout, last if lockstep else []):
+                    sent.clear()  # lost downstream (a service restarted): go on
+            # a device's frame: when it was read from the device (its newest, not when sent)
+            stamp = device.capture_ns if device is not None else time.time_ns()
+            node.status.extra["frames"] = seq + 1
+            if not faults.call(keys.frame, seq, _publish, node, image, seq, stamp, last, reliable):
+                continue  # skipped (counted in failed): nothing to wait for
+            acks.sent = stamp
+            sent.append(stamp)
+            if period:
+                acks.drain()
+    except VideoCutShort:
+        # the frames a video cut short holds are out: their estimates are waited for, as
+        # at a file's end, before the error that ends the camera
+        _last_estimate(node, args, acks, last if lockstep else [])
+        raise
+    _last_estimate(node, args, acks, last if lockstep else [])
     log.info("end of %s after %d frames", args.source, node.status.extra.get("frames", 0))
     return 0
+
+
+def _last_estimate(node: Node, args: argparse.Namespace, acks: _Acks, last: list[bytes]
+                   ) -> None:
+    """Wait for the estimate of the last frame sent (a file's end), if one was sent."""
+    if acks.sent >= 0 and not node.stop.is_set():
+        _wait(node, acks, {node.keys.estimate: acks.sent}, max(args.ack_timeout, 1.0), last)
 
 
 def _wait(node: Node, acks: _Acks, need: dict[str, int], timeout: float,

@@ -549,6 +549,13 @@ class Launcher:
         elif child.spec.name == "camera" and code == 0:
             self._log("camera finished (exit 0): ending the run")
             self._end_code = 0
+        elif child.spec.name == "camera" and policy == "never":
+            # no frame will come again: a file camera's run that ended in an error (a video
+            # cut short, once its frames were out) or a camera that failed ends the run too,
+            # as a run failure, rather than leave the other services waiting for frames
+            self._log(f"camera exited with {code}, not restarted (restart: never): ending "
+                      "the run")
+            self._end_code = 1
         else:
             self._log(f"{name} exited with {code}, not restarted (restart: {policy})")
 

@@ -31,7 +31,9 @@ strictly and every error names the file, the line, the key and what is allowed.
   from elsewhere (``vistrack replay`` of a recorded ``camera/frame`` stream). A ``device:N``
   camera is opened once before anything starts: a missing one is an error (exit 1). A
   camera that exits 0 under ``never`` or ``on-failure`` (a file source without ``--loop``
-  has been processed) ends the run, as do ``--duration``, Ctrl-C and SIGTERM.
+  has been processed) ends the run, as do ``--duration``, Ctrl-C and SIGTERM; one that exits
+  with an error under ``never`` (a video cut short, a failed device) ends it as a run
+  failure (exit 1).
 * Stopping sends SIGTERM to every child's process group, SIGKILL to what is left after
   3 s, and closes the router. Children also get SIGTERM if the launcher dies (Linux
   ``PR_SET_PDEATHSIG``).

@@ -20,6 +20,7 @@ import uuid
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 import zenoh
 from forkcli import vistrack
@@ -407,14 +408,54 @@ def test_children_exit_when_the_launcher_is_killed(procs, tmp_path, free_port):
              "the children of a SIGKILLed launcher to exit")
 
 
+def run_through_router(procs: list, free_port: int, launch: Path, camera: str,
+                       code: int) -> tuple[Proc, Proc, list[Estimate]]:
+    """A router on ``free_port``, then ``vistrack up LAUNCH --camera CAMERA`` through it, run
+    to its end (exit ``code``) with a subscriber of the estimates connected before it starts:
+    (the router, the launcher, the estimates)."""
+    router = Proc("router", "-l", f"tcp/127.0.0.1:{free_port}", "--no-multicast-scouting")
+    procs.append(router)
+    router.wait_line(rf"^vistrack router: ready, listening on tcp/127\.0\.0\.1:{free_port}", 20)
+    robot = f"t{uuid.uuid4().hex[:8]}"
+    with client_session(free_port) as session:
+        estimates: list[Estimate] = []
+        session.declare_subscriber(Keys(robot).estimate, lambda sample: estimates.append(
+            Estimate.decode(sample.payload.to_bytes())))
+        up = Proc("up", str(launch), "-e", f"tcp/127.0.0.1:{free_port}", "--robot", robot,
+                  "--camera", camera)
+        procs.append(up)
+        assert up.wait_exit(READY_S) == code, up.output
+    return router, up, estimates
+
+
+def test_a_video_cut_short_ends_the_run_once_its_frames_are_out(procs, tmp_path, free_port,
+                                                                 cut_video_of):
+    """A file camera (restart: never) on a recording that lost its end: its frames are all
+    tracked, then its error, and the run ends as a run failure (exit 1); it went on without
+    a camera, the other services waiting for frames, until a Ctrl-C."""
+    image = np.dstack([np.ascontiguousarray(synthetic.builtin_sequence(3)[0])] * 3)
+    video, held = cut_video_of([np.ascontiguousarray(np.roll(image, (k, 2 * k), axis=(0, 1)))
+                                for k in range(12)])
+    launch = write_launch(tmp_path / "cut.yaml", """\
+        services:
+          - name: camera
+            flags: [--source, builtin]
+            restart: never
+          - {name: preprocessing}
+          - {name: motion-estimation}
+    """)
+    _, up, estimates = run_through_router(procs, free_port, launch, f"file:{video}", 1)
+    assert [e.seq for e in estimates] == list(range(len(held)))
+    assert f"the video ends after {len(held)} of the 12 frames" in up.output
+    assert ("[launcher] camera exited with 2, not restarted (restart: never): ending the run"
+            in up.output)
+
+
 def test_file_camera_ends_the_run_through_an_external_router(procs, tmp_path, free_port):
     frames = tmp_path / "frames"
     frames.mkdir()
     for i, image in enumerate(synthetic.builtin_sequence(6)):
         cv2.imwrite(str(frames / f"{i:03d}.png"), image)
-    router = Proc("router", "-l", f"tcp/127.0.0.1:{free_port}", "--no-multicast-scouting")
-    procs.append(router)
-    router.wait_line(rf"^vistrack router: ready, listening on tcp/127\.0\.0\.1:{free_port}", 20)
     # --camera replaces the launch file's looping source and drops its --loop
     launch = write_launch(tmp_path / "three.yaml", """\
         services:
@@ -424,15 +465,7 @@ def test_file_camera_ends_the_run_through_an_external_router(procs, tmp_path, fr
           - {name: preprocessing}
           - {name: motion-estimation}
     """)
-    robot = f"t{uuid.uuid4().hex[:8]}"
-    with client_session(free_port) as session:
-        estimates: list[Estimate] = []
-        session.declare_subscriber(Keys(robot).estimate, lambda sample: estimates.append(
-            Estimate.decode(sample.payload.to_bytes())))
-        up = Proc("up", str(launch), "-e", f"tcp/127.0.0.1:{free_port}", "--robot", robot,
-                  "--camera", f"file:{frames}")
-        procs.append(up)
-        assert up.wait_exit(READY_S) == 0, up.output
+    router, up, estimates = run_through_router(procs, free_port, launch, f"file:{frames}", 0)
 
     # the camera started once its consumers had subscribed: not one frame was lost
     assert [e.seq for e in estimates] == list(range(6))

@@ -128,7 +128,7 @@ def one_motion(flow: np.ndarray, n: int) -> Callable[[np.ndarray, int], np.ndarr
         for j, (x, y) in enumerate(np.rint(points).astype(int)):
             if n <= x < w - n and n <= y < h - n:
                 win = flow[y - n:y + n + 1, x - n:x + n + 1].reshape(-1, 2)
-                if (np.abs(win) < 1e9).all():  # .flo marks unknown flow by 1e9 and more
+                if np.isfinite(win).all():  # unknown flow is NaN (groundtruth.read_flo)
                     out[j] = np.hypot(*(win.max(0) - win.min(0))) < GROSS_PX
         return out
     return f
@@ -153,7 +153,7 @@ def beside_truth(flow: np.ndarray) -> Callable[[np.ndarray, np.ndarray, int], np
         out = np.zeros(len(points), bool)
         for j, (x, y) in enumerate(np.rint(points).astype(int)):
             win = flow[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2].reshape(-1, 2)
-            win = win[(np.abs(win) < 1e9).all(axis=1)]  # .flo marks unknown flow by 1e9
+            win = win[np.isfinite(win).all(axis=1)]  # unknown flow is NaN (read_flo)
             if len(win) and 0 <= x < w and 0 <= y < h:
                 out[j] = np.hypot(*(win - moved[j]).T).min() <= BESIDE_PX
         return out

@@ -275,7 +275,9 @@ def open_files(specs: Sequence[str], size: tuple[int, int] | None = None
         if os.path.isdir(p):
             raise SourceError(f"{p}: is a folder; give one folder alone, or image files")
     _check_images(specs)
-    return FileFrames(specs, size=size, description=f"{len(specs)} images")
+    # one image is named (a user who gave one file reads its name, not "1 images")
+    what = specs[0] if len(specs) == 1 else f"{len(specs)} images"
+    return FileFrames(specs, size=size, description=what)
 
 
 def device_index(spec: str) -> int:

@@ -64,12 +64,12 @@ def rubberwhale():
 @pytest.fixture
 def cut_video_of(tmp_path):
     """Make a video cut short, as a recording that lost its end: ``make(frames)`` writes the
-    (H, W, 3) uint8 ``frames`` (MJPG, 10 fps), keeps half of the file's bytes, and returns (its
-    path, the BGR frames it still holds, read with OpenCV alone); its header still announces
-    them all."""
+    (H, W, 3) uint8 ``frames`` (MJPG, 10 fps), keeps ``fraction`` of the file's bytes (half),
+    and returns (its path, the BGR frames it still holds, read with OpenCV alone); its header
+    still announces them all."""
     import cv2
 
-    def make(frames, name: str = "cut.avi"):
+    def make(frames, name: str = "cut.avi", fraction: float = 0.5):
         h, w = frames[0].shape[:2]
         full = tmp_path / f"full-{name}"
         writer = cv2.VideoWriter(str(full), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h))
@@ -78,7 +78,7 @@ def cut_video_of(tmp_path):
         writer.release()
         cut = tmp_path / name
         data = full.read_bytes()
-        cut.write_bytes(data[:len(data) // 2])
+        cut.write_bytes(data[:int(len(data) * fraction)])
         cap = cv2.VideoCapture(str(cut))
         held = []
         while True:

@@ -136,11 +136,12 @@ def read_buffer(args: argparse.Namespace
     what = source.description
     if args.bounce and len(frames) < args.max_frames:
         if len(frames) < 2:
-            raise SourceError("--bounce needs at least 2 frames")
+            raise SourceError(f"--bounce needs at least 2 frames: {what} gave 1")
         what += f", played back and forth to {args.max_frames} frames"
         frames = bounce(frames, args.max_frames)
     if len(frames) < 2:
-        raise SourceError("tuning needs at least 2 frames (t1 and tf)")
+        raise SourceError(f"tuning needs at least 2 frames (t1 and tf): {what} gave "
+                          f"{len(frames)}" + (f" ({cut})" if cut is not None else ""))
     return frames, what, cut
 
 

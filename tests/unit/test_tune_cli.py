@@ -132,7 +132,27 @@ def test_a_single_frame_is_not_enough(tmp_path, capsys):
     path = tmp_path / "one.png"
     cv2.imwrite(str(path), np.zeros((32, 32), np.uint8))
     assert _main(["tune", str(path)]) == 2
-    assert "at least 2 frames" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    # what was read, and from where: a user with one file sees why, not just the rule
+    assert "at least 2 frames" in err and f"{path} gave 1" in err
+
+
+def test_a_video_cut_short_to_one_frame_says_both(real_image, cut_video_of, capsys):
+    """A video whose header announces 16 frames and that holds 1: too few to tune on, and
+    why (the cut), in one error."""
+    import numpy as np
+
+    image = np.dstack([real_image] * 3)
+    # the bytes that hold one frame depend on how it compressed (a cut frame decodes too)
+    for k, fraction in enumerate((0.09, 0.07, 0.05, 0.03)):
+        cut, held = cut_video_of([image] * 16, name=f"cut{k}.avi", fraction=fraction)
+        if len(held) == 1:
+            break
+    assert len(held) == 1
+    assert _main(["tune", str(cut)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "at least 2 frames" in err[0] and "gave 1" in err[0]
+    assert "the video ends after 1 of the 16 frames" in err[0]
 
 
 def _main(argv: list[str]) -> int:

@@ -46,7 +46,7 @@ from ..params import MIN_VALID_NPI, TrackerParams
 from . import exposure
 from .exposure import compensate
 from .features import select_features
-from .motion import _incremental_motion, centroid_scatter
+from .motion import _incremental_motion, _median_small, centroid_scatter
 from .noise import noise_level
 from .preprocess import Preprocessed, preprocess
 from .pyramid import FRAME_WORK, Pyramid, build_pyramid, sum_type, track_pyramid, wide_tests
@@ -644,11 +644,17 @@ def _turn_step(a, b):  # pragma: no cover - numba
     first, is no centre of a turn: 5 wrong matches of 40 made a 7 degree turn 2). 0 where
     fewer than ZOOM_FOUND segments are that long. (The frame's zoom is Eq. (2)'s scatter
     ratio, :func:`.motion.incremental_motion`; the median of the segments' length ratios,
-    once computed here beside the turn, was never read.)"""
+    once computed here beside the turn, was never read.)
+
+    The median is selected by each angle's pseudo-angle (:func:`_pseudo_angle`, in the same
+    order as the angle, a division), and only the middle one or two angles are taken with
+    ``arctan2``: the ~190 of every frame were 2.8 of its ~7 us of bookkeeping."""
     n = a.shape[0]
     if n < ZOOM_FOUND:
         return 0.0
-    angles = np.empty(2 * n, np.float64)
+    cross = np.empty(2 * n, np.float64)
+    dot = np.empty(2 * n, np.float64)
+    key = np.empty(2 * n, np.float64)
     k = 0
     for stride in (n // 2, n // 3):
         for i in range(n):
@@ -659,11 +665,46 @@ def _turn_step(a, b):  # pragma: no cover - numba
                 continue
             vx = b[j, 0] - b[i, 0]
             vy = b[j, 1] - b[i, 1]
-            angles[k] = np.arctan2(ux * vy - uy * vx, ux * vx + uy * vy)
+            cross[k] = ux * vy - uy * vx
+            dot[k] = ux * vx + uy * vy
+            key[k] = _pseudo_angle(cross[k], dot[k])
             k += 1
     if k < ZOOM_FOUND:
         return 0.0
-    return np.median(angles[:k])
+    keys = key[:k].copy()
+    # reordered: keys[k // 2] is the middle key, keys[:k // 2] the smaller ones
+    _median_small(keys)
+    turn = _angle_of(keys[k // 2], key, cross, dot, k)
+    if k % 2:
+        return turn
+    below = keys[0]  # the largest of the smaller ones: the lower middle key
+    for i in range(1, k // 2):
+        if keys[i] > below:
+            below = keys[i]
+    return 0.5 * (_angle_of(below, key, cross, dot, k) + turn)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _pseudo_angle(c, d):  # pragma: no cover - numba
+    """A number in [-2, 2] in the order of ``arctan2(c, d)`` over (-pi, pi] (the "diamond
+    angle"): c / (|d| + |c|) where d >= 0, 2 - that where c >= 0 > d, -2 - that where both
+    are negative."""
+    r = abs(d) + abs(c)
+    if r == 0.0:
+        return 0.0
+    t = c / r
+    if d >= 0.0:
+        return t
+    return 2.0 - t if c >= 0.0 else -2.0 - t
+
+
+@nb.njit(cache=True, nogil=True)
+def _angle_of(value, key, cross, dot, k):  # pragma: no cover - numba
+    """``arctan2`` of the segment whose pseudo-angle is ``value`` (one of ``key[:k]``)."""
+    for i in range(k):
+        if key[i] == value:
+            return np.arctan2(cross[i], dot[i])
+    return 0.0
 
 
 def track_frames(frames: Iterable[np.ndarray], params: TrackerParams | None = None) -> list[

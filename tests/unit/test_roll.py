@@ -90,6 +90,37 @@ def test_a_frames_turn_is_measured_without_a_centre():
     assert tracker_module._turn_step(near, near @ rot.T) == 0.0
 
 
+def _turn_reference(a, b):
+    """:func:`.tracker._turn_step` in numpy: every long segment's angle by ``arctan2``, then
+    ``np.median``."""
+    n = len(a)
+    angles = []
+    for stride in (n // 2, n // 3):
+        for i in range(n):
+            j = (i + stride) % n
+            u, v = a[j] - a[i], b[j] - b[i]
+            if u @ u < tracker_module.ZOOM_RADIUS ** 2:
+                continue
+            angles.append(np.arctan2(u[0] * v[1] - u[1] * v[0], u @ v))
+    return float(np.median(angles)) if len(angles) >= tracker_module.ZOOM_FOUND else 0.0
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_the_turn_is_the_median_of_the_segments_angles(seed):
+    """The median selected by pseudo-angle, two arctan2 at most, is numpy's median of every
+    segment's arctan2: any turn (to 180 degrees either way, where the pseudo-angle's quadrants
+    meet), wrong matches, odd and even counts, short segments left out."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(8, 120))
+    a = rng.uniform(0.0, 60.0 if seed % 3 == 0 else 300.0, (n, 2))
+    t = rng.uniform(-np.pi, np.pi)
+    rot = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    b = rng.uniform(0.8, 1.2) * a @ rot.T + rng.normal(0.0, 3.0, (n, 2))
+    wrong = rng.random(n) < 0.3
+    b[wrong] = rng.uniform(0.0, 300.0, (int(wrong.sum()), 2))
+    assert tracker_module._turn_step(a, b) == pytest.approx(_turn_reference(a, b), abs=1e-12)
+
+
 def shaken(image, name, n=15):
     """A slow path (up to 4 px a frame) seen by a camera that shakes: each frame turned by up
     to 4 degrees about its centre and moved by up to 6 px, at random, independently of the

@@ -526,41 +526,72 @@ def _build(frame, data, geo):  # pragma: no cover - numba
     flat = frame.ravel()
     for q in range(h * w):
         data[q] = flat[q]
+    # a row's column sums, its even and its odd columns apart (_reduce); the widest level's
+    even = np.empty(w // 2 + 4, np.uint16)
+    odd = np.empty(w // 2 + 4, np.uint16)
     for k in range(1, geo.shape[0]):
-        _reduce(_level(data, geo, k - 1), _level(data, geo, k))
+        _reduce(data, geo[k - 1, 0], geo[k - 1, 1], geo[k - 1, 2], geo[k, 0], geo[k, 1],
+                geo[k, 2], even, odd)
 
 
-@nb.njit(cache=True, nogil=True)
-def _reduce(src, dst):  # pragma: no cover - numba
-    """One pyramid reduction (Burt and Adelson's, as ``cv2.pyrDown``): ``dst[y, x]`` is
-    ``src`` filtered by the binomial [1 4 6 4 1]^2 / 256 at (2x, 2y), edges replicated,
-    rounded."""
-    h, w = src.shape
-    dh, dw = dst.shape
-    # the vertical filter of five source rows, edge-padded by two each side, then the
-    # horizontal one at every other column: contiguous loops that vectorise. In uint16 (16
-    # lanes a vector where uint32 had 8; 2x faster): a column sum is at most 16 * 255 and a
-    # pixel's at most 16 * 16 * 255 + 128 = 65408, so that nothing wraps, and the sums are
-    # cast to uint16 before the shift, so that LLVM keeps them in 16 bits
+@nb.njit(**NO_NRT)
+def _reduce(data, so, h, w, do, dh, dw, even, odd):  # pragma: no cover - numba
+    """One pyramid reduction (Burt and Adelson's, as ``cv2.pyrDown``) in a pyramid's flat
+    buffer: the (dh, dw) level at offset ``do`` is the (h, w) level at ``so`` filtered by
+    the binomial [1 4 6 4 1]^2 / 256 at (2x, 2y), edges replicated, rounded.
+
+    The vertical filter of five source rows, edge-padded by two each side, then the
+    horizontal one at every other column. In uint16 (16 lanes a vector where uint32 had 8;
+    2x faster): a column sum is at most 16 * 255 and a pixel's at most 16 * 16 * 255 + 128 =
+    65408, so that nothing wraps, and the sums are cast to uint16 before the shift, so that
+    LLVM keeps them in 16 bits. The column sums go to ``even`` and ``odd`` (column 2i - 2 of
+    the padded row at even[i], 2i - 1 at odd[i]), so that the horizontal filter reads
+    contiguous lanes rather than every other one; no numba runtime (``_nrt=False``): the
+    rows are slices of the buffer, whose views took atomic reference counts, six a row.
+    10.3 -> 6.4 us a 256 x 256 frame's pyramid of 3 levels, back to back."""
     u16 = np.uint16
-    col = np.empty(w + 4, np.uint16)
+    half = (w + 1) // 2  # the even columns
     for y in range(dh):
         c = 2 * y
-        r0 = src[max(c - 2, 0)]
-        r1 = src[max(c - 1, 0)]
-        r2 = src[c]
-        r3 = src[min(c + 1, h - 1)]
-        r4 = src[min(c + 2, h - 1)]
-        mid = col[2:w + 2]
-        for x in range(w):
-            mid[x] = u16(u16(r0[x]) + u16(r4[x]) + u16(4) * (u16(r1[x]) + u16(r3[x]))
-                         + u16(6) * u16(r2[x]))
-        col[0] = col[1] = col[2]
-        col[w + 2] = col[w + 3] = col[w + 1]
-        out = dst[y]
+        o0 = so + max(c - 2, 0) * w
+        o1 = so + max(c - 1, 0) * w
+        o2 = so + c * w
+        o3 = so + min(c + 1, h - 1) * w
+        o4 = so + min(c + 2, h - 1) * w
+        r0 = data[o0:o0 + w]
+        r1 = data[o1:o1 + w]
+        r2 = data[o2:o2 + w]
+        r3 = data[o3:o3 + w]
+        r4 = data[o4:o4 + w]
+        ev = even[1:]
+        od = odd[1:]
+        for i in range(w // 2):
+            x = 2 * i
+            ev[i] = u16(u16(r0[x]) + u16(r4[x]) + u16(4) * (u16(r1[x]) + u16(r3[x]))
+                        + u16(6) * u16(r2[x]))
+            od[i] = u16(u16(r0[x + 1]) + u16(r4[x + 1])
+                        + u16(4) * (u16(r1[x + 1]) + u16(r3[x + 1])) + u16(6) * u16(r2[x + 1]))
+        if w % 2:
+            x = w - 1
+            even[half] = u16(u16(r0[x]) + u16(r4[x]) + u16(4) * (u16(r1[x]) + u16(r3[x]))
+                             + u16(6) * u16(r2[x]))
+        # the padding: columns -2 and -1 repeat column 0; w and w + 1 repeat w - 1
+        even[0] = odd[0] = even[1]
+        if w % 2:
+            odd[half] = even[half + 1] = even[half]
+        else:
+            even[half + 1] = odd[half + 1] = odd[half]
+        # dst[y, x] from the padded columns 2x - 2 to 2x + 2: even[x], odd[x], even[x + 1],
+        # odd[x + 1], even[x + 2]
+        out = data[do + y * dw:do + (y + 1) * dw]
+        ea = even[0:dw]
+        eb = even[1:dw + 1]
+        ec = even[2:dw + 2]
+        oa = odd[0:dw]
+        ob = odd[1:dw + 1]
         for x in range(dw):
-            out[x] = u16(col[2 * x] + col[2 * x + 4] + u16(4) * (col[2 * x + 1] + col[2 * x + 3])
-                         + u16(6) * col[2 * x + 2] + u16(128)) >> 8
+            out[x] = u16(ea[x] + ec[x] + u16(4) * (oa[x] + ob[x]) + u16(6) * eb[x]
+                         + u16(128)) >> 8
 
 
 @nb.njit(cache=True, nogil=True)

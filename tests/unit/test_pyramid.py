@@ -40,6 +40,20 @@ def test_pyramid_levels_are_opencvs_pyrdown():
         build_pyramid(frame, 0)
 
 
+@pytest.mark.parametrize("shape", [(8, 8), (9, 8), (8, 9), (17, 10), (10, 17), (33, 255),
+                                   (256, 256), (481, 641)])
+def test_pyramid_levels_are_pyrdown_at_every_parity(shape):
+    """Every width's and height's parity at every level (the reduction splits a row's
+    columns into even and odd ones and pads each end by parity): ``cv2.pyrDown``'s levels."""
+    frame = np.random.default_rng(sum(shape)).integers(0, 256, shape, dtype=np.uint8)
+    pyr = build_pyramid(frame, 5)
+    ref = frame
+    for k in range(1, pyr.levels):
+        ref = cv2.pyrDown(ref, borderType=cv2.BORDER_REPLICATE)
+        np.testing.assert_array_equal(pyr.level(k), ref, err_msg=f"level {k} of {shape}")
+    assert pyr.levels > 1
+
+
 @pytest.mark.parametrize("kind", ["saturated", "checkerboard", "stripes", "step"])
 def test_pyramid_levels_are_pyrdown_at_the_extremes(kind):
     """The reduction sums in 16 bits: frames whose filtered sums reach their largest (65408

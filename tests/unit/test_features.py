@@ -176,3 +176,39 @@ def test_quality_level_keeps_the_candidates_above_a_fraction_of_the_strongest(re
     assert 0 < len(pre.candidates) < len(full.candidates)
     assert (pre.strength >= 0.3 * full.strength[0]).all()
     np.testing.assert_array_equal(pre.candidates, full.candidates[:len(pre.candidates)])
+
+
+def _min_eigen_reference(img: np.ndarray) -> np.ndarray:
+    """Shi and Tomasi's strength as OpenCV and numpy compute it in float32: ``cv2.Sobel``
+    (3x3, edges replicated), products and 3x3 sums in float32, the smaller eigenvalue in
+    float64 from the float32 trace and sxy^2; the border ring 0."""
+    import cv2
+
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE)
+    h, w = img.shape
+
+    def box(p: np.ndarray) -> np.ndarray:  # the 3x3 sums at the inner pixels
+        return sum(p[1 + dy:h - 1 + dy, 1 + dx:w - 1 + dx]
+                   for dy in (-1, 0, 1) for dx in (-1, 0, 1))
+
+    sxx, sxy, syy = box(gx * gx), box(gx * gy), box(gy * gy)
+    half_tr = 0.5 * (sxx + syy).astype(np.float64)
+    d = 0.5 * (sxx.astype(np.float64) - syy.astype(np.float64))
+    out = np.zeros((h, w), np.float32)
+    out[1:-1, 1:-1] = half_tr - np.sqrt(d * d + (sxy * sxy).astype(np.float64))
+    return out
+
+
+@pytest.mark.parametrize("shape", [(3, 3), (5, 17), (64, 64), (97, 131), (256, 256)])
+def test_min_eigen_strength_is_opencvs_float32_pipeline(shape, real_image):
+    """The integer kernel's strength, bit for bit that of ``cv2.Sobel`` to float32 and the
+    sums in float32 (its docstring's claim), on noise and on a real frame's crop."""
+    from vistrack.common.vision.preprocess import min_eigen_strength
+
+    noise = np.random.default_rng(sum(shape)).integers(0, 256, shape, dtype=np.uint8)
+    h, w = shape
+    crop = np.ascontiguousarray(real_image[:h, :w])
+    assert crop.shape == shape
+    for img in (noise, crop):
+        np.testing.assert_array_equal(min_eigen_strength(img), _min_eigen_reference(img))

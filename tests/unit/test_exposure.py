@@ -188,3 +188,18 @@ def test_the_frames_statistics_are_opencvs_to_the_bit(real_image):
                     pa.level(2)[y0:y1, x0:x1], pb.level(2)[y0 + iy:y1 + iy, x0 + ix:x1 + ix])
                     for v in np.concatenate(cv2.meanStdDev(part)).ravel()]
                 assert list(got) == want, (ix, iy)
+
+
+def test_the_statistics_of_rows_wider_than_a_chunk_are_opencvs():
+    """Rows longer than ROW_CHUNK pixels are summed chunk by chunk (their squares would
+    overflow int32 at 255): saturated and random rows of 70000 pixels, as
+    ``cv2.meanStdDev``."""
+    from vistrack.common.vision import exposure
+
+    rng = np.random.default_rng(5)
+    for a in (np.full((3, 70000), 255, np.uint8), rng.integers(0, 256, (3, 70000), np.uint8)):
+        assert a.shape[1] > 2 * exposure.ROW_CHUNK
+        pa = build_pyramid(a, 1)
+        got = _overlap_stats(pa.data, pa.data, pa.geo, 0, 0, 0)
+        m, s = (float(v) for v in np.concatenate(cv2.meanStdDev(a)).ravel())
+        assert list(got) == [m, s, m, s]

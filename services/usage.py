@@ -123,8 +123,12 @@ PARAM_FLAGS = {
     "max_features": ("--max-features", int, "MAX_FEAT_NUM: most feature points"),
     "thres_percent": ("--thres-percent", float,
                       "THRES_PERCENT: %% of pixels, strongest gradient first, kept as candidates"),
-    "search_size": ("--search-size", int, "SEARCH_SIZE: search window width, px"),
-    "corr_size": ("--corr-size", int, "CORR_SIZE: correlation window width, px"),
+    "search_size": ("--search-size", int,
+                    "SEARCH_SIZE: search window width, px (an even width searches as the next "
+                    "odd one, as the paper's code does)"),
+    "corr_size": ("--corr-size", int,
+                  "CORR_SIZE: correlation window width, px (an even width correlates as the next "
+                  "odd one)"),
     "ungroup_size": ("--ungroup-size", int, "UNGROUP_SIZE: minimum distance between features, px"),
 }
 

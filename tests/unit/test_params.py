@@ -84,3 +84,26 @@ def test_paper_is_the_papers_single_level_tracker():
     assert p.factors() == TrackerParams(search_size=21).factors()
     with pytest.raises(ParamError, match="levels=0 is out of range: allowed 1..6"):
         TrackerParams.paper(levels=0)
+
+
+@pytest.mark.parametrize("paper", [False, True])
+def test_an_even_window_width_acts_as_the_next_odd_one(paper):
+    """As the help and the README say (and the paper's code does): search_size 16 searches
+    as 17 and corr_size 8 correlates as 9, in the default tracker and the paper's; a width
+    that rounds to another half-width (15) does not."""
+    import numpy as np
+
+    from vistrack.common.synthetic import builtin_sequence
+    from vistrack.common.vision import track_frames
+
+    frames = builtin_sequence(12)
+    base = TrackerParams.paper() if paper else TrackerParams()
+
+    def run(search: int, corr: int) -> list[tuple]:
+        return [(e.npi, e.xc, e.yc, e.dx, e.dy, e.scale, e.points.tobytes())
+                for e in track_frames(frames, base.replace(search_size=search, corr_size=corr))]
+
+    odd = run(17, 9)
+    assert run(16, 8) == odd
+    assert run(15, 9) != odd or run(17, 7) != odd  # the windows matter at all here
+    assert np.isfinite([v for row in odd for v in row[1:6]]).all()

@@ -457,11 +457,16 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
                      **({} if repeats is None else {"repeats": repeats}))
     textured = exp.textured(base if base is not None else TrackerParams())
     if textured < MIN_TEXTURED:
+        h, w = np.shape(exp.frames[0])[:2]
+        # a frame no wider than the reference's correlation window holds none of its templates
+        cause = (f"frames of {w}x{h} px hold no {exp.reference[1]} px correlation window: "
+                 "give larger frames" if min(h, w) <= exp.reference[1]
+                 else "a covered lens, a dark or uniform scene?")
         raise TextureError(
             f"the frames have too little texture to tune on: the reference windows "
             f"{exp.reference} track {MIN_VALID_NPI} features or more on "
             f"{100 * textured:.0f} % of the {len(exp.frames)} frames, at least "
-            f"{100 * MIN_TEXTURED:.0f} % needed (a covered lens, a dark or uniform scene?); "
+            f"{100 * MIN_TEXTURED:.0f} % needed ({cause}); "
             "every window size would score the same zero error")
     start = time.perf_counter()  # after warm_up: a service compiles once, not every cycle
     seed = new_seed() if seed is None else int(seed)

@@ -25,6 +25,17 @@ def test_a_buffer_without_texture_is_not_tuned_on():
         tune(_noise(6), seed=1)
 
 
+def test_frames_smaller_than_the_reference_window_say_so(real_image):
+    """Real texture, but frames of 24x20 px hold no 30 px correlation window: the error names
+    the size, not a covered lens."""
+    small = [np.ascontiguousarray(real_image[k:k + 20, k:k + 24]) for k in range(6)]
+    with pytest.raises(TextureError, match=r"frames of 24x20 px hold no 30 px correlation "
+                                           r"window: give larger frames"):
+        tune(small, seed=1)
+    with pytest.raises(TextureError, match=r"a covered lens"):
+        tune(_noise(6), seed=1)
+
+
 def test_the_share_of_textured_frames_counts_the_frames_with_a_valid_estimate(real_image):
     """A real scene whose last frames go dark: the reference tracks it on the frames before."""
     frames = [real_image] * 4 + [np.zeros_like(real_image)] * 4

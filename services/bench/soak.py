@@ -42,10 +42,12 @@ FIRST_SAMPLE_S = 10.0
 
 
 def _start(name: str, endpoint: str, log: Path, *extra: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "vistrack.services.cli", name, "-e",
-                             endpoint, "--no-multicast-scouting", *extra],
-                            stdin=subprocess.DEVNULL, stdout=log.open("w"),
-                            stderr=subprocess.STDOUT)
+    # the child writes to its own copy of the log's descriptor: ours is closed at once (left
+    # open, it was an unclosed file for each service, which pytest -m bench reported)
+    with log.open("w") as out:
+        return subprocess.Popen([sys.executable, "-m", "vistrack.services.cli", name, "-e",
+                                 endpoint, "--no-multicast-scouting", *extra],
+                                stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT)
 
 
 def _wait_alive(session: zenoh.Session, keys: Keys, names: set[str], timeout: float) -> None:

@@ -97,7 +97,14 @@ def _overlap_at(pdata, cdata, geo, k, ix, iy):  # pragma: no cover - numba
     prev = _level(pdata, geo, k)
     curr = _level(cdata, geo, k)
     h, w = prev.shape
-    return (prev, curr, max(0, -ix), min(w, w - ix), max(0, -iy), min(h, h - iy))
+    return (prev, curr, *_overlap_bounds(h, w, ix, iy))
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _overlap_bounds(h, w, ix, iy):  # pragma: no cover - numba
+    """(x0, x1, y0, y1): the part of an (h, w) frame t that frame t+1 sees when the scene
+    moved by the whole ``ix, iy`` (:func:`_overlap`); empty where x1 <= x0 or y1 <= y0."""
+    return max(0, -ix), min(w, w - ix), max(0, -iy), min(h, h - iy)
 
 
 #: pixels of a row summed in int32 by :func:`_overlap_stats` (their squares: 2^15 255^2 < 2^31)
@@ -113,13 +120,11 @@ def _overlap_stats(pdata, cdata, geo, k, ix, iy):  # pragma: no cover - numba
     OpenCV calls, ~20 us a frame back to back but ~150 us in a service at 30 fps, whose every
     call of a function starts from cold caches. The sums of each ROW_CHUNK pixels of a row
     in int32 lanes over slices, added up in int64; no numba runtime."""
+    # offsets into the buffers, not the views of _overlap_at: a kernel without the runtime
+    # cannot take an array a function makes
     o = geo[k, 0]
-    h = geo[k, 1]
     w = geo[k, 2]
-    x0 = max(0, -ix)
-    x1 = min(w, w - ix)
-    y0 = max(0, -iy)
-    y1 = min(h, h - iy)
+    x0, x1, y0, y1 = _overlap_bounds(geo[k, 1], w, ix, iy)
     if x1 <= x0 or y1 <= y0:
         return 0.0, 0.0, 0.0, 0.0
     s0 = 0

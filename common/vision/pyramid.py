@@ -534,6 +534,14 @@ def _build(frame, data, geo):  # pragma: no cover - numba
                 geo[k, 2], even, odd)
 
 
+@nb.njit(**NO_NRT, inline="always")
+def _column(r0, r1, r2, r3, r4, x):  # pragma: no cover - numba
+    """The vertical [1 4 6 4 1] of column x of five rows (uint8), in uint16 (:func:`_reduce`)."""
+    u16 = np.uint16
+    return u16(u16(r0[x]) + u16(r4[x]) + u16(4) * (u16(r1[x]) + u16(r3[x]))
+               + u16(6) * u16(r2[x]))
+
+
 @nb.njit(**NO_NRT)
 def _reduce(data, so, h, w, do, dh, dw, even, odd):  # pragma: no cover - numba
     """One pyramid reduction (Burt and Adelson's, as ``cv2.pyrDown``) in a pyramid's flat
@@ -566,15 +574,10 @@ def _reduce(data, so, h, w, do, dh, dw, even, odd):  # pragma: no cover - numba
         ev = even[1:]
         od = odd[1:]
         for i in range(w // 2):
-            x = 2 * i
-            ev[i] = u16(u16(r0[x]) + u16(r4[x]) + u16(4) * (u16(r1[x]) + u16(r3[x]))
-                        + u16(6) * u16(r2[x]))
-            od[i] = u16(u16(r0[x + 1]) + u16(r4[x + 1])
-                        + u16(4) * (u16(r1[x + 1]) + u16(r3[x + 1])) + u16(6) * u16(r2[x + 1]))
+            ev[i] = _column(r0, r1, r2, r3, r4, 2 * i)
+            od[i] = _column(r0, r1, r2, r3, r4, 2 * i + 1)
         if w % 2:
-            x = w - 1
-            even[half] = u16(u16(r0[x]) + u16(r4[x]) + u16(4) * (u16(r1[x]) + u16(r3[x]))
-                             + u16(6) * u16(r2[x]))
+            even[half] = _column(r0, r1, r2, r3, r4, w - 1)
         # the padding: columns -2 and -1 repeat column 0; w and w + 1 repeat w - 1
         even[0] = odd[0] = even[1]
         if w % 2:

@@ -134,14 +134,15 @@ def read_buffer(args: argparse.Namespace
     if not frames:
         raise SourceError("no frame was read")
     what = source.description
+    # too few frames: the rule, what the source gave, and why where a video was cut short
+    gave = f"{what} gave {len(frames)}" + (f" ({cut})" if cut is not None else "")
     if args.bounce and len(frames) < args.max_frames:
         if len(frames) < 2:
-            raise SourceError(f"--bounce needs at least 2 frames: {what} gave 1")
+            raise SourceError(f"--bounce needs at least 2 frames: {gave}")
         what += f", played back and forth to {args.max_frames} frames"
         frames = bounce(frames, args.max_frames)
     if len(frames) < 2:
-        raise SourceError(f"tuning needs at least 2 frames (t1 and tf): {what} gave "
-                          f"{len(frames)}" + (f" ({cut})" if cut is not None else ""))
+        raise SourceError(f"tuning needs at least 2 frames (t1 and tf): {gave}")
     return frames, what, cut
 
 

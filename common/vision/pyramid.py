@@ -2452,70 +2452,108 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
     status : (N,) int8, :data:`.ssd.OK` or why the feature was not found
         (:data:`.ssd.STATUS_NAMES`).
     """
-    if search not in SEARCH_KINDS:
-        raise ValueError(f"search={search!r} is not allowed: use one of "
-                         f"{', '.join(SEARCH_KINDS)}")
-    if prev.shapes != curr.shapes:
-        raise ValueError(f"pyramids of different shapes: {prev.shapes} and {curr.shapes}")
-    m = 2 * corr_half + 1
-    if weights.shape != (m, m):
-        raise ValueError(f"weights of shape {weights.shape} do not match corr_half={corr_half}")
-    pts = np.ascontiguousarray(points, np.float64).reshape(-1, 2)
-    preds = np.ascontiguousarray(predictions, np.float64).reshape(-1, 2)
-    if pts.shape != preds.shape:
-        raise ValueError(f"points {pts.shape} and predictions {preds.shape} differ in shape")
-    if not 0 <= work <= NO_BUDGET:
-        raise ValueError(f"work must be 0 to {NO_BUDGET}: got {work}")
-    budget = np.array((work,), np.int64)  # one C call (np.full is two, in Python)
-    n_feat = len(pts)
-    pos = np.empty((n_feat, 2), np.float64)
-    ssd = np.empty(n_feat, np.float64)
-    status = np.empty(n_feat, np.int8)
-    wts = np.ascontiguousarray(weights, np.int32)
-    acc = _sum_type(wts.tobytes(), int(corr_half), int(wide_half) if subpixel else -1)
-    hold = (np.zeros(n_feat, np.bool_) if held is None
-            else np.ascontiguousarray(held, np.bool_).reshape(-1))
-    if hold.shape[0] != n_feat:
-        raise ValueError(f"held has {hold.shape[0]} entries for {n_feat} points")
-    taken = np.zeros(n_feat, np.bool_) if followed is None else followed
-    if taken.shape != (n_feat,) or taken.dtype != np.bool_:
-        raise ValueError(f"followed must be a ({n_feat},) bool array")
-    def run(preds: np.ndarray, hold: np.ndarray, follow: bool, pos: np.ndarray,
-            ssd: np.ndarray, status: np.ndarray, taken: np.ndarray) -> int:
-        found = int(_track_frame(prev.data, curr.data, prev.geo, pts, preds, hold, follow,
-                                taken, int(corr_half), int(search_half), wts,
-                                search == "exhaustive", float(uniqueness), float(allowance),
-                                bool(reject_border), bool(guided_retry), float(max_fb_error),
-                                float(consensus), float(DOMINANT_PX),
-                                float(DOMINANT_FOLLOW_PX), int(PERIOD_REACH),
-                                float(PERIOD_DEPART_PX),
-                                int(wide_half) if WIDE_ARBITER and subpixel else 0,
-                                float(AFFINE_FIT_PX),
-                                float(RESCUE_FIT_PX), int(RESCUE_AFFINE_NEAR), bool(subpixel),
-                                int(wide_half), acc, float(agree), float(straddle),
-                                float(floor), budget, pos, ssd, status))
-        if found < 0:  # a point or prediction out of bounds, which the kernel would not use
-            _bad_coordinates(pts, preds)
-        return found
+    plan = TrackPlan(corr_half=corr_half, search_half=search_half, weights=weights,
+                     subpixel=subpixel, search=search, uniqueness=uniqueness,
+                     allowance=allowance, reject_border=reject_border,
+                     guided_retry=guided_retry, max_fb_error=max_fb_error, consensus=consensus,
+                     wide_half=wide_half, agree=agree, straddle=straddle, floor=floor,
+                     follow=follow)
+    return plan.track(prev, curr, points, predictions, held=held, followed=followed, work=work)
 
-    found = run(preds, hold, bool(follow), pos, ssd, status, taken)
-    if guided_retry and n_feat >= MIN_GUIDES and n_feat - found > RETRY_GAIN * n_feat and (
-            found < BROKEN * n_feat
-            or (np.count_nonzero(taken) < BROKEN * np.count_nonzero(hold)
-                and _broke(pts, preds, pos, status, float(search_half)))):
-        # most predictions broke, or most features tracked before did not follow and the
-        # matches found moved otherwise than they predicted: track every feature again
-        # around the frame-wide shift, where it differs from the predictions, and keep the
-        # second run where it found clearly more (RETRY_MARGIN)
-        shift = frame_shift(prev, curr)
-        if shift is not None and np.abs(np.median(preds - pts, axis=0) - shift).max() >= 2.0:
-            pos2, ssd2, status2 = np.empty_like(pos), np.empty_like(ssd), np.empty_like(status)
-            lost = np.zeros(n_feat, np.bool_)
-            if run(pts + shift, np.zeros(n_feat, np.bool_), False, pos2, ssd2, status2,
-                   lost) > found + RETRY_MARGIN * n_feat:
-                pos, ssd, status = pos2, ssd2, status2
-                taken[:] = False
-    return pos, ssd, status
+
+class TrackPlan:
+    """:func:`track_pyramid`'s settings, checked and converted once for a run of frames: a
+    tracker makes one when its parameters or its noise estimate change and tracks each frame
+    pair with :meth:`track`. Checking and converting ~30 settings took 4 to 5 us of a frame
+    pair (the bench's held frames, ~110 us: the same kernel call with the settings made
+    once, interleaved, best of 200 rounds), about what the kernel's type dispatch costs."""
+
+    __slots__ = ("_settings", "_guided_retry", "_search_half", "_follow")
+
+    def __init__(self, *, corr_half: int, search_half: int, weights: np.ndarray,
+                 subpixel: bool = False, search: str = "pruned", uniqueness: float = 0.0,
+                 allowance: float = 0.0, reject_border: bool = False,
+                 guided_retry: bool = False, max_fb_error: float = 0.0,
+                 consensus: float = 0.0, wide_half: int = 0, agree: float = AGREE_PX,
+                 straddle: float = 0.0, floor: float = 0.0, follow: bool = False) -> None:
+        if search not in SEARCH_KINDS:
+            raise ValueError(f"search={search!r} is not allowed: use one of "
+                             f"{', '.join(SEARCH_KINDS)}")
+        m = 2 * corr_half + 1
+        if weights.shape != (m, m):
+            raise ValueError(f"weights of shape {weights.shape} do not match "
+                             f"corr_half={corr_half}")
+        wts = np.ascontiguousarray(weights, np.int32)
+        acc = _sum_type(wts.tobytes(), int(corr_half), int(wide_half) if subpixel else -1)
+        # the kernel's arguments from corr_half to floor, in its order (_track_frame)
+        self._settings = (
+            int(corr_half), int(search_half), wts, search == "exhaustive", float(uniqueness),
+            float(allowance), bool(reject_border), bool(guided_retry), float(max_fb_error),
+            float(consensus), float(DOMINANT_PX), float(DOMINANT_FOLLOW_PX),
+            int(PERIOD_REACH), float(PERIOD_DEPART_PX),
+            int(wide_half) if WIDE_ARBITER and subpixel else 0, float(AFFINE_FIT_PX),
+            float(RESCUE_FIT_PX), int(RESCUE_AFFINE_NEAR), bool(subpixel), int(wide_half), acc,
+            float(agree), float(straddle), float(floor))
+        self._guided_retry = bool(guided_retry)
+        self._search_half = float(search_half)
+        self._follow = bool(follow)
+
+    def track(self, prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions: np.ndarray,
+              *, held: np.ndarray | None = None, followed: np.ndarray | None = None,
+              work: int = FRAME_WORK) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Track ``points`` of frame t (``prev``) into frame t+1 (``curr``) from
+        ``predictions``: :func:`track_pyramid` with these settings."""
+        if prev.shapes != curr.shapes:
+            raise ValueError(f"pyramids of different shapes: {prev.shapes} and {curr.shapes}")
+        pts = np.ascontiguousarray(points, np.float64).reshape(-1, 2)
+        preds = np.ascontiguousarray(predictions, np.float64).reshape(-1, 2)
+        if pts.shape != preds.shape:
+            raise ValueError(f"points {pts.shape} and predictions {preds.shape} differ in "
+                             "shape")
+        if not 0 <= work <= NO_BUDGET:
+            raise ValueError(f"work must be 0 to {NO_BUDGET}: got {work}")
+        budget = np.array((work,), np.int64)  # one C call (np.full is two, in Python)
+        n_feat = len(pts)
+        pos = np.empty((n_feat, 2), np.float64)
+        ssd = np.empty(n_feat, np.float64)
+        status = np.empty(n_feat, np.int8)
+        hold = (np.zeros(n_feat, np.bool_) if held is None
+                else np.ascontiguousarray(held, np.bool_).reshape(-1))
+        if hold.shape[0] != n_feat:
+            raise ValueError(f"held has {hold.shape[0]} entries for {n_feat} points")
+        taken = np.zeros(n_feat, np.bool_) if followed is None else followed
+        if taken.shape != (n_feat,) or taken.dtype != np.bool_:
+            raise ValueError(f"followed must be a ({n_feat},) bool array")
+        settings = self._settings
+
+        def run(preds: np.ndarray, hold: np.ndarray, follow: bool, pos: np.ndarray,
+                ssd: np.ndarray, status: np.ndarray, taken: np.ndarray) -> int:
+            found = int(_track_frame(prev.data, curr.data, prev.geo, pts, preds, hold, follow,
+                                     taken, *settings, budget, pos, ssd, status))
+            if found < 0:  # a point or prediction out of bounds, which the kernel refused
+                _bad_coordinates(pts, preds)
+            return found
+
+        found = run(preds, hold, self._follow, pos, ssd, status, taken)
+        lost = n_feat - found
+        if self._guided_retry and n_feat >= MIN_GUIDES and lost > RETRY_GAIN * n_feat and (
+                found < BROKEN * n_feat
+                or (np.count_nonzero(taken) < BROKEN * np.count_nonzero(hold)
+                    and _broke(pts, preds, pos, status, self._search_half))):
+            # most predictions broke, or most features tracked before did not follow and the
+            # matches found moved otherwise than they predicted: track every feature again
+            # around the frame-wide shift, where it differs from the predictions, and keep the
+            # second run where it found clearly more (RETRY_MARGIN)
+            shift = frame_shift(prev, curr)
+            if shift is not None and np.abs(np.median(preds - pts, axis=0) - shift).max() >= 2.0:
+                pos2, ssd2 = np.empty_like(pos), np.empty_like(ssd)
+                status2 = np.empty_like(status)
+                none = np.zeros(n_feat, np.bool_)
+                if run(pts + shift, none, False, pos2, ssd2, status2,
+                       np.zeros(n_feat, np.bool_)) > found + RETRY_MARGIN * n_feat:
+                    pos, ssd, status = pos2, ssd2, status2
+                    taken[:] = False
+        return pos, ssd, status
 
 
 def _bad_coordinates(pts: np.ndarray, preds: np.ndarray) -> None:

@@ -49,7 +49,7 @@ from .features import select_features
 from .motion import _incremental_motion, _median_small, centroid_scatter
 from .noise import noise_level
 from .preprocess import Preprocessed, preprocess
-from .pyramid import FRAME_WORK, Pyramid, build_pyramid, sum_type, track_pyramid, wide_tests
+from .pyramid import FRAME_WORK, Pyramid, TrackPlan, build_pyramid, sum_type, wide_tests
 from .ssd import BORDER, LEFT, OK, OVER, RESIDUAL, STATUS_NAMES, track_ssd, window_weights
 
 #: The scale steps a new feature's prediction extrapolates (:meth:`Tracker._add_features`):
@@ -224,6 +224,7 @@ class Tracker:
         self._params = params
         self._weights = window_weights(params.weights, params.corr_half)
         self._wsum = float(self._weights.sum())
+        self._plan: tuple[float, TrackPlan] | None = None  # (noise, the plan made for it)
 
     @property
     def points(self) -> np.ndarray:
@@ -425,17 +426,13 @@ class Tracker:
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The features at ``pts`` of frame t (``prev``) tracked into frame t+1 (``pyr``) from
         ``preds``: positions, S, status, and which step 0 took (:func:`.track_pyramid`)."""
-        p = self._params
+        noise = max(self._params.noise_sigma, self.noise)
+        if self._plan is None or self._plan[0] != noise:  # new parameters, a new noise
+            self._plan = noise, track_plan(self._params, noise, self._weights)
         taken = np.zeros(len(pts), np.bool_)
-        # what noise alone adds to S at a perfect match: both frames' noise, over the window
-        allowance = 2.0 * p.noise_sigma ** 2 * self._wsum
-        found, ssd, status = track_pyramid(
-            prev, pyr, pts, preds, corr_half=p.corr_half, search_half=p.search_half,
-            weights=self._weights, subpixel=p.subpixel, search=p.search,
-            uniqueness=p.uniqueness, allowance=allowance, reject_border=p.reject_border,
-            guided_retry=p.guided_retry, max_fb_error=p.max_fb_error, consensus=p.consensus,
-            wide_half=p.refine_half, **wide_tests(max(p.noise_sigma, self.noise)),
-            held=self._held(len(pts)), follow=p.follow, followed=taken, work=FRAME_WORK)
+        found, ssd, status = self._plan[1].track(prev, pyr, pts, preds,
+                                                 held=self._held(len(pts)), followed=taken,
+                                                 work=FRAME_WORK)
         return found, ssd, status, taken
 
     def _add_features(self, pre: Preprocessed, shape: tuple[int, int]) -> None:
@@ -478,6 +475,23 @@ class Tracker:
         self._next_id += len(new)
         if self._frame > 0:
             self.redetections += 1
+
+
+def track_plan(p: TrackerParams, noise: float, weights: np.ndarray | None = None
+               ) -> TrackPlan:
+    """The settings with which the tracker of ``p`` tracks a frame pair coarse to fine
+    (:class:`.pyramid.TrackPlan`), for a camera noise of ``noise`` grey levels (``p``'s
+    ``noise_sigma`` or more: the tracker's estimate of it, :mod:`.noise`); ``weights``: ``p``'s
+    window, where already made."""
+    wts = window_weights(p.weights, p.corr_half) if weights is None else weights
+    # what noise alone adds to S at a perfect match: both frames' noise, over the window
+    allowance = 2.0 * p.noise_sigma ** 2 * float(wts.sum())
+    return TrackPlan(corr_half=p.corr_half, search_half=p.search_half, weights=wts,
+                     subpixel=p.subpixel, search=p.search, uniqueness=p.uniqueness,
+                     allowance=allowance, reject_border=p.reject_border,
+                     guided_retry=p.guided_retry, max_fb_error=p.max_fb_error,
+                     consensus=p.consensus, wide_half=p.refine_half, **wide_tests(noise),
+                     follow=p.follow)
 
 
 def _single_level(p: TrackerParams) -> bool:

@@ -35,7 +35,8 @@ import numpy as np
 from ...common import groundtruth, rendered, synthetic
 from ...common.params import TrackerParams
 from ...common.vision import Tracker, preprocess, to_gray, track_ssd, warm_up, window_weights
-from ...common.vision.pyramid import build_pyramid, track_pyramid, wide_tests
+from ...common.vision.pyramid import TrackPlan, build_pyramid
+from ...common.vision.tracker import track_plan
 
 
 def _batch(fn: Callable[[], object], min_time: float) -> int:
@@ -241,8 +242,6 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
 
     pyrs = [build_pyramid(p.filtered, params.levels) for p in pre]
     pjobs = list(zip(pyrs[:-1], pyrs[1:], points, preds, helds, strict=True))
-    allowance = 2.0 * params.noise_sigma ** 2 * float(window_weights(params.weights,
-                                                                     params.corr_half).sum())
 
     def default_tracker(checks: bool = True, pairs: slice = slice(None),
                         **without: object) -> Callable[[], None]:
@@ -253,23 +252,17 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
                                                  consensus=0.0, reject_border=False,
                                                  guided_retry=False, subpixel=False,
                                                  refine_size=0)
-        p = p.replace(**without)
-        wts = window_weights(p.weights, p.corr_half)
+        # the settings as the tracker makes them once (Tracker._search)
+        plan = track_plan(p.replace(**without), params.noise_sigma)
 
         def run() -> None:
             for job in pjobs[pairs]:
-                track_pair(p, wts, job)
+                track_pair(plan, job)
         return run
 
-    def track_pair(p: TrackerParams, wts: np.ndarray, job: tuple) -> None:
+    def track_pair(plan: TrackPlan, job: tuple) -> None:
         a, b, pts, pr, hd = job
-        track_pyramid(a, b, pts, pr, corr_half=p.corr_half, search_half=p.search_half,
-                      weights=wts, subpixel=p.subpixel, search=p.search,
-                      uniqueness=p.uniqueness, allowance=allowance,
-                      reject_border=p.reject_border, guided_retry=p.guided_retry,
-                      max_fb_error=p.max_fb_error, consensus=p.consensus,
-                      wide_half=p.refine_half, **wide_tests(p.noise_sigma),
-                      held=hd, follow=p.follow)
+        plan.track(a, b, pts, pr, held=hd)
 
     def pyramid() -> None:
         for p in pre[1:]:
@@ -387,8 +380,8 @@ def bench_tracker(out=sys.stdout) -> dict[str, float]:
     print(f"ours whole frame after a run's first pair: {ours * 1e6:.1f} us a frame (its "
           f"{len(frames) - 2} frames, best of {rounds} runs), {ours / peer:.2f}x OpenCV's LK with "
           f"its defaults on the same pairs in the same rounds ({peer * 1e6:.1f} us)", file=out)
-    default_wts = window_weights(params.weights, params.corr_half)
-    gaps = _after_gaps({"ours": lambda i: track_pair(params, default_wts, pjobs[i % k]),
+    default_plan = track_plan(params, params.noise_sigma)
+    gaps = _after_gaps({"ours": lambda i: track_pair(default_plan, pjobs[i % k]),
                         "lk": lambda i: lk_pair(i % k)}, n=8 * k)
     print("\nafter an idle gap (median of one frame pair; the rows above run back to back):",
           file=out)

@@ -12,7 +12,13 @@ from vistrack.common import synthetic
 from vistrack.common.params import TrackerParams
 from vistrack.common.vision import Tracker, preprocess, track_ssd, window_weights
 from vistrack.common.vision import tracker as tracker_module
-from vistrack.common.vision.pyramid import NEIGHBOURS, _consensus, build_pyramid, track_pyramid
+from vistrack.common.vision.pyramid import (
+    NEIGHBOURS,
+    TrackPlan,
+    _consensus,
+    build_pyramid,
+    track_pyramid,
+)
 from vistrack.common.vision.ssd import AMBIGUOUS, BORDER, DISAGREES, FB, OK, OVER, STATUS_NAMES
 
 from conftest import load_pair, source_image
@@ -499,6 +505,21 @@ def test_held_features_follow_to_the_matches_of_the_search(real_image, step):
     assert len(err) > 60 and np.median(err) < 0.1 and err.max() < 1.0
 
 
+def spy_on_tracking(monkeypatch, seen: dict) -> None:
+    """Record in ``seen`` what the tracker's coarse-to-fine tracking of a frame pair (the real
+    :meth:`TrackPlan.track`) was given and found: its points, which step 0 took (followed),
+    their positions and statuses."""
+    real = TrackPlan.track
+
+    def spy(self, prev, curr, points, predictions, **kwargs):
+        out = real(self, prev, curr, points, predictions, **kwargs)
+        seen["points"], seen["followed"] = points.copy(), kwargs["followed"].copy()
+        seen["pos"], seen["status"] = out[0], out[2]
+        return out
+
+    monkeypatch.setattr(TrackPlan, "track", spy)
+
+
 def test_a_wrong_prediction_is_searched_for_not_followed(real_image, monkeypatch):
     """After three steady frames the scene jumps 9 px the other way: hardly a feature can
     follow its prediction (11.5 px off), and those that seem to are not trusted: every
@@ -509,12 +530,7 @@ def test_a_wrong_prediction_is_searched_for_not_followed(real_image, monkeypatch
     step = np.array([2.5, 0.0])
     seen = {}
 
-    def spy(*args, **kwargs):  # the real track_pyramid; what step 0 took, feature by feature
-        out = track_pyramid(*args, **kwargs)
-        seen["points"], seen["followed"] = args[2].copy(), kwargs["followed"].copy()
-        return out
-
-    monkeypatch.setattr(tracker_module, "track_pyramid", spy)
+    spy_on_tracking(monkeypatch, seen)
     for jump, followed in ((np.array([-9.0, 0.0]), False), (np.array([2.0, -1.5]), True)):
         tracker = Tracker(TrackerParams(redetect_fraction=0.0))
         ests = [tracker.process(shifted(real_image, *(step * k))) for k in range(3)]
@@ -578,13 +594,7 @@ def test_a_tracks_first_pair_checks_the_way_back_of_what_it_follows(monkeypatch)
     seq = rendered.jerk(source_image("Urban2"), "Urban2")
     seen = {}
 
-    def spy(*args, **kwargs):  # the real track_pyramid; what step 0 took, feature by feature
-        out = track_pyramid(*args, **kwargs)
-        seen["points"], seen["followed"], seen["pos"] = (args[2].copy(),
-                                                         kwargs["followed"].copy(), out[0])
-        return out
-
-    monkeypatch.setattr(tracker_module, "track_pyramid", spy)
+    spy_on_tracking(monkeypatch, seen)
     tracker = Tracker(TrackerParams())
     tracker.process(seq.frames[0])
     tracker.process(seq.frames[1])
@@ -606,13 +616,7 @@ def test_a_first_pair_follows_features_at_the_edge_past_a_pixel(real_image, monk
     followed, not searched, to the true motion (before: each searched coarse to fine)."""
     seen = {}
 
-    def spy(*args, **kwargs):  # the real track_pyramid; what step 0 took, feature by feature
-        out = track_pyramid(*args, **kwargs)
-        seen["points"], seen["followed"], seen["pos"], seen["status"] = (
-            args[2].copy(), kwargs["followed"].copy(), out[0], out[2])
-        return out
-
-    monkeypatch.setattr(tracker_module, "track_pyramid", spy)
+    spy_on_tracking(monkeypatch, seen)
     shift = np.array([1.4, -0.6])
     tracker = Tracker(TrackerParams())
     tracker.process(real_image)

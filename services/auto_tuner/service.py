@@ -203,8 +203,13 @@ class AutoTuner:
         return True
 
     def on_params(self, payload: bytes) -> None:
+        """A user's set is in force now, and so is a tuner's with a newer ``params_id`` than
+        this one's (a recording's replayed, another auto-tuner's): the services apply it, and
+        this one's reminders of an older id would be refused by each, every second (a
+        replayed recording's id 2 against a fresh tuner's 1: 128 warnings a minute). Its own,
+        echoed back, and a tuner's older ones are not news."""
         msg = decode_or_reject(Params, payload, self.node, log)
-        if msg is not None and msg.source != "tuner":  # a user's set: in force now
+        if msg is not None and (msg.source != "tuner" or msg.params_id > self.state.params_id):
             self.state.apply(payload, self.node, log)
 
     def take_frames(self, now: float) -> None:

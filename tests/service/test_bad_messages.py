@@ -117,6 +117,36 @@ def test_the_tuner_at_the_largest_params_id_keeps_what_is_in_force():
         assert Params.decode(node.published_on(node.keys.params)[0]).params_id == 0
 
 
+def test_the_tuner_takes_another_tuners_newer_params_and_reminds_of_them():
+    """A recording replayed into a fresh pipeline brings a tuner's params_id 2 while the live
+    tuner's is 1: the services apply 2, and the tuner used to ignore every tuner/params of
+    source "tuner" and remind of 1 every second, which each service refused as stale. Now
+    it takes the newer set as in force and reminds of that; its own echo and an older one
+    change nothing and count as nothing."""
+    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
+
+    def tuner_params(params_id: int, search_size: int) -> bytes:
+        return Params.from_tracker_params(TrackerParams(search_size=search_size), seq=0,
+                                          stamp_ns=1, params_id=params_id, source="tuner",
+                                          reason="recorded").encode()
+
+    args = parse("auto-tuner", "--no-tune")
+    with MemoryNode("auto_tuner") as node:
+        tuner = AutoTuner(node, args, check_flags(args))
+        assert tuner.announce("start-up (flags)")
+        own = node.published_on(node.keys.params)[-1]
+        assert Params.decode(own).params_id == 1
+        tuner.on_params(own)  # its own, echoed back
+        tuner.on_params(tuner_params(2, 21))
+        assert (tuner.state.params_id, tuner.state.params.search_size) == (2, 21)
+        tuner.on_params(tuner_params(1, 31))  # an older tuner's: the services refuse it too
+        assert (tuner.state.params_id, tuner.state.params.search_size) == (2, 21)
+        assert node.status.rejected == 0
+        assert tuner.announce()
+        reminder = Params.decode(node.published_on(node.keys.params)[-1])
+        assert (reminder.params_id, reminder.search_size) == (2, 21)
+
+
 def test_the_camera_takes_no_acknowledgement_of_a_frame_it_has_not_sent():
     """An estimate stamped in the future would stand for every frame still to come: a paced
     camera would stop waiting and end a file before its last frames were processed."""

@@ -83,7 +83,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_number(parser, "--fps", lo=0, hi=1000, default=0.0, metavar="F",
                help="frames per second, %(allowed)s; 0 = as fast as the pipeline takes them "
                     "(default 0)")
-    parser.add_argument("--loop", action="store_true", help="replay a file source forever")
+    parser.add_argument("--loop", action="store_true",
+                        help="replay a file source forever; with sim, start the scenario "
+                             "again when it ends (else the camera exits 0 there)")
     parser.add_argument("--size", metavar="WxH", default=None,
                         help="resize frames (default: native size)")
     add_number(parser, "--in-flight", lo=1, hi=16, integer=True, default=1, metavar="N",

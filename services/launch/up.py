@@ -31,9 +31,9 @@ strictly and every error names the file, the line, the key and what is allowed.
   from elsewhere (``vistrack replay`` of a recorded ``camera/frame`` stream). A ``device:N``
   camera is opened once before anything starts: a missing one is an error (exit 1). A
   camera that exits 0 under ``never`` or ``on-failure`` (a file source without ``--loop``
-  has been processed) ends the run, as do ``--duration``, Ctrl-C and SIGTERM; one that exits
-  with an error under ``never`` (a video cut short, a failed device) ends it as a run
-  failure (exit 1).
+  has been processed, a simulator's scenario ended) ends the run, as do ``--duration``,
+  Ctrl-C and SIGTERM; one that exits with an error under ``never`` (a video cut short, a
+  failed device) ends it as a run failure (exit 1).
 * Stopping sends SIGTERM to every child's process group, SIGKILL to what is left after
   3 s, and closes the router. Children also get SIGTERM if the launcher dies (Linux
   ``PR_SET_PDEATHSIG``).
@@ -85,7 +85,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the camera's frames per second (its --fps)")
     parser.add_argument("--size", metavar="WxH", help="the camera's frame size (its --size)")
     parser.add_argument("--loop", action="store_true",
-                        help="with --camera: replay a file source forever")
+                        help="with --camera: replay a file source forever, start a sim "
+                             "scenario again when it ends (else either ends the run)")
     add_number(parser, "--duration", lo=0, hi=1e6, lo_open=True, unit="s", metavar="S",
                help="end the run after S seconds, %(allowed)s")
     add_number(parser, "--ready-timeout", lo=0, hi=3600, lo_open=True, unit="s", metavar="S",

@@ -65,7 +65,8 @@ def add_service_args(parser: argparse.ArgumentParser, *, tracker_params: bool = 
     """Zenoh flags, ``--log-level``, and optionally the initial tracker parameters."""
     add_zenoh_args(parser)
     parser.add_argument("--log-level", default="info",
-                        choices=("debug", "info", "warning", "error"))
+                        choices=("debug", "info", "warning", "error"),
+                        help="log lines at this level and above (default info)")
     if tracker_params:
         add_param_flags(parser)
 

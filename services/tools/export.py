@@ -97,7 +97,8 @@ def export(recording: Recording | McapRecording, writer: Writer,
                 next_progress += PROGRESS_S
     except RecordError as e:
         damage = e
-    for line in not_written(writer):
+    for line in not_written(writer, f"{args.input} keeps them" if isinstance(recording, Recording)
+                            else "only a .vtr recording keeps them"):
         warn("export", line)
     for topic, why in sorted(getattr(recording, "skipped", {}).items()):
         warn("export", f"{topic} not exported: {why}")

@@ -263,12 +263,13 @@ def open_recording(path: str | Path) -> Recording | McapRecording:
         raise
 
 
-def not_written(writer: Writer) -> list[str]:
-    """One line per key whose samples an MCAP writer left out, saying why (none for .vtr)."""
+def not_written(writer: Writer, keep: str = "record to .vtr to keep them") -> list[str]:
+    """One line per key whose samples an MCAP writer left out, saying why (none for .vtr);
+    ``keep``: how to keep those that have no ROS 2 type (an export: in the .vtr it read)."""
     if not isinstance(writer, McapWriter):
         return []
-    lines = [f"{n} samples of {key} not written: it has no ROS 2 type (record to .vtr to "
-             "keep them)" for key, n in sorted(writer.skipped.items())]
+    lines = [f"{n} samples of {key} not written: it has no ROS 2 type ({keep})"
+             for key, n in sorted(writer.skipped.items())]
     lines += [f"{n} samples of {key} not written: not valid messages (last: "
               f"{writer.last_error[key]})" for key, n in sorted(writer.rejected.items())]
     return lines

@@ -167,8 +167,8 @@ def test_export_vtr_to_mcap_and_back_keeps_every_sample(samples, tmp_path):
     out = tmp_path / "run.mcap"
     run = vistrack("export", vtr, out)
     assert run.returncode == 0, run.stderr
-    assert "12 samples of vistrack/robot/sim/pose not written: it has no ROS 2 type" \
-        in run.stderr
+    assert (f"12 samples of vistrack/robot/sim/pose not written: it has no ROS 2 type ({vtr} "
+            "keeps them)") in run.stderr  # not "record to .vtr": it was read from one
     back = tmp_path / "back.vtr"
     run = vistrack("export", out, back)
     assert run.returncode == 0, run.stderr

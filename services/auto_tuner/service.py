@@ -340,14 +340,17 @@ class AutoTuner:
         new = st.params.replace(**optimum)
         user_meanwhile = st.params_id != self.id_at_start
         changed = new != st.params and not user_meanwhile
+        unannounced = False
         if changed:
             old, st.params = st.params, new
             if not self.announce(self.reason):
-                st.params, changed = old, False
+                st.params, changed, unannounced = old, False, True
         extra.update(tunings=extra["tunings"] + 1, last_reason=self.reason)
         log.info("tuning (%s) done in %.1f s: optimum %s%s", self.reason, cycle, optimum,
                  "" if changed else " (a user's set arrived meanwhile: kept)" if user_meanwhile
-                 else " (already in force)")
+                 else f" (not published: params_id {st.params_id} in force is the largest a "
+                      "message may carry; restart the pipeline to count from 0 again)"
+                 if unannounced else " (already in force)")
         self._publish_report(report, trigger=self.reason, changed=changed, cycle_s=cycle)
 
     def _publish_report(self, report: dict[str, Any], **extra: Any) -> None:

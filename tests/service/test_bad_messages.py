@@ -117,6 +117,37 @@ def test_the_tuner_at_the_largest_params_id_keeps_what_is_in_force():
         assert Params.decode(node.published_on(node.keys.params)[0]).params_id == 0
 
 
+def test_a_tuning_that_cannot_be_announced_says_so_not_already_in_force(caplog):
+    """A user's set at the largest params_id (in range: the services take it) leaves no newer
+    id: a tuning's different optimum cannot be published, and its log line said "(already in
+    force)" while the old windows ran on. It now says why it was not published and what
+    to do, and what is in force stays in force."""
+    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
+
+    args = parse("auto-tuner", "--no-tune")
+    with MemoryNode("auto_tuner") as node:
+        tuner = AutoTuner(node, args, check_flags(args))
+        tuner.on_params(params_payload(MAX_PARAMS_ID, search_size=15, corr_size=9))
+        assert tuner.state.params_id == MAX_PARAMS_ID
+        tuner.id_at_start = MAX_PARAMS_ID
+        tuner.reason = "scene change"
+        with caplog.at_level(logging.INFO, logger="vistrack.auto_tuner"):
+            report = {"design": [[-1, 1], [1, -1]], "factors": ["A", "B"], "order": [1, 0],
+                      "responses": {"tf": [0.2, 0.3]}, "effects": {"tf": {"1": 0.1}},
+                      "significant": {"tf": {"99": ["1"], "95": ["1"]}},
+                      "optimum": {"search_size": 11, "corr_size": 5},
+                      "sweep": {"search": [10, 12], "corr": [5, 7]}}
+            tuner._finish(("ok", report, {"search_size": 11, "corr_size": 5}),
+                          time.monotonic())
+        assert (tuner.state.params.search_size, tuner.state.params.corr_size) == (15, 9)
+        done = [r.getMessage() for r in caplog.records if "done in" in r.getMessage()]
+        assert len(done) == 1 and "already in force" not in done[0], done
+        assert "not published: params_id 9007199254740991 in force is the largest" in done[0]
+        # the report of the tuning still goes out, saying nothing changed
+        report_out = msgpack.unpackb(node.published_on(node.keys.report)[-1])
+        assert report_out["changed"] is False
+
+
 def test_the_tuner_takes_another_tuners_newer_params_and_reminds_of_them():
     """A recording replayed into a fresh pipeline brings a tuner's params_id 2 while the live
     tuner's is 1: the services apply 2, and the tuner used to ignore every tuner/params of

@@ -219,7 +219,8 @@ def _is_sim(args: argparse.Namespace) -> bool:
 
 
 def _size(args: argparse.Namespace) -> tuple[int, int] | None:
-    return parse_size(args.size, "--size", sides=FRAME_SIDES) if args.size else None
+    return (parse_size(args.size, "--size", sides=FRAME_SIDES) if args.size is not None
+            else None)
 
 
 def released(node: Node, args: argparse.Namespace) -> bool:

@@ -30,7 +30,7 @@ def make_simulator(args: argparse.Namespace) -> Simulator:
     """The simulator of ``--source sim[:SCENARIO]``, ``--size``, ``--noise``, ``--texture`` and
     ``--seed``; a ValueError names the flag that is wrong."""
     scenario = args.source.split(":", 1)[1] if ":" in args.source else "default"
-    w, h = (parse_size(args.size, "--size", sides=CAMERA_SIDES) if args.size
+    w, h = (parse_size(args.size, "--size", sides=CAMERA_SIDES) if args.size is not None
             else (256, 256))
     try:
         scene = load_scenario(scenario or "default")

@@ -81,8 +81,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the camera's source: file:PATH, device:N, builtin or "
                              "sim[:SCENARIO]; drops the launch file's --loop. 'none': no "
                              "camera (frames come from elsewhere, e.g. vistrack replay)")
-    parser.add_argument("--fps", type=float, metavar="F",
-                        help="the camera's frames per second (its --fps)")
+    add_number(parser, "--fps", lo=0, hi=1000, metavar="F",
+               help="the camera's frames per second (its --fps), %(allowed)s")
     parser.add_argument("--size", metavar="WxH", help="the camera's frame size (its --size)")
     parser.add_argument("--loop", action="store_true",
                         help="with --camera: replay a file source forever, start a sim "

@@ -44,7 +44,7 @@ def _table_row(e: Estimate) -> str:
 def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     out = sys.stdout if out is None else out  # the stream of the moment, not of import time
     params = params_from_args(args)
-    size = parse_size(args.resize, "--resize") if args.resize else None
+    size = parse_size(args.resize, "--resize") if args.resize is not None else None
     source = open_files(args.frames, size)
     # numba compile (said on stderr) or cache load, so t1 measures the tracker, not the JIT
     warm_up_kernels(say_on_stderr("track"), params=params)

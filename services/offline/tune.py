@@ -123,7 +123,7 @@ def read_buffer(args: argparse.Namespace
     of a video cut short (its header announces more frames than it holds), or None: the tuning
     runs on the frames it holds, and the error is said once the results are out, as
     ``vistrack track`` says it after its frames."""
-    size = parse_size(args.resize, "--resize") if args.resize else None
+    size = parse_size(args.resize, "--resize") if args.resize is not None else None
     source = open_files(args.frames, size)
     frames: list[np.ndarray] = []
     cut: VideoCutShort | None = None

@@ -186,6 +186,11 @@ CASES = {
     ],
     "up": [
         (["--fps", "nan", "-l", "tcp/127.0.0.1:1"], "--fps nan is out of range: allowed 0..1000"),
+        # up's own flag, with the camera's range (argparse's 'invalid float value' named none)
+        (["--fps", "abc", "-l", "tcp/127.0.0.1:1"],
+         "--fps 'abc' is not a number: allowed 0..1000"),
+        (["--size", "", "-l", "tcp/127.0.0.1:1"],  # was: native size, without a word
+         "--size '' is not WIDTHxHEIGHT, e.g. 256x256"),
         (["--camera", "file:{d}/empty", "-l", "tcp/127.0.0.1:1"],
          "{d}/empty: folder holds no image (.png, .jpg, .jpeg, .bmp, .tif, .tiff, .pgm, .ppm, "
          ".webp)"),

@@ -111,6 +111,7 @@ def test_video_file_and_builtin(tmp_path):
     (["--thres-percent", "nan"], "--thres-percent nan is out of range: allowed 0.1..5"),
     (["--format", "xml"], "invalid choice"),
     (["--resize", "big"], "--resize 'big' is not WIDTHxHEIGHT, e.g. 256x256"),
+    (["--resize", ""], "--resize '' is not WIDTHxHEIGHT, e.g. 256x256"),  # was: native size
     (["--resize", "0x0"], "--resize 0x0 is out of range: width and height must be 8..8192"),
     (["--max-features", "many"], "--max-features 'many' is not an integer: allowed 1..2000"),
     (["--max-features", "1e9"], "--max-features '1e9' is not an integer: allowed 1..2000"),

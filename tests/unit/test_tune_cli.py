@@ -61,6 +61,7 @@ def test_text_sections_progress_and_plots(tmp_path):
     (["--tolerance", "-1"], "--tolerance -1 is out of range: allowed 0..100"),
     (["--tolerance", "nan"], "--tolerance nan is out of range: allowed 0..100"),
     (["--resize", "huge"], "--resize 'huge' is not WIDTHxHEIGHT"),
+    (["--resize="], "--resize '' is not WIDTHxHEIGHT"),
     (["--max-frames", "1"], "--max-frames 1 is out of range: allowed 2..1000"),
     (["--repeats", "0"], "--repeats 0 is out of range: allowed 1..20"),
     (["--replicates", "0"], "--replicates 0 is out of range: allowed 1..20"),

@@ -375,19 +375,27 @@ def _publish(node: Node, image: np.ndarray, seq: int, stamp: int, last: list[byt
 
 
 def check_args(args: argparse.Namespace) -> None:
-    """``--size`` and ``--source`` (cheap: files are listed, not read; no device is opened),
-    so ``vistrack camera`` and a launch file's camera flags fail before anything starts."""
+    """``--size`` and ``--source`` (a file source's first frame is read: a text file named
+    .avi or a damaged first image is found here, where ``vistrack up`` used to start every
+    service and then end the run on the camera's exit; no device is opened), so
+    ``vistrack camera`` and a launch file's camera flags fail before anything starts."""
     if _is_sim(args):
         make_simulator(args)
         return
-    _size(args)
+    size = _size(args)
     if is_ros2(args.source):
         topic_of(args.source)
         return
     if args.source.startswith("device:"):
         device_index(args.source)
-    else:
-        open_source(args.source, None, False)
+        return
+    frames = open_source(args.source, size, False)
+    try:
+        _first_frame_read(frames)
+    finally:
+        close = getattr(frames, "close", None)  # a generator: a video's capture let go now
+        if close is not None:
+            close()
 
 
 def _first_frame_read(frames: Iterator[np.ndarray]) -> Iterator[np.ndarray]:

@@ -38,6 +38,9 @@ def d(tmp_path_factory: pytest.TempPathFactory) -> Path:
     cv2.imwrite(str(d / "mixed" / "a.png"), np.full((64, 64), 128, np.uint8))
     (d / "mixed" / "b.png").write_bytes(b"not a png")
     (d / "junk.mp4").write_bytes(bytes(range(256)) * 20)
+    (d / "badfirst").mkdir()  # its first image is no image
+    (d / "badfirst" / "a.png").write_bytes(b"not a png")
+    cv2.imwrite(str(d / "badfirst" / "b.png"), np.full((64, 64), 128, np.uint8))
     (d / "cutjpg").mkdir()
     rng = np.random.default_rng(0)
     for name in ("a.jpg", "b.jpg"):
@@ -194,6 +197,12 @@ CASES = {
         (["--camera", "file:{d}/empty", "-l", "tcp/127.0.0.1:1"],
          "{d}/empty: folder holds no image (.png, .jpg, .jpeg, .bmp, .tif, .tiff, .pgm, .ppm, "
          ".webp)"),
+        # read before anything starts: up used to start all five, then end on the camera's
+        # exit (code 1, no file named in a launch file)
+        (["--camera", "file:{d}/junk.mp4", "-l", "tcp/127.0.0.1:1"],
+         "{d}/junk.mp4: not a readable video"),
+        (["--camera", "file:{d}/badfirst", "-l", "tcp/127.0.0.1:1"],
+         "{d}/badfirst/a.png: not a readable image"),
         (["--camera", "device:x", "-l", "tcp/127.0.0.1:1"],
          "'device:x': the device index must be an integer 0..99, e.g. device:0"),
         (["-e", "nonsense"], "-e/--connect 'nonsense' is not a Zenoh endpoint: expected "

@@ -17,7 +17,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -166,13 +166,18 @@ class FileFrames:
     """Frames from files, in order, optionally resized; all frames must share one size.
 
     ``paths`` are image files, or a single video file. ``size`` = (width, height) resizes every
-    frame; without it a frame of another size than the first is an error.
+    frame; without it a frame of another size than the first is an error, whose text names
+    ``size_flag`` as the way to scale them. With ``skip``, an image that cannot be read or a
+    frame of another size is given to it (a :class:`SourceError` naming the file) and left
+    out, and the frames after it follow: a camera goes on where an offline run stops.
     """
 
     paths: list[str]
     video: bool = False
     size: tuple[int, int] | None = None
     description: str = ""
+    size_flag: str = "--resize"
+    skip: Callable[[SourceError], None] | None = None
 
     def __iter__(self) -> Iterator[np.ndarray]:
         expected: tuple[int, int] | None = None
@@ -183,10 +188,16 @@ class FileFrames:
                 if expected is None:
                     expected = frame.shape
                 elif frame.shape != expected:
-                    raise SourceError(
+                    self._bad(SourceError(
                         f"{name}: frame is {frame.shape[1]}x{frame.shape[0]} but the first was "
-                        f"{expected[1]}x{expected[0]}; give --resize/--size to scale them")
+                        f"{expected[1]}x{expected[0]}; give {self.size_flag} to scale them"))
+                    continue
             yield np.ascontiguousarray(frame)
+
+    def _bad(self, e: SourceError) -> None:
+        if self.skip is None:
+            raise e
+        self.skip(e)
 
     def _raw(self) -> Iterator[tuple[str, np.ndarray]]:
         grey = Grey()  # one stream: 16-bit frames scaled by the depth of its samples
@@ -211,7 +222,12 @@ class FileFrames:
                 cap.release()
         else:
             for p in self.paths:
-                yield p, read_image(p, grey)
+                try:
+                    image = read_image(p, grey)
+                except SourceError as e:
+                    self._bad(e)
+                    continue
+                yield p, image
 
 
 def _check_complete(path: str, read: int, announced: float) -> None:

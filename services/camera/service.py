@@ -47,6 +47,7 @@ from ...common.messages import MAX_SIDE, encode_frame, peek_int
 from ...common.sources import (
     BUILTIN,
     DeviceFrames,
+    FileFrames,
     SourceError,
     VideoCutShort,
     device_index,
@@ -119,8 +120,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_service_args(parser)
 
 
-def open_source(spec: str, size: tuple[int, int] | None, loop: bool) -> Iterator[np.ndarray]:
-    """Frames of a SOURCE spec (not ``sim``); raises SourceError naming what is wrong."""
+class Skipped:
+    """The frames a file source could not give while it ran (an image that does not read,
+    one of another size than the first): each left out, said once per file as a warning (a
+    looping source meets it every pass) and counted (status ``extra.skipped``, once
+    :meth:`attach` gave the node); the frames after it go on. They used to end the camera,
+    and the run with it, at the first such frame."""
+
+    def __init__(self) -> None:
+        self.node: Node | None = None
+        self.count = 0
+        self._said: set[str] = set()
+
+    def attach(self, node: Node) -> None:
+        self.node = node
+        if self.count:
+            node.status.extra["skipped"] = self.count
+
+    def __call__(self, e: SourceError) -> None:
+        self.count += 1
+        if self.node is not None:
+            self.node.status.extra["skipped"] = self.count
+        text = str(e)
+        if text not in self._said:
+            self._said.add(text)
+            log.warning("%s: frame skipped, the frames after it go on", text)
+
+
+def open_source(spec: str, size: tuple[int, int] | None, loop: bool,
+                skip: Skipped | None = None) -> Iterator[np.ndarray]:
+    """Frames of a SOURCE spec (not ``sim``); raises SourceError naming what is wrong, and
+    with ``skip``, a file source's frames that cannot be given mid-run are left to it."""
     if spec.startswith("device:"):
         return open_device(device_index(spec), size)
     if spec == "file:":
@@ -128,6 +158,8 @@ def open_source(spec: str, size: tuple[int, int] | None, loop: bool) -> Iterator
                           "folder or a glob)")
     path = spec[len("file:"):] if spec.startswith("file:") else spec
     frames: Iterable[np.ndarray] = open_files([path], size)
+    if isinstance(frames, FileFrames):
+        frames.size_flag, frames.skip = "--size", skip
     if not loop:
         return iter(frames)
     # a looping source is decoded once and replayed from memory while it fits comfortably,
@@ -413,8 +445,9 @@ def _first_frame_read(frames: Iterator[np.ndarray]) -> Iterator[np.ndarray]:
 def main(args: argparse.Namespace) -> int:
     if _is_sim(args) or is_ros2(args.source):
         return serve("camera", args, loop, publishes_frames=True)
+    skipped = Skipped()
     try:
-        source = open_source(args.source, _size(args), args.loop)
+        source = open_source(args.source, _size(args), args.loop, skipped)
         frames = _first_frame_read(source)
         if isinstance(source, DeviceFrames):
             # a live camera's first frame is stale once the pipeline is up: the device
@@ -425,8 +458,11 @@ def main(args: argparse.Namespace) -> int:
         # no such camera is a start-up failure (1); a file that cannot be read, bad input (2)
         return 1 if args.source.startswith("device:") else 2
     try:
-        return serve("camera", args, lambda node, a: loop(node, a, frames),
-                     publishes_frames=True)
+        def run(node: Node, a: argparse.Namespace) -> int:
+            skipped.attach(node)
+            return loop(node, a, frames)
+
+        return serve("camera", args, run, publishes_frames=True)
     finally:
         if isinstance(source, DeviceFrames):
             source.close()  # its reading thread lets the device go

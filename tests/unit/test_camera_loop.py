@@ -53,3 +53,35 @@ def test_a_single_pass_still_ends_with_the_error(cut_video):
         for f in frames:
             got.append(f)
     _same_frames(got, held)
+
+
+@pytest.mark.parametrize("loop", [False, True])
+def test_a_frame_of_another_size_is_skipped_and_the_rest_sent(tmp_path, caplog, loop):
+    """A folder whose third image has another size than the first: the camera used to end
+    (exit 2) there, and the run with it; it now leaves that frame out, says so once (naming
+    the file, the sizes and its own --size flag) and counts it, and sends the others, pass
+    after pass when looping. An offline run (no skip) still stops with the error."""
+    from vistrack.common.bus import MemoryNode
+    from vistrack.common.sources import open_files
+
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (100, 100) if i == 2 else (60, 80), dtype=np.uint8)
+              for i in range(5)]
+    for i, image in enumerate(images):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), image)
+    skipped = service.Skipped()
+    with MemoryNode("camera") as node, caplog.at_level(logging.WARNING, logger="vistrack.camera"):
+        skipped.attach(node)
+        frames = service.open_source(f"file:{tmp_path}", None, loop=loop, skip=skipped)
+        got = list(itertools.islice(frames, 8 if loop else 10))
+        assert node.status.extra["skipped"] == 1  # a loop decodes once, kept in memory
+    kept = [images[i] for i in (0, 1, 3, 4)]
+    assert len(got) == (8 if loop else 4)
+    for k, frame in enumerate(got):
+        assert np.array_equal(frame, kept[k % 4]), k
+    said = [r.getMessage() for r in caplog.records]
+    assert said == [f"{tmp_path / 'f2.png'}: frame is 100x100 but the first was 80x60; give "
+                    "--size to scale them: frame skipped, the frames after it go on"]
+    with pytest.raises(SourceError, match="frame is 100x100 but the first was 80x60; give "
+                                          "--resize to scale them"):
+        list(open_files([str(tmp_path)]))

@@ -13,6 +13,7 @@ import argparse
 import dataclasses
 import importlib
 import json
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -259,8 +260,11 @@ class _Reader:
             self._loader.dispose()
 
     def error(self, node: yaml.Node, path: str, message: str) -> LaunchError:
+        """The error at ``node``, naming the file, its line and the key ``path`` ("": the
+        document itself)."""
         line = node.start_mark.line + 1
-        return LaunchError(f"{self.source}, line {line}: {path}: {message}", line)
+        where = f"{path}: " if path else "the launch file: "
+        return LaunchError(f"{self.source}, line {line}: {where}{message}", line)
 
     def value(self, node: yaml.Node) -> Any:
         """The Python value of a scalar node (YAML's own typing: 30 is an int, true a bool)."""
@@ -295,11 +299,27 @@ class _Reader:
             raise self.error(node, path, f"expected {what}, got {shown}")
         return value
 
-    def number(self, node: yaml.Node, path: str, lo: float, hi: float) -> float:
-        value = float(self.scalar(node, path, (int, float), "a number of seconds"))
-        if not lo <= value <= hi:
-            raise self.error(node, path, f"{value:g} is out of range: allowed {lo:g}..{hi:g}")
-        return value
+    def number(self, node: yaml.Node, path: str, lo: float, hi: float,
+               allowed: str | None = None) -> float:
+        """A number of seconds within ``lo..hi`` (``allowed``: the range as errors say it).
+        A plain (unquoted) scalar in exponent form is one too: YAML 1.1 reads ``1e3`` as a
+        string."""
+        allowed = allowed or f"{lo:g}..{hi:g} s"
+        value = self.value(node) if isinstance(node, yaml.ScalarNode) else None
+        if isinstance(value, str) and node.style is None:
+            try:
+                value = float(value)
+            except ValueError:
+                pass
+        if isinstance(value, float) and not math.isnan(value) or (
+                isinstance(value, int) and not isinstance(value, bool)):
+            number = float(value)
+        else:
+            shown = repr(value) if isinstance(node, yaml.ScalarNode) else f"a {node.id}"
+            raise self.error(node, path, f"expected a number of seconds, {allowed}, got {shown}")
+        if not lo <= number <= hi:
+            raise self.error(node, path, f"{node.value} is out of range: allowed {allowed}")
+        return number
 
     def sequence(self, node: yaml.Node, path: str, what: str) -> list[yaml.Node]:
         if not isinstance(node, yaml.SequenceNode):
@@ -315,8 +335,9 @@ def _parse_launch(reader: _Reader, root: yaml.Node | None) -> LaunchSpec:
     spec: dict[str, Any] = {"source": reader.source}
     if "robot" in top:
         node = top["robot"][1]
+        robot = reader.scalar(node, "robot", (str,), "a string")
         try:
-            spec["robot"] = validate_robot_id(reader.scalar(node, "robot", (str,), "a string"))
+            spec["robot"] = validate_robot_id(robot)
         except ValueError as e:
             raise reader.error(node, "robot", str(e)) from None
     if "router" in top:
@@ -411,8 +432,9 @@ def _service(reader: _Reader, name: str, node: yaml.Node | None, path: str,
         spec["backoff"] = _backoff(reader, fields["backoff"][1], f"{path}.backoff")
     if "hang_timeout" in fields:
         value_node = fields["hang_timeout"][1]
-        value = float(reader.scalar(value_node, f"{path}.hang_timeout", (int, float),
-                                    "a number of seconds"))
+        lo, hi = HANG_TIMEOUT_RANGE
+        value = reader.number(value_node, f"{path}.hang_timeout", 0.0, hi,
+                              f"0 (never) or {lo:g}..{hi:g} s")
         try:
             spec["hang_timeout"] = check_hang_timeout(value)
         except LaunchError as e:

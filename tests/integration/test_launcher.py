@@ -494,7 +494,18 @@ BAD_LAUNCH_FILES = {
                         r"line 3: services: unknown service 'tracker'; allowed: camera, "
                         r"preprocessing, motion-estimation, auto-tuner, fuzzy-controller"),
     "wrong type": ("ready_timeout: soon\nservices: {camera: }\n",
-                   r"line 1: ready_timeout: expected a number of seconds, got 'soon'"),
+                   r"line 1: ready_timeout: expected a number of seconds, 0\.1\.\.3600 s, "
+                   r"got 'soon'$"),
+    # YAML 1.1 reads 1e400 unquoted as a string: taken as the number it says, and refused
+    "huge timeout": ("ready_timeout: 1e400\nservices: {camera: }\n",
+                     r"line 1: ready_timeout: 1e400 is out of range: allowed 0\.1\.\.3600 s$"),
+    "quoted timeout": ("ready_timeout: '5'\nservices: {camera: }\n",
+                       r"line 1: ready_timeout: expected a number of seconds, 0\.1\.\.3600 s, "
+                       r"got '5'$"),
+    "robot not a string": ("robot: 5\nservices: {camera: }\n",
+                           r"line 1: robot: expected a string, got 5$"),  # said once
+    "a list, not a mapping": ("- camera\n", r"line 1: the launch file: expected a mapping with "
+                              r"keys robot, router, ready_timeout, services$"),
     "unknown flag": ("services:\n  camera:\n    flags: [--fps, '10', --sorce, x]\n",
                      r"line 3: services\.camera\.flags: unrecognized arguments: --sorce x"),
     "reserved flag": ("services:\n  preprocessing:\n    flags: {--robot: r2}\n",
@@ -521,7 +532,7 @@ BAD_LAUNCH_FILES = {
                                   r"out of range: allowed 0 \(never\) or 1\.\.3600 s$"),
     "hang timeout not a number": ("services:\n  camera:\n    hang_timeout: soon\n",
                                   r"line 3: services\.camera\.hang_timeout: expected a number "
-                                  r"of seconds, got 'soon'$"),
+                                  r"of seconds, 0 \(never\) or 1\.\.3600 s, got 'soon'$"),
     "scale band": ("services:\n  auto-tuner:\n    flags: [--scale-band, '1.1', '1.5']\n",
                    r"line 3: services\.auto-tuner\.flags: --scale-band 1\.1 1\.5 is out of "
                    r"range: allowed 0 < LO < 1 < HI$"),

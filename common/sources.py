@@ -19,6 +19,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -106,36 +107,44 @@ def read_image(path: str, grey: Grey | None = None) -> np.ndarray:
         raise SourceError(f"{path}: no such file")
     if os.path.isdir(path):
         raise SourceError(f"{path}: is a folder, expected an image file")
-    if path.lower().endswith((".jpg", ".jpeg")):
-        img, said = _imread_jpeg(path)
-        if img is not None and "Premature end" in said:
-            raise SourceError(f"{path}: damaged image: the JPEG data ends before the image "
-                              "does (cut short?)")
-    else:
-        img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    img, said = _stderr_of(cv2.imread, path, cv2.IMREAD_UNCHANGED)
+    if img is not None and "Premature end" in said and path.lower().endswith((".jpg", ".jpeg")):
+        raise SourceError(f"{path}: damaged image: the JPEG data ends before the image "
+                          "does (cut short?)")
+    _pass_on(said, read=img is not None)
     if img is None:
         raise SourceError(f"{path}: not a readable image")
     return (grey or Grey())(img)
 
 
-def _imread_jpeg(path: str) -> tuple[np.ndarray | None, str]:
-    """``cv2.imread`` of a JPEG file and what libjpeg printed meanwhile.
-
-    A JPEG file cut short decodes (grey below the cut) with libjpeg's "Premature end of JPEG
-    file" on the process's stderr as the only sign: it is caught here, on its way to stderr,
-    so that the cut is an error naming the file rather than a line of C library output.
-    """
+def _stderr_of(fn: Callable[..., Any], *args: Any) -> tuple[Any, str]:
+    """``fn(*args)`` and what it printed on the process's stderr meanwhile (the C libraries
+    under OpenCV print there: libpng's "libpng error: Read Error" before a damaged image's
+    None, libjpeg's "Premature end of JPEG file" as the only sign of a JPEG cut short, the
+    AVI reader's "Unexpected element" for a file that is no video): caught on its way, so
+    that a bad file is one line of ours naming it. Other threads' lines written meanwhile
+    land here too: :func:`_pass_on` gives them back where the file was read."""
     with tempfile.TemporaryFile() as caught:
         sys.stderr.flush()
         saved = os.dup(2)
         os.dup2(caught.fileno(), 2)
         try:
-            img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+            out = fn(*args)
         finally:
             os.dup2(saved, 2)
             os.close(saved)
         caught.seek(0)
-        return img, caught.read(4096).decode("utf-8", "replace")
+        return out, caught.read().decode("utf-8", "replace")
+
+
+def _pass_on(said: str, read: bool) -> None:
+    """Write ``said`` (:func:`_stderr_of`) to stderr again where the file was ``read`` (a
+    library's warning about a file it read is still news); where it was not, the caller's
+    error says what the library's complaint did (whose last line may be binary garbage: the
+    AVI reader prints the bytes it did not expect)."""
+    if read and said:
+        sys.stderr.write(said)
+        sys.stderr.flush()
 
 
 _DIGITS = re.compile(r"(\d+)")
@@ -203,7 +212,8 @@ class FileFrames:
         grey = Grey()  # one stream: 16-bit frames scaled by the depth of its samples
         if self.video:
             path = self.paths[0]
-            cap = cv2.VideoCapture(path)
+            cap, said = _stderr_of(cv2.VideoCapture, path)
+            _pass_on(said, read=cap.isOpened())
             if not cap.isOpened():
                 raise SourceError(f"{path}: not a readable video")
             try:

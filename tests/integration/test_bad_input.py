@@ -38,6 +38,12 @@ def d(tmp_path_factory: pytest.TempPathFactory) -> Path:
     cv2.imwrite(str(d / "mixed" / "a.png"), np.full((64, 64), 128, np.uint8))
     (d / "mixed" / "b.png").write_bytes(b"not a png")
     (d / "junk.mp4").write_bytes(bytes(range(256)) * 20)
+    # damaged so that the C libraries under OpenCV complain on stderr (libpng's "Read
+    # Error"; FFmpeg's and OpenCV's AVI readers' header messages)
+    png = cv2.imencode(".png", rng_noise((200, 300)))[1].tobytes()
+    (d / "trunc.png").write_bytes(png[:len(png) // 2])
+    riff = d / "riff.avi"  # an AVI header, then no AVI
+    riff.write_bytes(b"RIFF\x00\x10\x00\x00AVI " + bytes(range(256)) * 4)
     (d / "badfirst").mkdir()  # its first image is no image
     (d / "badfirst" / "a.png").write_bytes(b"not a png")
     cv2.imwrite(str(d / "badfirst" / "b.png"), np.full((64, 64), 128, np.uint8))
@@ -69,6 +75,10 @@ def vistrack(*args: str, fresh: bool = False) -> subprocess.CompletedProcess:
     return run_vistrack(*args, timeout=TIMEOUT_S, fresh=fresh)
 
 
+def rng_noise(shape: tuple[int, int]) -> np.ndarray:
+    return np.random.default_rng(0).integers(0, 256, shape, dtype=np.uint8)
+
+
 def check(run: subprocess.CompletedProcess, sub: str, message: str) -> None:
     assert (run.returncode, run.stderr) == (2, f"vistrack {sub}: error: {message}\n"), \
         run.stderr
@@ -82,6 +92,9 @@ CASES = {
         (["--resize", "4x4"], "--resize 4x4 is out of range: width and height must be 8..8192"),
         (["{d}/mixed"], "{d}/mixed/b.png: not a readable image"),
         (["{d}/junk.mp4"], "{d}/junk.mp4: not a readable video"),
+        # one line of ours, without the libraries' own (which used to come first)
+        (["{d}/trunc.png"], "{d}/trunc.png: not a readable image"),
+        (["{d}/riff.avi"], "{d}/riff.avi: not a readable video"),
         (["{d}/cutjpg"], "{d}/cutjpg/b.jpg: damaged image: the JPEG data ends before the image "
                          "does (cut short?)"),
         (["{d}/cut.avi"], "{d}/cut.avi: the video ends after 3 of the 10 frames its header "
@@ -218,7 +231,8 @@ CASES = {
 
 # run in a new interpreter: an offline command reading a damaged video, a service given a bad
 # Zenoh config, a tool with a bad flag (what start-up or shutdown prints shows there only)
-FRESH = {("track", "{d}/cut.avi"), ("camera", "-c"), ("echo", "camera/frame")}
+FRESH = {("track", "{d}/cut.avi"), ("track", "{d}/trunc.png"), ("track", "{d}/riff.avi"),
+         ("camera", "-c"), ("echo", "camera/frame")}
 
 
 @pytest.mark.parametrize(("sub", "argv", "message"),

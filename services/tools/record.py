@@ -178,25 +178,31 @@ def _objects(path: Path, f: BinaryIO) -> Iterator[tuple[int, Any]]:
     """(byte offset, object) for each msgpack object of ``f``; RecordError on a bad one."""
     unpacker = _unpacker()
     fed = 0
+    # where the object that ran out of data starts: the unpacker resumes it where it stopped,
+    # and its tell() is then part of the way into it, not its start
+    pending: int | None = None
     while True:
         chunk = f.read(_CHUNK)
         if chunk:
             unpacker.feed(chunk)
             fed += len(chunk)
         while True:
-            offset = unpacker.tell()
+            offset = unpacker.tell() if pending is None else pending
             try:
                 obj = unpacker.unpack()
             except msgpack.OutOfData:
-                break  # an object continues in the next chunk, or the file is cut short
+                pending = offset  # it continues in the next chunk, or the file is cut short
+                break
             except _UNPACK_ERRORS as e:
                 detail = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
                 raise RecordError(path, offset, f"corrupt record ({detail})") from None
+            pending = None
             yield offset, obj
         if not chunk:
-            if unpacker.tell() < fed:
-                raise RecordError(path, unpacker.tell(), "truncated record: the file ends "
-                                  f"inside it ({fed - unpacker.tell()} bytes of it present)")
+            start = unpacker.tell() if pending is None else pending
+            if start < fed:
+                raise RecordError(path, start, "truncated record: the file ends inside it "
+                                  f"({fed - start} bytes of it present)")
             return
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 
+import msgpack
 import numpy as np
 import pytest
 from forkcli import vistrack
@@ -255,3 +256,33 @@ def test_a_schema_other_than_ours_is_not_replayed(tmp_path):
         "params_id": 1, "source": "user", "reason": ""})
     with pytest.raises(RecordError, match="ungroup_size"):
         McapRecording(path)
+
+
+@pytest.mark.parametrize("cut_into", [1000, 300_000])
+def test_a_vtr_cut_inside_a_record_names_where_that_record_starts(tmp_path, cut_into):
+    """A .vtr whose last record is cut ``cut_into`` bytes in: the records before it are read
+    and the error names the offset where the cut record starts and how much of it is there.
+    It named the unpacker's position part of the way into the record (60 bytes in, '940 of
+    1000 present'), and a record read across the reader's 1 MiB chunks was yielded with such
+    an offset too."""
+    vtr = tmp_path / "run.vtr"
+    payload = bytes(range(256)) * 2000  # 512 000 bytes a record: several span a chunk
+    with RecordWriter(vtr, robot="robot", keys=[f"{ROOT}/**"]) as writer:
+        for k in range(6):
+            writer.write_at(f"{ROOT}/camera/frame", payload, 1000 + k)
+    data = vtr.read_bytes()
+    whole = msgpack.Unpacker(raw=False)  # fed the whole file at once: tell() is each start
+    whole.feed(data)
+    starts = []
+    for _ in range(7):  # the header, then the records
+        starts.append(whole.tell())
+        whole.unpack()
+    starts = starts[1:]
+    (tmp_path / "cut.vtr").write_bytes(data[:starts[-1] + cut_into])
+    got = []
+    with pytest.raises(RecordError) as e:
+        for r in Recording(tmp_path / "cut.vtr").records():
+            got.append(r.t_ns)
+    assert got == [1000, 1001, 1002, 1003, 1004]
+    assert str(e.value) == (f"{tmp_path / 'cut.vtr'} at byte offset {starts[-1]}: truncated "
+                            f"record: the file ends inside it ({cut_into} bytes of it present)")

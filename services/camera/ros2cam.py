@@ -102,7 +102,11 @@ def run_ros2(node: Node, args: argparse.Namespace, size: tuple[int, int] | None)
                                  convert.on_sample, any_hash=True)
         log.info("ROS 2 camera: %s (%s) on domain %d", topic, typename, args.domain)
         ready(node)
-        node.stop.wait()
+        # the images are Zenoh's callback's work: this loop only waits, and says so (a bare
+        # stop.wait() left the status's busy_s growing with uptime, and vistrack up killed
+        # the camera as hung after its hang_timeout, 5 s)
+        while not node.sleep(1.0):
+            pass
     return 0
 
 

@@ -215,6 +215,11 @@ def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_p
                      what=f"the {reader} to count 2 rejected images")
             status = service_status(session, reader)
             assert "nv21" in status["last_error"]
+            # its loop waits while Zenoh's callback does the work: not busy (a busy_s that
+            # grew with uptime got the camera killed as hung under vistrack up)
+            status = wait_for(lambda: (st := service_status(session, reader))["uptime_s"] > 2.5
+                              and st, what=f"the {reader} up 2.5 s")
+            assert status["busy_s"] < 1.0, status["busy_s"]
             assert status["extra"]["frames"] == 8 + resent
             if path == "camera":  # preprocessing receives through a ring: no attachments
                 assert status["dropped"] == 2

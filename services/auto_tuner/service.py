@@ -165,6 +165,7 @@ class AutoTuner:
         self.worker: Worker | None = None
         self.params_seq, self.report_seq = itertools.count(), itertools.count()  # per key
         self.seen_id = 0  # largest params_id seen in estimates (a restarted tuner lags)
+        self._lagging = False  # reminders held back: the estimates run a newer set (announce)
         self.last_estimate = NO_ESTIMATE  # (seq, stamp_ns) of the last estimate watched
         self.started = 0.0
         self.reason = ""
@@ -195,6 +196,17 @@ class AutoTuner:
             st.publish_status(self.node)
             log.info("publishing params_id %d (%s): %s", st.params_id, reason,
                      st.params.factors())
+        elif self.seen_id > st.params_id:
+            # the estimates run a newer set than this tuner knows (one it missed before it
+            # subscribed: a recording's, replayed while it started): reminding of its older
+            # one would only be refused as stale by every service, every second
+            if not self._lagging:
+                self._lagging = True
+                log.info("params_id %d is in force (seen in the estimates), newer than this "
+                         "tuner's %d: no reminders until a tuning or a set", self.seen_id,
+                         st.params_id)
+            return True
+        self._lagging = False
         source = st.source if st.source in ("tuner", "user") else "tuner"
         msg = Params.from_tracker_params(st.params, seq=next(self.params_seq),
                                          stamp_ns=time.time_ns(), params_id=st.params_id,

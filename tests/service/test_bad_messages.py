@@ -113,8 +113,37 @@ def test_the_tuner_at_the_largest_params_id_keeps_what_is_in_force():
         assert node.published_on(node.keys.params) == []
         assert tuner.state.params_id == 0
         assert "largest a message may carry" in node.status.last_error
-        assert tuner.announce()  # the reminder of what is in force still goes out
-        assert Params.decode(node.published_on(node.keys.params)[0]).params_id == 0
+        # its own set (id 0) is older than the one the estimates run: not reminded of
+        assert tuner.announce()
+        assert node.published_on(node.keys.params) == []
+
+
+def test_a_tuner_behind_the_estimates_holds_its_reminders_back(caplog):
+    """The estimates run a params_id newer than the tuner's (a recording's set, replayed
+    while the tuner started, which it never received): its reminders of its older set were
+    refused as stale by every service, every second. It now holds them back, says so once,
+    and its next tuning takes an id above the one seen; a set it receives puts reminders
+    back."""
+    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
+
+    args = parse("auto-tuner", "--no-tune")
+    with MemoryNode("auto_tuner") as node, caplog.at_level(logging.INFO,
+                                                            logger="vistrack.auto_tuner"):
+        tuner = AutoTuner(node, args, check_flags(args))
+        assert tuner.announce("start-up (flags)")  # params_id 1
+        tuner.seen_id = 2
+        for _ in range(3):
+            assert tuner.announce()
+        assert [Params.decode(p).params_id for p in node.published_on(node.keys.params)] == [1]
+        said = [r.getMessage() for r in caplog.records if "no reminders" in r.getMessage()]
+        assert said == ["params_id 2 is in force (seen in the estimates), newer than this "
+                        "tuner's 1: no reminders until a tuning or a set"]
+        tuner.on_params(params_payload(5, search_size=21))  # a user's set
+        assert tuner.announce()
+        assert Params.decode(node.published_on(node.keys.params)[-1]).params_id == 5
+        tuner.seen_id = 6
+        assert tuner.announce("scene change")
+        assert Params.decode(node.published_on(node.keys.params)[-1]).params_id == 7
 
 
 def test_a_tuning_that_cannot_be_announced_says_so_not_already_in_force(caplog):

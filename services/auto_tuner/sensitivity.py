@@ -399,6 +399,7 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
          tolerance: float = DEFAULT_TOLERANCE, step: int = DEFAULT_STEP,
          repeats: int | None = None, method: str = "lenth", design: Design | None = None,
          ground_truth: GroundTruth | None = None, base: TrackerParams | None = None,
+         fixed: Mapping[str, float] | None = None,
          progress: Progress | None = None, replicates: int = 1,
          max_megapixels: float | None = DEFAULT_MEGAPIXELS) -> TuneResult:
     """The whole tuning cycle on a buffer of frames: design, analysis, sweep, optimum.
@@ -417,6 +418,9 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
         effects are then tested against pure error (:func:`.experiment.analyse_replicated`).
     design : default :func:`.design.paper_design` (2^(5-1), Table 2 levels).
     ground_truth : optional :class:`GroundTruth`; adds ``gt_*`` responses.
+    fixed : the values at which the sweep holds the factors other than the windows
+        (default Table 4's, :data:`TABLE4_FIXED`, as the paper's sweep; the auto-tuner
+        service gives those in force, so that the optimum it applies keeps them).
     base : non-factor parameters (weights, subpixel, search, ...), default TrackerParams().
         Its ``search`` is the SSD search every timed run uses (``"exhaustive"``: the paper's);
         the untimed reference runs use the pruned one, which gives the same motion.
@@ -480,7 +484,7 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
         run = replicated.means()
         analysis = analyse_replicated(replicated)
     mid = time.perf_counter()
-    result = sweep(exp, step=step, base=base, seed=seed, progress=progress)
+    result = sweep(exp, step=step, fixed=fixed, base=base, seed=seed, progress=progress)
     best = optimum(result, tolerance)
     end = time.perf_counter()
     seconds = {"design": mid - start, "sweep": end - mid, "total": end - start}

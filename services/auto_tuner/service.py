@@ -85,6 +85,7 @@ from .sensitivity import (
     MEGAPIXELS_RANGE,
     MIN_FRAMES,
     STEP_RANGE,
+    TABLE4_FIXED,
     TOLERANCE_RANGE,
 )
 from .worker import Worker
@@ -325,7 +326,12 @@ class AutoTuner:
             self._said.clear()
             self.started, self.reason, self.id_at_start = now, reason, self.state.params_id
             self.stamp_ns = self.frames[-1][1]
-            self.worker.submit({"frames": [f for f, _ in self.frames], "base": self.state.params,
+            params = self.state.params
+            self.worker.submit({"frames": [f for f, _ in self.frames], "base": params,
+                                # the other factors as in force: the sweep's own default is
+                                # Table 4's, and its optimum put those back (a user's
+                                # max_features 150 became 100 at the next tuning)
+                                "fixed": {k: getattr(params, k) for k in TABLE4_FIXED},
                                 "tolerance": self.args.tolerance,
                                 "step": self.args.tune_sweep_step,
                                 "max_megapixels": self.args.max_megapixels})
@@ -349,7 +355,9 @@ class AutoTuner:
         self.triggers.finished(now)
         _, report, optimum = result
         st = self.state
-        new = st.params.replace(**optimum)
+        # the windows are what a tuning chooses; the rest stays as in force
+        new = st.params.replace(search_size=optimum["search_size"],
+                                corr_size=optimum["corr_size"])
         user_meanwhile = st.params_id != self.id_at_start
         changed = new != st.params and not user_meanwhile
         unannounced = False

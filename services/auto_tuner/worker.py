@@ -77,7 +77,8 @@ def _work(conn: Any, parent_pid: int) -> None:
             job = conn.recv()
             try:
                 result = tune(job["frames"], None, tolerance=job["tolerance"], step=job["step"],
-                              base=job["base"], max_megapixels=job["max_megapixels"])
+                              base=job["base"], fixed=job.get("fixed"),
+                              max_megapixels=job["max_megapixels"])
                 conn.send(("ok", result.to_report(), dict(result.optimum.params)))
             except TextureError as e:  # nothing to tune on: not a fault
                 conn.send(("skipped", str(e)))

@@ -9,6 +9,7 @@ import threading
 import time
 
 import msgpack
+import numpy as np
 import pytest
 
 from vistrack.common.bus import MemoryNode
@@ -205,6 +206,56 @@ def test_the_tuner_takes_another_tuners_newer_params_and_reminds_of_them():
         assert tuner.announce()
         reminder = Params.decode(node.published_on(node.keys.params)[-1])
         assert (reminder.params_id, reminder.search_size) == (2, 21)
+
+
+def test_a_tuning_changes_the_windows_and_keeps_the_rest_in_force():
+    """A user's set (max_features 150, ungroup_size 7, thres_percent 3) stays in force but
+    for the windows a tuning chooses: the cycle is asked to sweep at those values (not Table
+    4's), and the optimum it returns changes search_size and corr_size only (before, the
+    next tuning put 100 / 5 / 2.0 back). The worker is a process: a recorder of the job it
+    is given stands in for it here."""
+    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
+
+    class Jobs:
+        ready = True
+
+        def __init__(self) -> None:
+            self.jobs: list[dict] = []
+
+        def submit(self, job: dict) -> None:
+            self.jobs.append(job)
+
+        def poll(self) -> None:
+            return None
+
+    args = parse("auto-tuner")
+    with MemoryNode("auto_tuner") as node:
+        tuner = AutoTuner(node, args, check_flags(args))
+        tuner.worker = jobs = Jobs()  # type: ignore[assignment]
+        tuner.on_params(params_payload(4, max_features=150, thres_percent=3.0,
+                                       ungroup_size=7))
+        now = time.monotonic()
+        tuner.take_frames(now)  # the initial tuning waits for a buffer: it starts empty
+        tuner.frames.extend((np.zeros((8, 8), np.uint8), k) for k in range(30))
+        tuner.triggers.due = lambda now: "scene change"  # type: ignore[method-assign]
+        tuner.tick(now)
+        assert jobs.jobs and jobs.jobs[0]["fixed"] == {"max_features": 150,
+                                                         "thres_percent": 3.0,
+                                                         "ungroup_size": 7}
+        report = {"design": [[-1, 1], [1, -1]], "factors": ["A", "B"], "order": [1, 0],
+                  "responses": {"tf": [0.2, 0.3]}, "effects": {"tf": {"1": 0.1}},
+                  "significant": {"tf": {"99": ["1"], "95": ["1"]}},
+                  "optimum": {"search_size": 11, "corr_size": 5},
+                  "sweep": {"search": [10, 12], "corr": [5, 7]}}
+        # what the sweep at Table 4's values returned: the other factors at 100, 2.0, 5
+        tuner._finish(("ok", report, {"max_features": 100, "thres_percent": 2.0,
+                                      "search_size": 11, "corr_size": 5, "ungroup_size": 5}),
+                      time.monotonic())
+        p = tuner.state.params
+        assert (p.max_features, p.thres_percent, p.ungroup_size) == (150, 3.0, 7)
+        assert (p.search_size, p.corr_size) == (11, 5)
+        sent = Params.decode(node.published_on(node.keys.params)[-1])
+        assert (sent.max_features, sent.search_size, sent.params_id) == (150, 11, 5)
 
 
 def test_the_camera_takes_no_acknowledgement_of_a_frame_it_has_not_sent():

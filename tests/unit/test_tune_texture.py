@@ -41,3 +41,19 @@ def test_the_share_of_textured_frames_counts_the_frames_with_a_valid_estimate(re
     frames = [real_image] * 4 + [np.zeros_like(real_image)] * 4
     assert Experiment(frames).textured(TrackerParams()) == pytest.approx(4 / 8)
     assert Experiment([real_image] * 5).textured(TrackerParams()) == 1.0
+
+
+def test_the_sweep_holds_the_other_factors_where_it_is_told(real_image):
+    """The auto-tuner tunes the windows for the parameters in force: its sweep holds
+    max_features, thres_percent and ungroup_size at the values it is given, and the optimum
+    carries them. Held at Table 4's (the paper's sweep, the default), the optimum put a
+    user's max_features 150 back to 100 at the next tuning."""
+    frames = [np.ascontiguousarray(np.roll(real_image, (k, 2 * k), axis=(0, 1)))
+              for k in range(6)]
+    held = {"max_features": 150, "thres_percent": 3.0, "ungroup_size": 7}
+    result = tune(frames, seed=1, repeats=1, fixed=held)
+    assert {k: result.optimum.params[k] for k in held} == held
+    assert {k: getattr(result.params, k) for k in held} == held
+    default = tune(frames, seed=1, repeats=1)
+    assert {k: default.optimum.params[k] for k in held} == {
+        "max_features": 100, "thres_percent": 2.0, "ungroup_size": 5}

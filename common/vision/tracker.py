@@ -274,8 +274,18 @@ class Tracker:
         else:
             self._track(frame, pyr, gap / self._span)
             self._span = gap
+            lost_all = len(self._pos) == 0
             if len(self._pos) < p.redetect_fraction * p.max_features:
                 self._add_features(pre, frame.shape)
+            if lost_all and len(self._pos):
+                # every feature was lost (a covered lens, a dark spell, a jump no match
+                # survived): those found now begin a new track. Nothing measured the motion
+                # in between, so the motion and scale since the track began start again,
+                # and `first` says so (carried on, dx and scale went on from the old
+                # track's as if the new features were the old ones)
+                first = True
+                self._acc_dx = self._acc_dy = 0.0
+                self._acc_scale = 1.0
         self._seq = None if seq is None else int(seq)
         self._prev = frame
         self._prev_pyr = pyr

@@ -39,7 +39,10 @@ def test_black_uniform_and_saturated_frames_have_no_features(value):
 
 def test_a_real_frame_then_a_black_one(real_image):
     """The lens is covered: every feature is lost at once, the estimate is invalid and
-    finite, the motion accumulated so far is kept; when it is uncovered the track goes on."""
+    finite, the motion accumulated so far is kept; when it is uncovered, the features found
+    begin a new track (first, its motion and scale from there: the scene moved back 2 px
+    unseen meanwhile, which no estimate may claim to have measured). The track used to go
+    on, its dx carrying the old track's 2 px onto the new features."""
     tracker = Tracker(TrackerParams())
     e0 = tracker.process(real_image)
     assert e0.valid and e0.npi > 50
@@ -54,6 +57,11 @@ def test_a_real_frame_then_a_black_one(real_image):
     again = tracker.process(real_image)
     assert again.valid and again.npi > 50
     assert_finite(again)
+    assert again.first and (again.dx, again.dy, again.scale) == (0.0, 0.0, 1.0)
+    moved = tracker.process(cv2.warpAffine(real_image, np.float32([[1, 0, -3.0], [0, 1, 0]]),
+                                           real_image.shape[::-1],
+                                           borderMode=cv2.BORDER_REFLECT))
+    assert not moved.first and abs(moved.dx + 3.0) < 0.1 and abs(moved.dy) < 0.1
 
 
 @pytest.mark.parametrize("sigma", [0.5, 2.0, 5.0, 8.0])

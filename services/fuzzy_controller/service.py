@@ -188,6 +188,12 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         except ValueError as e:  # out of order or a duplicate: the input's fault, not ours
             reject(node, log, Estimate.KEY, e)
             return
+        if not cmd.stale and (late := ctrl.command_at(now)).stale:
+            # older than --stale-after on arrival (a camera clock behind this host's, a
+            # pipeline slower than the bound): the watchdog's stop, not a move on old news,
+            # which it then stopped 0.1 s later, stop and go from data seconds old
+            cmd = late
+            node.status.extra["late"] = node.status.extra.get("late", 0) + 1
         if cmd is STOP or cmd.stale:
             last_stop = now
         used = (est.seq, est.stamp_ns)

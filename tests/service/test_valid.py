@@ -190,3 +190,39 @@ def test_a_held_camera_sends_nothing_until_a_line_on_its_stdin(monkeypatch):
         with Running("camera", loop, args) as node:
             time.sleep(0.3)
         assert node.published_on(node.keys.frame) == []
+
+
+def test_the_controller_does_not_move_the_robot_on_an_estimate_already_stale():
+    """An estimate stamped longer ago than --stale-after (0.3 s; a camera clock behind the
+    host's, a pipeline slower than the bound) is answered with the watchdog's stale stop and
+    counted (extra.late): it used to move the robot, which the watchdog stopped 0.1 s later,
+    stop and go on data 0.5 to 5 s old. A fresh one moves it again."""
+    from vistrack.services.fuzzy_controller.service import loop
+
+    def estimate(seq: int, stamp_ns: int) -> bytes:
+        return Estimate(seq=seq, stamp_ns=stamp_ns, npi=40, xc=90.0 + 10 * seq, yc=128.0,
+                        xe=400.0, ye=400.0, dx=10.0 * seq, dy=0.0, scale=1.0, t_ms=1.0,
+                        first=seq == 0, valid=True, features=[], params_id=0).encode()
+
+    with Running("fuzzy_controller", loop, parse("fuzzy-controller")) as node:
+        def commands() -> list[CmdVel]:
+            return [CmdVel.decode(p) for p in node.published_on(node.keys.cmd_vel)]
+
+        answered: list[CmdVel] = []
+        t0 = time.time_ns()
+        # the second and third stamped 1 and 2 ms after the first, but arriving 0.6 s later
+        for seq, stamp, wait in ((0, t0, 0.0), (1, t0 + 10**6, 0.6), (2, t0 + 2 * 10**6, 0.0),
+                                 (3, None, 0.0)):
+            time.sleep(wait)
+            payload = estimate(seq, time.time_ns() if stamp is None else stamp)
+            stamp = Estimate.decode(payload).stamp_ns
+            wait_for(lambda payload=payload: node.feed(node.keys.estimate, payload),
+                     what="a subscription")
+            wait_for(lambda stamp=stamp: any(c.stamp_ns == stamp for c in commands()),
+                     what=f"the command of estimate {seq}")
+            answered.append(next(c for c in commands() if c.stamp_ns == stamp))
+        late = node.status.extra.get("late")
+    assert [c.stale for c in answered] == [False, True, True, False]
+    assert all((c.vx, c.vy, c.wz) == (0.0, 0.0, 0.0) for c in answered[1:3])
+    assert answered[3].vy < 0.0  # fresh, 30 px right of the set point: it moves again
+    assert late == 2

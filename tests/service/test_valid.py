@@ -127,6 +127,21 @@ def test_motion_estimation_counts_features_over_the_frames_budget_apart(monkeypa
     assert "search_size" in said[0] and "params_id 0" in said[0] and "(0 window" in said[0]
 
 
+def command_for(node: MemoryNode, payload: bytes) -> CmdVel:
+    """Feed an estimate to a running fuzzy controller; its command (by the estimate's stamp)."""
+    stamp = Estimate.decode(payload).stamp_ns
+
+    def answer() -> CmdVel | None:
+        return next((c for p in node.published_on(node.keys.cmd_vel)
+                     if (c := CmdVel.decode(p)).stamp_ns == stamp), None)
+
+    wait_for(lambda: node.feed(node.keys.estimate, payload), what="a subscription")
+    wait_for(lambda: answer() is not None, what=f"the command of stamp {stamp}")
+    command = answer()
+    assert command is not None
+    return command
+
+
 def test_the_controller_does_not_move_the_robot_on_an_invalid_estimate():
     """An invalid first estimate neither moves the robot nor sets the set point; an invalid
     one later stops it; valid ones move it again."""
@@ -143,18 +158,8 @@ def test_the_controller_does_not_move_the_robot_on_an_invalid_estimate():
     script = [(0, 127.5, 0, False), (1, 90.0, 40, True), (2, 90.0, 40, True),
               (3, 127.5, 10, False), (4, 90.0, 40, True)]
     with Running("fuzzy_controller", loop, parse("fuzzy-controller")) as node:
-        def commands() -> list[CmdVel]:
-            return [CmdVel.decode(p) for p in node.published_on(node.keys.cmd_vel)]
-
-        answered: list[CmdVel] = []
-        for seq, xc, npi, valid in script:
-            payload = estimate(seq, xc, npi, valid)
-            stamp = Estimate.decode(payload).stamp_ns
-            wait_for(lambda payload=payload: node.feed(node.keys.estimate, payload),
-                     what="a subscription")
-            wait_for(lambda stamp=stamp: any(c.stamp_ns == stamp for c in commands()),
-                     what=f"the command of estimate {seq}")
-            answered.append(next(c for c in commands() if c.stamp_ns == stamp))
+        answered = [command_for(node, estimate(seq, xc, npi, valid))
+                    for seq, xc, npi, valid in script]
     stale = [c.stale for c in answered]
     assert stale == [True, False, False, True, False]
     for c in answered:
@@ -205,22 +210,14 @@ def test_the_controller_does_not_move_the_robot_on_an_estimate_already_stale():
                         first=seq == 0, valid=True, features=[], params_id=0).encode()
 
     with Running("fuzzy_controller", loop, parse("fuzzy-controller")) as node:
-        def commands() -> list[CmdVel]:
-            return [CmdVel.decode(p) for p in node.published_on(node.keys.cmd_vel)]
-
         answered: list[CmdVel] = []
         t0 = time.time_ns()
         # the second and third stamped 1 and 2 ms after the first, but arriving 0.6 s later
         for seq, stamp, wait in ((0, t0, 0.0), (1, t0 + 10**6, 0.6), (2, t0 + 2 * 10**6, 0.0),
                                  (3, None, 0.0)):
             time.sleep(wait)
-            payload = estimate(seq, time.time_ns() if stamp is None else stamp)
-            stamp = Estimate.decode(payload).stamp_ns
-            wait_for(lambda payload=payload: node.feed(node.keys.estimate, payload),
-                     what="a subscription")
-            wait_for(lambda stamp=stamp: any(c.stamp_ns == stamp for c in commands()),
-                     what=f"the command of estimate {seq}")
-            answered.append(next(c for c in commands() if c.stamp_ns == stamp))
+            answered.append(command_for(node, estimate(seq, time.time_ns() if stamp is None
+                                                       else stamp)))
         late = node.status.extra.get("late")
     assert [c.stale for c in answered] == [False, True, True, False]
     assert all((c.vx, c.vy, c.wz) == (0.0, 0.0, 0.0) for c in answered[1:3])

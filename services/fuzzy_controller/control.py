@@ -137,7 +137,8 @@ class ControllerConfig:
         rates, in s, [0, 10]; 0 = no filtering. Default 0.1 s: a few frames, enough to tame
         pixel-quantisation noise without adding much lag.
     x_ref : set-point centroid x in px, [0, 1e5], or ``None`` to capture the first trusted
-        estimate's ``xc``. Give ``width / 2`` to centre the target.
+        estimate's ``xc``. ``width / 2`` centres the tracked features' centroid, which is
+        the target's centre only where every feature lies on the target.
     scale_ref : set-point scale (any positive size measure: the estimate's accumulated
         ``scale`` or the scatter ``xe``), (0, 1e9], or ``None`` to capture the first trusted
         estimate's.

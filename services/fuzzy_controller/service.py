@@ -82,9 +82,11 @@ class CameraClock:
         if restart or self._stamp is None or stamp_s > self._stamp:
             self._stamp, self._at = stamp_s, time.monotonic()
 
-# Full command at a quarter image width off centre (~32 px at 256) and at a 20 % size error:
-# the whole-image limits of the rule base's defaults left the robot trailing a target that
-# moves at 0.25 m/s by ~20 px.
+# Full command at a tenth of a half-width off centre (12.8 px at 256) and at a 10 % size
+# error: the whole-image limits of the rule base's defaults left the robot trailing a target
+# that moves at 0.24 m/s by ~14 px (README, "The fuzzy controller"). The centroid
+# defuzzification of the outer terms NB and PB (-1, -1, -0.5) and (0.5, 1, 1) peaks at 5/6 of
+# vy_max and vx_max: the fuzzy law commands at most 0.667 m/s, the proportional one 0.8.
 LIMITS = FuzzyLimits(ex_max=0.1, dex_max=0.3, ez_max=0.1, dez_max=0.3, vy_max=0.8, vx_max=0.8)
 
 

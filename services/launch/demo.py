@@ -51,7 +51,8 @@ STRIP_FRAMES = 8
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_number(parser, "--duration", lo=1, hi=3600, unit="s", default=None, metavar="S",
-               help="seconds to run, %(allowed)s (default: the scenario's duration)")
+               help="seconds to run, %(allowed)s, at most the scenario's duration (its "
+                    "default)")
     parser.add_argument("--scenario", default="default",
                         help="built-in scenario (default, sideways, approach, steps, still, "
                              "lighting) or a scenario YAML file")

@@ -106,6 +106,11 @@ SCENE_SAMPLE_S = 0.2
 #: estimates come faster than 1.5 periods apart: at 30 fps that sleep would be one more
 #: wake-up an estimate, not one fewer.
 ESTIMATE_PERIOD_S = 1.0 / 60.0
+#: A tuning keeps the windows in force where its sweep found them within the tolerance and at
+#: most this much slower than its optimum (tf, the same passes): the sweep's tf spans ~10 %
+#: on a real buffer, and under load the fastest point is the noise's pick (a live run
+#: published 10/5, 12/5, 18/5, 10/5, 12/5, 10/5, 20/5 on one looping scene)
+KEEP_WITHIN = 0.10
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -359,7 +364,9 @@ class AutoTuner:
         new = st.params.replace(search_size=optimum["search_size"],
                                 corr_size=optimum["corr_size"])
         user_meanwhile = st.params_id != self.id_at_start
-        changed = new != st.params and not user_meanwhile
+        kept = new != st.params and _holds(report.get("sweep"), st.params, optimum,
+                                           float(report.get("tolerance", self.args.tolerance)))
+        changed = new != st.params and not user_meanwhile and not kept
         unannounced = False
         if changed:
             old, st.params = st.params, new
@@ -368,6 +375,9 @@ class AutoTuner:
         extra.update(tunings=extra["tunings"] + 1, last_reason=self.reason)
         log.info("tuning (%s) done in %.1f s: optimum %s%s", self.reason, cycle, optimum,
                  "" if changed else " (a user's set arrived meanwhile: kept)" if user_meanwhile
+                 else f" (the windows in force, {st.params.search_size}/"
+                      f"{st.params.corr_size}, are within the tolerance and "
+                      f"{100 * KEEP_WITHIN:.0f} % of its time: kept)" if kept
                  else f" (not published: params_id {st.params_id} in force is the largest a "
                       "message may carry; restart the pipeline to count from 0 again)"
                  if unannounced else " (already in force)")
@@ -389,6 +399,23 @@ class AutoTuner:
             log.error("tuner/report not published: %s", e)
             return
         self.node.publish(self.node.keys.report, payload, reliable=True)
+
+
+def _holds(sweep: Any, params: Any, optimum: dict[str, Any], tolerance: float) -> bool:
+    """Whether the windows of ``params`` are on the ``sweep`` (a report's: an even width
+    stands for the next odd one, as the search reads it), within ``tolerance`` px of the
+    reference there and at most KEEP_WITHIN slower than ``optimum``'s (see KEEP_WITHIN)."""
+    try:
+        searches = [int(v) | 1 for v in sweep["search_size"]]
+        corrs = [int(v) | 1 for v in sweep["corr_size"]]
+        i, j = searches.index(params.search_size | 1), corrs.index(params.corr_size | 1)
+        oi = searches.index(int(optimum["search_size"]) | 1)
+        oj = corrs.index(int(optimum["corr_size"]) | 1)
+        tf, ex, ey = sweep["tf"], sweep["ex"], sweep["ey"]
+        return bool(max(abs(ex[i][j]), abs(ey[i][j])) <= tolerance
+                    and tf[i][j] <= (1.0 + KEEP_WITHIN) * tf[oi][oj])
+    except (KeyError, IndexError, TypeError, ValueError):
+        return False  # not on the grid (or no sweep): the optimum is taken
 
 
 def loop(node: Node, args: argparse.Namespace) -> None:

@@ -258,6 +258,39 @@ def test_a_tuning_changes_the_windows_and_keeps_the_rest_in_force():
         assert (sent.max_features, sent.search_size, sent.params_id) == (150, 11, 5)
 
 
+@pytest.mark.parametrize(("slower", "err", "kept"), [
+    (1.05, 0.2, True), (1.25, 0.2, False), (1.05, 0.7, False)])
+def test_a_tuning_keeps_windows_about_as_fast_as_its_optimum(slower, err, kept):
+    """The windows in force (15/9: the sweep's 14 reads as 15) within the tolerance and at
+    most 10 % slower than the optimum (10/5) in the same sweep are kept: under load the
+    fastest point of a flat sweep is the noise's pick, and each retune published another
+    (10/5, 12/5, 18/5, 10/5, ...). 25 % slower, or off the tolerance, the optimum is taken."""
+    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
+
+    searches, corrs = [10, 12, 14, 16, 18, 20], [5, 7, 9, 11, 13, 15]
+    tf = [[1.0 + 0.01 * (i + j) for j in range(6)] for i in range(6)]
+    ex = [[0.1] * 6 for _ in range(6)]
+    tf[0][0] = 1.0  # the optimum, 10/5
+    tf[2][2] = slower  # 14 (15) / 9, in force
+    ex[2][2] = err
+    report = {"design": [[-1, 1], [1, -1]], "factors": ["A", "B"], "order": [1, 0],
+              "responses": {"tf": [0.2, 0.3]}, "effects": {"tf": {"1": 0.1}},
+              "significant": {"tf": {"99": ["1"], "95": ["1"]}},
+              "optimum": {"search_size": 10, "corr_size": 5}, "tolerance": 0.5,
+              "sweep": {"search_size": searches, "corr_size": corrs, "tf": tf, "ex": ex,
+                        "ey": ex}}
+    args = parse("auto-tuner", "--no-tune")
+    with MemoryNode("auto_tuner") as node:
+        tuner = AutoTuner(node, args, check_flags(args))
+        assert (tuner.state.params.search_size, tuner.state.params.corr_size) == (15, 9)
+        tuner.reason = "scene change"
+        tuner._finish(("ok", report, {"search_size": 10, "corr_size": 5}), time.monotonic())
+        p = tuner.state.params
+        assert ((p.search_size, p.corr_size) == (15, 9)) is kept
+        assert (node.published_on(node.keys.params) == []) is kept
+        assert msgpack.unpackb(node.published_on(node.keys.report)[-1])["changed"] is not kept
+
+
 def test_the_camera_takes_no_acknowledgement_of_a_frame_it_has_not_sent():
     """An estimate stamped in the future would stand for every frame still to come: a paced
     camera would stop waiting and end a file before its last frames were processed."""

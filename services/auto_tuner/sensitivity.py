@@ -79,6 +79,11 @@ DEFAULT_STEP = 2
 #: Table 4: values of the factors the sweep holds fixed.
 TABLE4_FIXED: Mapping[str, float] = {"max_features": 100, "thres_percent": 2.0,
                                      "ungroup_size": 5}
+#: A tuning keeps the windows in force where its sweep found them within the tolerance and at
+#: most this much slower than its optimum (tf, the same passes, :meth:`TuneResult.keeps`): the
+#: sweep's tf spans ~10 % on a real buffer, and under load the fastest point is the noise's
+#: pick (a live run published 10/5, 12/5, 18/5, 10/5, 12/5, 10/5, 20/5 on one looping scene)
+KEEP_WITHIN = 0.10
 #: Largest mean |ex|, |ey| against the reference windows an optimum may have, px.
 DEFAULT_TOLERANCE = 0.5
 #: What the command lines (``vistrack tune``, the auto-tuner service) accept: sweep steps
@@ -315,6 +320,21 @@ class TuneResult:
     replicated: ReplicatedRun | None = None
     offered: int = 0
     max_megapixels: float | None = None
+
+    def keeps(self, search_size: int, corr_size: int) -> bool:
+        """Whether the windows (``search_size``, ``corr_size``) are as good as the optimum to
+        within the timing's noise: on the sweep's grid (an even width reads as the next odd
+        one, the same half-width), within the tolerance as the optimum must be, and at most
+        KEEP_WITHIN slower than it in the same passes. The auto-tuner keeps such windows in
+        force rather than publish the optimum."""
+        searches = [s // 2 for s in self.sweep.search_sizes]
+        corrs = [c // 2 for c in self.sweep.corr_sizes]
+        if search_size // 2 not in searches or corr_size // 2 not in corrs:
+            return False
+        i, j = searches.index(search_size // 2), corrs.index(corr_size // 2)
+        sw = self.sweep
+        return bool(max(sw.ex[i, j], sw.ey[i, j]) <= self.tolerance
+                    and sw.tf[i, j] <= (1.0 + KEEP_WITHIN) * self.optimum.tf)
 
     @property
     def params(self) -> TrackerParams:

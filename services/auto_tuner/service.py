@@ -82,6 +82,7 @@ from .sensitivity import (
     DEFAULT_MEGAPIXELS,
     DEFAULT_STEP,
     DEFAULT_TOLERANCE,
+    KEEP_WITHIN,
     MEGAPIXELS_RANGE,
     MIN_FRAMES,
     STEP_RANGE,
@@ -106,11 +107,6 @@ SCENE_SAMPLE_S = 0.2
 #: estimates come faster than 1.5 periods apart: at 30 fps that sleep would be one more
 #: wake-up an estimate, not one fewer.
 ESTIMATE_PERIOD_S = 1.0 / 60.0
-#: A tuning keeps the windows in force where its sweep found them within the tolerance and at
-#: most this much slower than its optimum (tf, the same passes): the sweep's tf spans ~10 %
-#: on a real buffer, and under load the fastest point is the noise's pick (a live run
-#: published 10/5, 12/5, 18/5, 10/5, 12/5, 10/5, 20/5 on one looping scene)
-KEEP_WITHIN = 0.10
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -337,6 +333,8 @@ class AutoTuner:
                                 # Table 4's, and its optimum put those back (a user's
                                 # max_features 150 became 100 at the next tuning)
                                 "fixed": {k: getattr(params, k) for k in TABLE4_FIXED},
+                                # kept where about as good as the optimum (TuneResult.keeps)
+                                "windows": (params.search_size, params.corr_size),
                                 "tolerance": self.args.tolerance,
                                 "step": self.args.tune_sweep_step,
                                 "max_megapixels": self.args.max_megapixels})
@@ -358,14 +356,13 @@ class AutoTuner:
             log.error("tuning (%s) failed: %s", self.reason, result[1])
             return
         self.triggers.finished(now)
-        _, report, optimum = result
+        _, report, optimum, about_as_good = result
         st = self.state
         # the windows are what a tuning chooses; the rest stays as in force
         new = st.params.replace(search_size=optimum["search_size"],
                                 corr_size=optimum["corr_size"])
         user_meanwhile = st.params_id != self.id_at_start
-        kept = new != st.params and _holds(report.get("sweep"), st.params, optimum,
-                                           float(report.get("tolerance", self.args.tolerance)))
+        kept = new != st.params and about_as_good
         changed = new != st.params and not user_meanwhile and not kept
         unannounced = False
         if changed:
@@ -399,23 +396,6 @@ class AutoTuner:
             log.error("tuner/report not published: %s", e)
             return
         self.node.publish(self.node.keys.report, payload, reliable=True)
-
-
-def _holds(sweep: Any, params: Any, optimum: dict[str, Any], tolerance: float) -> bool:
-    """Whether the windows of ``params`` are on the ``sweep`` (a report's: an even width
-    stands for the next odd one, as the search reads it), within ``tolerance`` px of the
-    reference there and at most KEEP_WITHIN slower than ``optimum``'s (see KEEP_WITHIN)."""
-    try:
-        searches = [int(v) | 1 for v in sweep["search_size"]]
-        corrs = [int(v) | 1 for v in sweep["corr_size"]]
-        i, j = searches.index(params.search_size | 1), corrs.index(params.corr_size | 1)
-        oi = searches.index(int(optimum["search_size"]) | 1)
-        oj = corrs.index(int(optimum["corr_size"]) | 1)
-        tf, ex, ey = sweep["tf"], sweep["ex"], sweep["ey"]
-        return bool(max(abs(ex[i][j]), abs(ey[i][j])) <= tolerance
-                    and tf[i][j] <= (1.0 + KEEP_WITHIN) * tf[oi][oj])
-    except (KeyError, IndexError, TypeError, ValueError):
-        return False  # not on the grid (or no sweep): the optimum is taken
 
 
 def loop(node: Node, args: argparse.Namespace) -> None:

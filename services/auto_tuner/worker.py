@@ -79,7 +79,8 @@ def _work(conn: Any, parent_pid: int) -> None:
                 result = tune(job["frames"], None, tolerance=job["tolerance"], step=job["step"],
                               base=job["base"], fixed=job.get("fixed"),
                               max_megapixels=job["max_megapixels"])
-                conn.send(("ok", result.to_report(), dict(result.optimum.params)))
+                conn.send(("ok", result.to_report(), dict(result.optimum.params),
+                           result.keeps(*job["windows"]) if "windows" in job else False))
             except TextureError as e:  # nothing to tune on: not a fault
                 conn.send(("skipped", str(e)))
             except Exception as e:  # noqa: BLE001 - a failed cycle is reported, the worker lives

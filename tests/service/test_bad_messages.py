@@ -19,6 +19,7 @@ from vistrack.common.messages import (
     Estimate,
     MessageError,
     Params,
+    encode_frame,
     next_params_id,
 )
 from vistrack.common.params import TrackerParams
@@ -167,7 +168,7 @@ def test_a_tuning_that_cannot_be_announced_says_so_not_already_in_force(caplog):
                       "significant": {"tf": {"99": ["1"], "95": ["1"]}},
                       "optimum": {"search_size": 11, "corr_size": 5},
                       "sweep": {"search": [10, 12], "corr": [5, 7]}}
-            tuner._finish(("ok", report, {"search_size": 11, "corr_size": 5}),
+            tuner._finish(("ok", report, {"search_size": 11, "corr_size": 5}, False),
                           time.monotonic())
         assert (tuner.state.params.search_size, tuner.state.params.corr_size) == (15, 9)
         done = [r.getMessage() for r in caplog.records if "done in" in r.getMessage()]
@@ -234,11 +235,12 @@ def test_a_tuning_changes_the_windows_and_keeps_the_rest_in_force():
         tuner.worker = jobs = Jobs()  # type: ignore[assignment]
         tuner.on_params(params_payload(4, max_features=150, thres_percent=3.0,
                                        ungroup_size=7))
-        now = time.monotonic()
-        tuner.take_frames(now)  # the initial tuning waits for a buffer: it starts empty
-        tuner.frames.extend((np.zeros((8, 8), np.uint8), k) for k in range(30))
-        tuner.triggers.due = lambda now: "scene change"  # type: ignore[method-assign]
-        tuner.tick(now)
+        tuner.take_frames(time.monotonic())  # the initial tuning wants every frame
+        rng = np.random.default_rng(0)
+        for k in range(args.buffer):  # its buffer filled, the tuning is due
+            tuner.on_frame(encode_frame(rng.integers(0, 256, (32, 32), dtype=np.uint8),
+                                        seq=k, stamp_ns=k + 1))
+        tuner.tick(time.monotonic())
         assert jobs.jobs and jobs.jobs[0]["fixed"] == {"max_features": 150,
                                                          "thres_percent": 3.0,
                                                          "ungroup_size": 7}
@@ -249,8 +251,8 @@ def test_a_tuning_changes_the_windows_and_keeps_the_rest_in_force():
                   "sweep": {"search": [10, 12], "corr": [5, 7]}}
         # what the sweep at Table 4's values returned: the other factors at 100, 2.0, 5
         tuner._finish(("ok", report, {"max_features": 100, "thres_percent": 2.0,
-                                      "search_size": 11, "corr_size": 5, "ungroup_size": 5}),
-                      time.monotonic())
+                                      "search_size": 11, "corr_size": 5, "ungroup_size": 5},
+                       False), time.monotonic())
         p = tuner.state.params
         assert (p.max_features, p.thres_percent, p.ungroup_size) == (150, 3.0, 7)
         assert (p.search_size, p.corr_size) == (11, 5)
@@ -264,27 +266,42 @@ def test_a_tuning_keeps_windows_about_as_fast_as_its_optimum(slower, err, kept):
     """The windows in force (15/9: the sweep's 14 reads as 15) within the tolerance and at
     most 10 % slower than the optimum (10/5) in the same sweep are kept: under load the
     fastest point of a flat sweep is the noise's pick, and each retune published another
-    (10/5, 12/5, 18/5, 10/5, ...). 25 % slower, or off the tolerance, the optimum is taken."""
+    (10/5, 12/5, 18/5, 10/5, ...). 25 % slower, or off the tolerance, the optimum is taken.
+    The worker judges on its sweep (TuneResult.keeps) and the service acts on the verdict."""
+    from vistrack.services.auto_tuner.sensitivity import Optimum, Sweep, TuneResult
     from vistrack.services.auto_tuner.service import AutoTuner, check_flags
 
     searches, corrs = [10, 12, 14, 16, 18, 20], [5, 7, 9, 11, 13, 15]
-    tf = [[1.0 + 0.01 * (i + j) for j in range(6)] for i in range(6)]
-    ex = [[0.1] * 6 for _ in range(6)]
-    tf[0][0] = 1.0  # the optimum, 10/5
-    tf[2][2] = slower  # 14 (15) / 9, in force
-    ex[2][2] = err
+    tf = np.array([[1.0 + 0.01 * (i + j) for j in range(6)] for i in range(6)])
+    ex = np.full((6, 6), 0.1)
+    tf[0, 0] = 1.0  # the optimum, 10/5
+    tf[2, 2] = slower  # 14 (15) / 9, in force
+    ex[2, 2] = err
+    # only the sweep's grid and responses, the optimum's tf and the tolerance are read
+    sweep = Sweep(search_sizes=tuple(searches), corr_sizes=tuple(corrs), fixed={}, t1=tf,
+                  tf=tf, ex=ex, ey=ex, npi=tf, reference=None,  # type: ignore[arg-type]
+                  reference_windows=(50, 30), base=TrackerParams())
+    best = Optimum(params={"search_size": 10, "corr_size": 5}, index=(0, 0), t1=1.0, tf=1.0,
+                   ex=0.1, ey=0.1, within_tolerance=True, speedup=1.0, reason="")
+    result = TuneResult(run=None, analysis=None, sweep=sweep,  # type: ignore[arg-type]
+                        optimum=best, tolerance=0.5, frames=30, size=(256, 256), repeats=1,
+                        seconds={})
+    about_as_good = result.keeps(15, 9)
+    assert about_as_good is kept
+    assert not result.keeps(31, 15)  # not on the grid
     report = {"design": [[-1, 1], [1, -1]], "factors": ["A", "B"], "order": [1, 0],
               "responses": {"tf": [0.2, 0.3]}, "effects": {"tf": {"1": 0.1}},
               "significant": {"tf": {"99": ["1"], "95": ["1"]}},
               "optimum": {"search_size": 10, "corr_size": 5}, "tolerance": 0.5,
-              "sweep": {"search_size": searches, "corr_size": corrs, "tf": tf, "ex": ex,
-                        "ey": ex}}
+              "sweep": {"search_size": searches, "corr_size": corrs, "tf": tf.tolist(),
+                        "ex": ex.tolist(), "ey": ex.tolist()}}
     args = parse("auto-tuner", "--no-tune")
     with MemoryNode("auto_tuner") as node:
         tuner = AutoTuner(node, args, check_flags(args))
         assert (tuner.state.params.search_size, tuner.state.params.corr_size) == (15, 9)
         tuner.reason = "scene change"
-        tuner._finish(("ok", report, {"search_size": 10, "corr_size": 5}), time.monotonic())
+        tuner._finish(("ok", report, {"search_size": 10, "corr_size": 5}, about_as_good),
+                      time.monotonic())
         p = tuner.state.params
         assert ((p.search_size, p.corr_size) == (15, 9)) is kept
         assert (node.published_on(node.keys.params) == []) is kept

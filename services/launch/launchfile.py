@@ -311,15 +311,13 @@ class _Reader:
                 value = float(value)
             except ValueError:
                 pass
-        if isinstance(value, float) and not math.isnan(value) or (
-                isinstance(value, int) and not isinstance(value, bool)):
-            number = float(value)
-        else:
+        if (not isinstance(value, (int, float)) or isinstance(value, bool)
+                or math.isnan(value)):
             shown = repr(value) if isinstance(node, yaml.ScalarNode) else f"a {node.id}"
             raise self.error(node, path, f"expected a number of seconds, {allowed}, got {shown}")
-        if not lo <= number <= hi:
+        if not lo <= value <= hi:
             raise self.error(node, path, f"{node.value} is out of range: allowed {allowed}")
-        return number
+        return float(value)
 
     def sequence(self, node: yaml.Node, path: str, what: str) -> list[yaml.Node]:
         if not isinstance(node, yaml.SequenceNode):

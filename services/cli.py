@@ -10,6 +10,7 @@ import argparse
 import atexit
 import importlib
 import os
+import re
 import sys
 import threading
 from collections.abc import Sequence
@@ -48,8 +49,22 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+#: A flag's value that starts with "-" yet is a value, not a flag: a negative number in any
+#: of the forms the flags take (``-5``, ``-0.5``, ``-1e3``) or a size (``-5x5``). argparse
+#: knows only ``-5`` and ``-0.5``: ``--resize -5x5`` or ``--fps -1e3`` said "expected one
+#: argument" rather than the flag's own check, which names the allowed range. No flag of
+#: vistrack looks like this, so nothing is taken for a value that was meant as a flag.
+_NEGATIVE_VALUE = re.compile(r"^-(\d+x-?\d+|(\d+\.?\d*|\.\d+)(e[-+]?\d+)?|inf|nan)$",
+                             re.IGNORECASE)
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse, but a usage error is one line (``vistrack X: error: ...``) and exit code 2."""
+    """argparse, but a usage error is one line (``vistrack X: error: ...``) and exit code 2,
+    and a negative value is a value (:data:`_NEGATIVE_VALUE`)."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self._negative_number_matcher = _NEGATIVE_VALUE
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")

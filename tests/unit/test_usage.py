@@ -100,3 +100,27 @@ def test_the_thread_pool_variables_are_set_for_every_library(monkeypatch):
     monkeypatch.setenv("VISTRACK_NUMERIC_THREADS", "1")
     assert threads.configure() == 1
     assert {os.environ[var] for var in threads.POOL_VARS} == {"1"}
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["status", "--timeout", "-1e3"], "--timeout -1e3 is out of range: allowed 0 < S <= 3600 s"),
+    (["status", "--timeout", "-0.5"], "--timeout -0.5 is out of range: allowed 0 < S <= 3600 s"),
+    (["camera", "--size", "-5x5"], "--size -5x5 is out of range: width and height must be "
+                                   "8..4096"),
+])
+def test_a_negative_value_gets_the_flags_own_range_check(argv, message, capsys):
+    # argparse took "-1e3" and "-5x5" for flags and said "expected one argument"
+    from vistrack.services import cli
+
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and "expected one argument" not in err
+
+
+def test_a_flag_after_a_flag_that_wants_a_value_is_still_a_flag(capsys):
+    from vistrack.services import cli
+
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["status", "--timeout", "--json"])
+    assert exit_.value.code == 2
+    assert "argument --timeout: expected one argument" in capsys.readouterr().err

@@ -61,6 +61,21 @@ def rubberwhale():
     return folder
 
 
+def _decoded(path) -> list:
+    """Every frame of the video at ``path`` (BGR), read with OpenCV alone."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    held = []
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        held.append(img)
+    cap.release()
+    return held
+
+
 @pytest.fixture
 def cut_video_of(tmp_path):
     """Make a video cut short, as a recording that lost its end: ``make(frames)`` writes the
@@ -79,14 +94,7 @@ def cut_video_of(tmp_path):
         cut = tmp_path / name
         data = full.read_bytes()
         cut.write_bytes(data[:int(len(data) * fraction)])
-        cap = cv2.VideoCapture(str(cut))
-        held = []
-        while True:
-            ok, img = cap.read()
-            if not ok:
-                break
-            held.append(img)
-        cap.release()
+        held = _decoded(cut)
         assert 0 < len(held) < len(frames)
         return cut, held
     return make
@@ -99,3 +107,51 @@ def cut_video(cut_video_of):
 
     rng = np.random.default_rng(7)
     return cut_video_of([rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(10)])
+
+
+@pytest.fixture
+def drop_frame_video(tmp_path):
+    """A complete MJPG AVI of 10 random 64x48 frames at 10 fps stored at 20: each picture's
+    index entry followed by an empty one (an AVI's "repeat the last frame", as in OpenCV's own
+    ``vtest.avi``), so its header announces 20 frames and 10 decode, 0 to 0.9 s of 1 s.
+    Written here, chunk by chunk (``cv2.VideoWriter`` writes no empty entry). Returns (its
+    path, the BGR frames it holds, read with OpenCV alone)."""
+    import struct
+
+    import cv2
+    import numpy as np
+
+    def chunk(fourcc: bytes, data: bytes) -> bytes:
+        return fourcc + struct.pack("<I", len(data)) + data + b"\0" * (len(data) % 2)
+
+    def listed(kind: bytes, body: bytes) -> bytes:
+        return chunk(b"LIST", kind + body)
+
+    rng = np.random.default_rng(3)
+    frames = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(10)]
+    pictures = [cv2.imencode(".jpg", f, [cv2.IMWRITE_JPEG_QUALITY, 100])[1].tobytes()
+                for f in frames]
+    entries = [e for p in pictures for e in (p, b"")]
+    n, fps, biggest = len(entries), 20, max(map(len, pictures))
+    avih = struct.pack("<14I", 1_000_000 // fps, 0, 0, 0x10, n, 0, 1, biggest, 64, 48,
+                       0, 0, 0, 0)
+    strh = b"vidsMJPG" + struct.pack("<IHHIIIIIIII4h", 0, 0, 0, 0, 1, fps, 0, n, biggest,
+                                     0xFFFFFFFF, 0, 0, 0, 64, 48)
+    strf = struct.pack("<IiiHH4sIiiII", 40, 64, 48, 1, 24, b"MJPG", 64 * 48 * 3, 0, 0, 0, 0)
+    movi, index, offset = b"", b"", 4
+    for e in entries:
+        c = chunk(b"00dc", e)
+        index += b"00dc" + struct.pack("<III", 0x10 if e else 0, offset, len(e))
+        movi += c
+        offset += len(c)
+    body = (b"AVI " + listed(b"hdrl", chunk(b"avih", avih) + listed(
+        b"strl", chunk(b"strh", strh) + chunk(b"strf", strf)))
+        + listed(b"movi", movi) + chunk(b"idx1", index))
+    path = tmp_path / "drop.avi"
+    path.write_bytes(chunk(b"RIFF", body))
+    cap = cv2.VideoCapture(str(path))
+    assert cap.get(cv2.CAP_PROP_FRAME_COUNT) == 20  # what made it "cut short"
+    cap.release()
+    held = _decoded(path)
+    assert len(held) == len(frames)
+    return path, held

@@ -85,3 +85,15 @@ def test_a_frame_of_another_size_is_skipped_and_the_rest_sent(tmp_path, caplog, 
     with pytest.raises(SourceError, match="frame is 100x100 but the first was 80x60; give "
                                           "--resize to scale them"):
         list(open_files([str(tmp_path)]))
+
+
+@pytest.mark.parametrize("loop", [False, True])
+def test_a_video_with_empty_entries_is_complete(drop_frame_video, caplog, capsys, loop):
+    """Its header counts 20 frames, 10 decode, and its timestamps reach its end: every
+    frame is sent, and no pass ends with an error or a warning (it was "cut short")."""
+    path, frames = drop_frame_video
+    with caplog.at_level(logging.WARNING, logger="vistrack.camera"):
+        got = list(itertools.islice(service.open_source(f"file:{path}", None, loop=loop), 25))
+    assert len(got) == (25 if loop else 10)
+    _same_frames(got, frames)
+    assert not caplog.records and capsys.readouterr().err == ""

@@ -104,6 +104,14 @@ def test_video_file_and_builtin(tmp_path):
     assert len(out) == 60  # the built-in sequence
 
 
+def test_a_video_whose_index_holds_empty_entries_is_tracked_to_its_end(drop_frame_video):
+    # its header announces 20 frames and 10 decode: "cut short", exit 2, was the answer
+    path, frames = drop_frame_video
+    result = vistrack("track", str(path), "--format", "jsonl")
+    assert result.returncode == 0, result.stderr
+    assert len(result.stdout.splitlines()) == len(frames) and result.stderr == ""
+
+
 @pytest.mark.parametrize("args,needle", [
     (["/no/such/file.png"], "no such file"),
     (["--search-size", "500"], "--search-size 500 is out of range: allowed 2..128"),

@@ -477,11 +477,17 @@ def _sort_desc(keys):  # pragma: no cover - numba
 
 
 @nb.njit(cache=True, nogil=True)
-def _top_k(grad, k, margin):  # pragma: no cover - numba
-    """The k largest values inside the margin, largest first, ties in row-major order.
+def _top_k(grad, k, margin, floor):  # pragma: no cover - numba
+    """The k largest values inside the margin that exceed ``floor`` (float32), largest first,
+    ties in row-major order.
 
     Returns (candidates (k, 2) int16 x, y; values (k,) float32); fewer than k where fewer
-    values are not NaN.
+    values exceed the floor (NaN never does).
+
+    The floor bounds the work where most of the frame has no texture: a black or uniform
+    frame, whose k-th largest strength (0) every pixel ties with, had every pixel collected and
+    sorted (12 ms at 1280x720, against 1.5 for a textured frame); pixels at or below the
+    texture floor cannot be candidates, so they are never collected.
 
     A threshold T at most the k-th largest value is estimated from a 1-in-16 sample, the
     pixels >= T (a few more than k) are collected in row-major order and stably sorted by a
@@ -540,6 +546,10 @@ def _top_k(grad, k, margin):  # pragma: no cover - numba
             for i in range(n_s):
                 if skeys[i] >> 20 == top_bin and sample[i] < thr:
                     thr = sample[i]
+        # at the floor: every value above it is collected, and no lower threshold is tried
+        floored = not thr > floor
+        if floored:
+            thr = np.nextafter(floor, np.float32(np.inf))
         # 2. mark the pixels >= T: one vectorised pass over whole rows
         for q in range(hi - lo):
             mask[q] = rows[q] >= thr
@@ -574,7 +584,7 @@ def _top_k(grad, k, margin):  # pragma: no cover - numba
             ys = np.empty(cap, np.int16)
             vals = np.empty(cap, np.float32)
             continue  # collect again, with room for every pixel
-        if total >= k or top_bin < 0:
+        if total >= k or top_bin < 0 or floored:
             break
         rank = 2 * rank + 16  # the sample misled us: take a lower threshold
     vals = vals[:total]
@@ -593,9 +603,10 @@ def _top_k(grad, k, margin):  # pragma: no cover - numba
     return cands, out
 
 
-def threshold_candidates(grad: np.ndarray, thres_percent: float,
-                         margin: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """The THRES_PERCENT % strongest-gradient pixels, strongest first.
+def threshold_candidates(grad: np.ndarray, thres_percent: float, margin: int = 0,
+                         floor: float = -np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """The THRES_PERCENT % strongest-gradient pixels, strongest first, less those at or below
+    ``floor``.
 
     Parameters
     ----------
@@ -603,6 +614,9 @@ def threshold_candidates(grad: np.ndarray, thres_percent: float,
     thres_percent : percentage (0, 100] of the image's pixels to keep.
     margin : pixels this close to the border are never candidates (a feature there could not
         hold a correlation window).
+    floor : only strengths above it (compared in float32, as numpy compares a float32 array
+        with a Python float) are kept: the same as keeping those of the THRES_PERCENT % above
+        it, without collecting the pixels below it.
 
     Returns
     -------
@@ -614,7 +628,7 @@ def threshold_candidates(grad: np.ndarray, thres_percent: float,
         return np.empty((0, 2), np.int16), np.empty(0, np.float32)
     inner = (h - 2 * margin) * (w - 2 * margin)
     k = min(max(int(round(grad.size * thres_percent / 100.0)), 1), inner)
-    return _top_k(np.ascontiguousarray(grad, np.float32), k, int(margin))
+    return _top_k(np.ascontiguousarray(grad, np.float32), k, int(margin), np.float32(floor))
 
 
 # The largest strength that a uniform patch with white Gaussian noise reaches, per unit of the
@@ -678,15 +692,16 @@ def candidates_of(filtered: np.ndarray, params: TrackerParams) -> tuple[np.ndarr
     """The THRES_PERCENT candidates of a filtered frame and their strengths: the gradient
     strength, threshold and texture floor steps of :func:`preprocess`."""
     grad = STRENGTHS[params.strength](filtered)
-    # a candidate must hold a correlation window plus one pixel for the Sobel support
+    # a candidate must hold a correlation window plus one pixel for the Sobel support, and
+    # exceed the texture floor (strictly, so that a frame without texture, strength 0
+    # everywhere, has none even with a floor of 0)
+    floor = texture_floor(params, frame_noise(filtered, params))
     cands, strength = threshold_candidates(grad, params.thres_percent,
-                                           margin=params.corr_half + 1)
+                                           margin=params.corr_half + 1, floor=floor)
     if len(strength):
-        # strongest first, so the candidates that pass are a prefix; strictly above, so that
-        # a frame without texture (strength 0 everywhere) has none even with both floors 0
-        floor = max(texture_floor(params, frame_noise(filtered, params)),
-                    params.quality_level * float(strength[0]))
-        keep = int(np.count_nonzero(strength > floor))
+        # and a fraction of the strongest: strongest first, so those that pass are a prefix
+        keep = int(np.count_nonzero(strength > max(floor, params.quality_level
+                                                   * float(strength[0]))))
         cands, strength = cands[:keep], strength[:keep]
     return cands, strength
 

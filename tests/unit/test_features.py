@@ -37,6 +37,33 @@ def test_threshold_keeps_the_strongest_percent(percent):
     assert (flat[:-1][same] < flat[1:][same]).all()
 
 
+@pytest.mark.parametrize(("share", "floor"), [(0.0, 0.0), (0.001, 0.0), (0.3, 50.0),
+                                               (0.9, 50.0), (0.9, 1e9), (1.0, 0.0)])
+def test_a_floor_keeps_the_strongest_percent_above_it(share, floor):
+    """The floor keeps exactly those of the THRES_PERCENT strongest above it, ties in
+    row-major order, where most of the frame lies at or below it: a black or dark frame (all
+    0 but ``share`` of it), whose every pixel tied at the threshold and was collected and
+    sorted (12 ms at 1280x720)."""
+    rng = np.random.default_rng(int(share * 1000 + floor))
+    grad = np.zeros((120, 160), np.float32)
+    textured = rng.random(grad.shape) < share
+    grad[textured] = (rng.integers(1, 40, int(textured.sum())) * 5).astype(np.float32)
+    cands, strength = threshold_candidates(grad, 2.0, margin=5, floor=floor)
+    # independent reference: the 2 % largest inner values (a full, stable sort) above it
+    inner = grad[5:-5, 5:-5].ravel()
+    order = np.argsort(-inner, kind="stable")[:int(round(grad.size * 0.02))]
+    order = order[inner[order] > floor]
+    np.testing.assert_array_equal(strength, inner[order])
+    np.testing.assert_array_equal(cands[:, 0], order % 150 + 5)
+    np.testing.assert_array_equal(cands[:, 1], order // 150 + 5)
+
+
+def test_a_frame_without_texture_has_no_candidates():
+    for value in (0, 128, 255):
+        pre = preprocess(np.full((96, 128), value, np.uint8), TrackerParams())
+        assert len(pre.candidates) == 0 and len(pre.strength) == 0
+
+
 @pytest.mark.parametrize("params", [
     TrackerParams(),
     TrackerParams(max_features=50, ungroup_size=20),

@@ -11,6 +11,7 @@ from vistrack.common.vision.preprocess import (
     STRENGTHS,
     frame_noise,
     gaussian_filter,
+    magnitude,
     texture_floor,
     threshold_candidates,
 )
@@ -56,6 +57,24 @@ def test_a_floor_keeps_the_strongest_percent_above_it(share, floor):
     np.testing.assert_array_equal(strength, inner[order])
     np.testing.assert_array_equal(cands[:, 0], order % 150 + 5)
     np.testing.assert_array_equal(cands[:, 1], order // 150 + 5)
+
+
+def test_the_gradient_magnitude_is_the_same_wherever_it_lies_in_memory():
+    # cv2.magnitude rounded a few values differently at other offsets: the same frame's
+    # gradient strengths changed from run to run
+    rng = np.random.default_rng(5)
+    gx, gy = (rng.normal(0, 300, (240, 320)).astype(np.float32) for _ in range(2))
+    first = magnitude(gx, gy)
+    for offset in range(1, 8):
+        moved = []
+        for g in (gx, gy):
+            buf = np.empty(g.size + 8, np.float32)
+            moved.append(buf[offset:offset + g.size].reshape(g.shape))
+            moved[-1][:] = g
+        np.testing.assert_array_equal(magnitude(*moved), first)
+    # each step rounded to float32: within half an ulp of the exact value or so
+    exact = np.sqrt(gx.astype(np.float64) ** 2 + gy.astype(np.float64) ** 2)
+    assert np.abs(first - exact).max() <= 2 * np.spacing(first).max()
 
 
 def test_a_frame_without_texture_has_no_candidates():

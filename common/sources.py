@@ -107,7 +107,10 @@ def read_image(path: str, grey: Grey | None = None) -> np.ndarray:
         raise SourceError(f"{path}: no such file")
     if os.path.isdir(path):
         raise SourceError(f"{path}: is a folder, expected an image file")
-    img, said = _stderr_of(cv2.imread, path, cv2.IMREAD_UNCHANGED)
+    if utf8_name(path):
+        img, said = _stderr_of(cv2.imread, path, cv2.IMREAD_UNCHANGED)
+    else:  # read here, decoded from memory (OpenCV would crash on the name)
+        img, said = _stderr_of(cv2.imdecode, np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is not None and "Premature end" in said and path.lower().endswith((".jpg", ".jpeg")):
         raise SourceError(f"{path}: damaged image: the JPEG data ends before the image "
                           "does (cut short?)")
@@ -115,6 +118,20 @@ def read_image(path: str, grey: Grey | None = None) -> np.ndarray:
     if img is None:
         raise SourceError(f"{path}: not a readable image")
     return (grey or Grey())(img)
+
+
+def utf8_name(path: str) -> bool:
+    """Whether OpenCV can be given ``path``: its bindings pass a name on as UTF-8, and a name
+    that is not (a file named in another encoding, which Python holds as surrogate escapes,
+    e.g. ``frame\udce9.png`` for Latin-1's ``frame\xe9.png``) crashed the process in
+    ``cv2.imread``, ``cv2.haveImageReader`` and ``cv2.VideoCapture`` (SIGSEGV, no message).
+    Such an image is read by Python and decoded from memory; such a video cannot be opened
+    (an error says so)."""
+    try:
+        path.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
 
 
 def _stderr_of(fn: Callable[..., Any], *args: Any) -> tuple[Any, str]:
@@ -163,7 +180,8 @@ def _check_images(paths: list[str]) -> None:
     knows a format from a file's first bytes. (A damaged image of a known format still fails
     when it is read, naming the file.)"""
     for p in paths:
-        if os.path.isfile(p) and not cv2.haveImageReader(p):
+        # (a name OpenCV cannot take is checked when it is read, :func:`read_image`)
+        if os.path.isfile(p) and utf8_name(p) and not cv2.haveImageReader(p):
             if p.lower().endswith(VIDEO_EXTS):
                 raise SourceError(f"{p}: a video among {len(paths)} files: give one video "
                                   "alone, or image files")
@@ -212,6 +230,9 @@ class FileFrames:
         grey = Grey()  # one stream: 16-bit frames scaled by the depth of its samples
         if self.video:
             path = self.paths[0]
+            if not utf8_name(path):
+                raise SourceError(f"{path}: OpenCV cannot open a video whose name is not "
+                                  "UTF-8: rename it, or link to it under a UTF-8 name")
             cap, said = _stderr_of(cv2.VideoCapture, path)
             _pass_on(said, read=cap.isOpened())
             if not cap.isOpened():

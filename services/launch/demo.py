@@ -296,7 +296,10 @@ def write_outputs(out: Path, rec: Recorder, scenario: Any, summary: dict) -> lis
         strip = list(rec.strip)
         poses, cmds = list(rec.poses), list(rec.cmds)
     if strip:
-        cv2.imwrite(str(out / "strip.png"), np.hstack([_annotate(f, m) for f, m in strip]))
+        # encoded here and written by Python: cv2.imwrite crashed on an --out whose name is
+        # not UTF-8 (see sources.utf8_name)
+        ok, png = cv2.imencode(".png", np.hstack([_annotate(f, m) for f, m in strip]))
+        (out / "strip.png").write_bytes(png.tobytes())
         written.append("strip.png")
     if poses:
         cam = Camera()

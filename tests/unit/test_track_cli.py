@@ -112,6 +112,35 @@ def test_a_video_whose_index_holds_empty_entries_is_tracked_to_its_end(drop_fram
     assert len(result.stdout.splitlines()) == len(frames) and result.stderr == ""
 
 
+def test_file_names_that_are_not_utf8(rubberwhale, tmp_path, drop_frame_video):
+    """Names in another encoding (Latin-1's e-acute, held by Python as a surrogate escape)
+    crashed the process inside OpenCV (SIGSEGV, exit 139): images are read, a video is a
+    one-line error."""
+    import os
+
+    folder = os.fsencode(tmp_path) + b"/latin"
+    os.mkdir(folder)
+    sources = [rubberwhale / f"frame{k:02d}.png" for k in (7, 8, 9)]
+    for k, src in enumerate(sources):
+        with open(folder + b"/frame%d\xe9.png" % k, "wb") as f:
+            f.write(src.read_bytes())
+    result = vistrack("track", os.fsdecode(folder), "--format", "jsonl")
+    assert result.returncode == 0, result.stderr
+    rows = [json.loads(x) for x in result.stdout.splitlines()]
+    # the same files under their own (UTF-8) names
+    ref = [json.loads(x) for x in vistrack("track", *map(str, sources), "--format", "jsonl",
+                                           check=True).stdout.splitlines()]
+    for r in rows + ref:
+        r.pop("t_ms")
+    assert len(rows) == 3 and rows == ref
+    video = os.fsencode(tmp_path) + b"/clip\xe9.avi"
+    os.link(drop_frame_video[0], video)
+    result = vistrack("track", os.fsdecode(video))
+    assert result.returncode == 2
+    assert result.stderr.strip().endswith("OpenCV cannot open a video whose name is not "
+                                          "UTF-8: rename it, or link to it under a UTF-8 name")
+
+
 @pytest.mark.parametrize("args,needle", [
     (["/no/such/file.png"], "no such file"),
     (["--search-size", "500"], "--search-size 500 is out of range: allowed 2..128"),

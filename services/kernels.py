@@ -59,7 +59,9 @@ COLD_COMPILE = "about half a minute on two cores"
 LOCK_NAME = "vistrack-warm-up.lock"
 #: Longest wait for the second process; beyond, this one compiles what is left itself.
 HELPER_TIMEOUT_S = 600.0
-_HELPER = "from vistrack.services.kernels import compile_search; compile_search()"
+_HELPER = "from vistrack.services.kernels import compile_search; compile_search({parent})"
+#: prctl's option that signals a process when its parent dies
+PR_SET_PDEATHSIG = 1
 
 
 def warm_up_kernels(say: Callable[[str], None], *, helper: bool = True,
@@ -108,8 +110,28 @@ def cached_signatures(kernel: Any) -> set[Any]:
 
 
 def _start_helper() -> subprocess.Popen[bytes]:
-    return subprocess.Popen([sys.executable, "-c", _HELPER], stdin=subprocess.DEVNULL,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return subprocess.Popen([sys.executable, "-c", _HELPER.format(parent=os.getpid())],
+                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+
+
+def _die_with(parent: int) -> None:
+    """SIGKILL this process when ``parent`` dies (Linux; elsewhere nothing). A service stopped
+    while it started ends at once (``os._exit``, no ``finally``) and left its helper
+    compiling for half a minute more, for nobody (seen after a Ctrl-C to a first
+    ``vistrack up``)."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0,
+                                                       0)
+    except (OSError, AttributeError):
+        return  # not glibc
+    if os.getppid() != parent:  # it died before prctl took effect
+        os._exit(1)
 
 
 @contextlib.contextmanager
@@ -354,8 +376,9 @@ def _compile_refinement(gauss_newton: bool | None = None) -> None:
             pass  # test_the_compile_split_compiles_only_what_the_tracker_calls says so)
 
 
-def compile_search() -> None:
-    """Compile (or load) the SSD search's kernels: the second process of a cold warm-up. The
+def compile_search(parent: int | None = None) -> None:
+    """Compile (or load) the SSD search's kernels: the second process of a cold warm-up,
+    started by ``parent`` (it dies with it). The
     default tracker's coarse-to-fine search (:func:`~vistrack.common.vision.pyramid.
     track_pyramid`, with the single-level kernels it calls), with the types the tracker gives
     it. It starts with the single-level search that each level of the coarse-to-fine search
@@ -363,6 +386,8 @@ def compile_search() -> None:
     compiles the sub-pixel refinement (:func:`_compile_refinement`) that the coarse-to-fine
     search calls before it and then loads from the cache. The paper's ``track_ssd``
     (``--paper``) compiles when first used."""
+    if parent is not None:
+        _die_with(parent)
     import numpy as np
 
     from ..common.params import TrackerParams

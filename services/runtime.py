@@ -191,8 +191,11 @@ def _watch_stop_requests(node: Node, returned: threading.Event, logger: logging.
         if returned.wait(STOP_DEADLINE_S):
             return
         try:
-            logger.error("the loop did not return within %g s of the stop request: exiting",
-                         STOP_DEADLINE_S)
+            if node.alive:
+                logger.error("the loop did not return within %g s of the stop request: "
+                             "exiting", STOP_DEADLINE_S)
+            else:  # still starting (loading or compiling kernels): nothing went wrong
+                logger.info("stopped while starting")
             close_within(node, CLOSE_S, logger)
         finally:
             end_process(1)

@@ -46,9 +46,14 @@ what ``vistrack demo`` uses.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import signal
+import sys
 import threading
 import time
+from collections.abc import Iterator
+from types import FrameType
 from typing import Any
 
 from ...common.bus import (
@@ -171,6 +176,28 @@ def main(args: argparse.Namespace) -> int:
         restore()
 
 
+@contextlib.contextmanager
+def _interrupting() -> Iterator[None]:
+    """SIGINT and SIGTERM raise KeyboardInterrupt within: a first run's compile of the
+    kernels (a long call in this thread) ends at once. The handlers that only set the stop
+    event were run between the compiler's bytecodes and nothing looked at the event: Ctrl-C
+    or SIGTERM took effect 45 to 50 s later, when the compile was done (systemd's
+    TimeoutStopSec of the shipped unit is 15 s)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: FrameType | None) -> None:
+        raise KeyboardInterrupt
+
+    previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def _run(launch: LaunchSpec, args: argparse.Namespace, stop: threading.Event) -> int:
     launcher = Launcher(launch, connect=args.connect, router_config=args.config,
                         multicast_scouting=not args.no_multicast_scouting, mode=args.mode,
@@ -179,7 +206,13 @@ def _run(launch: LaunchSpec, args: argparse.Namespace, stop: threading.Event) ->
         # the router first: tools can connect (and a taken port is said) at once, not after
         # a first run's half minute of compiling; the services start during the compile
         launcher.open()
-        compile_kernels("up", start=launcher.start)
+        with _interrupting():
+            compile_kernels("up", start=launcher.start)
+    except KeyboardInterrupt:  # a stop request during the compile: stopped, as at start-up
+        launcher.stop()
+        print("vistrack up: stopped while compiling the tracker's kernels (exit 0)",
+              file=sys.stderr, flush=True)
+        return 0
     except BaseException:
         launcher.stop()
         raise

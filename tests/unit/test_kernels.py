@@ -303,3 +303,33 @@ def test_the_auto_tuners_windows_sum_in_the_default_trackers_type():
              | {int(v) for v in PAPER_LEVELS["corr_size"]})
     assert REFERENCE_WINDOWS[1] == 30 and sum_type(base.corr_size) == "int32"
     assert {c: sum_type(c) for c in sorted(sizes)} == dict.fromkeys(sorted(sizes), "int32")
+
+
+def test_the_compile_helper_dies_with_its_parent(tmp_path):
+    """A service stopped while it starts ends at once (``os._exit``): its helper, compiling
+    the search into an empty cache (half a minute), used to go on for nobody."""
+    import time
+
+    parent = subprocess.run(
+        [sys.executable, "-c", "import os; from vistrack.services import kernels; "
+         "print(kernels._start_helper().pid, flush=True); os._exit(0)"],
+        env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}, capture_output=True, text=True,
+        check=True, timeout=60)
+    helper = int(parent.stdout)
+    try:
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline and _running(helper):
+            time.sleep(0.1)
+        assert not _running(helper), "the helper outlived its parent"
+    finally:
+        if _running(helper):
+            os.kill(helper, 9)
+
+
+def _running(pid: int) -> bool:
+    """Whether ``pid`` runs (an orphan is reaped by init; a zombie counts as gone)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False

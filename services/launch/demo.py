@@ -70,9 +70,20 @@ def check_args(args: argparse.Namespace) -> None:
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {args.out}: exists and is not a folder")
     try:
-        load_scenario(args.scenario)
+        # made now: a folder that cannot be made (a read-only working directory, /proc) was
+        # a traceback, after the start
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"--out {args.out}: {e.strerror or e}") from None
+    try:
+        scenario = load_scenario(args.scenario)
     except ScenarioError as e:
         raise ValueError(str(e)) from None
+    if args.duration is not None and args.duration > scenario.duration_s:
+        # it ran the scenario's length and said nothing (its strip then held 2 frames of 8)
+        raise ValueError(f"--duration {args.duration:g} is out of range: allowed "
+                         f"1..{scenario.duration_s:g} s (the length of scenario "
+                         f"{args.scenario!r})")
     if args.config is not None:
         try:
             router_config(None, args.config)
@@ -377,12 +388,17 @@ def main(args: argparse.Namespace) -> int:
         print_error("demo", e)
         return 2
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     try:
         return _run(args, launch, scenario, duration, out)
     except (BusError, LaunchError) as e:  # a port in use, no router at -e, a service down
         print_error("demo", e)
         return 1
+    except KeyboardInterrupt:
+        # the status line ends, and what was written is said (the services stopped with the
+        # launcher); nothing else is: a run cut short is no demo
+        print(f"\nvistrack demo: interrupted; only {out / 'services.log'} was written",
+              file=sys.stderr, flush=True)
+        return 130
 
 
 def _run(args: argparse.Namespace, launch: LaunchSpec, scenario: Any, duration: float,

@@ -105,6 +105,10 @@ def test_demo_with_the_robot_still_does_not_follow_the_target(tmp_path, free_por
     (["--duration", "nan"], "--duration nan is out of range: allowed 1..3600 s"),
     (["--scenario", "nowhere"], "'nowhere' is neither a built-in scenario"),
     (["--out", "FILE"], "exists and is not a folder"),
+    # ran the scenario's 20 s and said nothing; a traceback after the start
+    (["--duration", "100"], "--duration 100 is out of range: allowed 1..20 s (the length of "
+                            "scenario 'default')"),
+    (["--out", "/proc/vistrack-demo"], "--out /proc/vistrack-demo: No such file or directory"),
     (["-c", "BAD"], "line 1, column 9: invalid type: integer `1`, expected either 'router', "
                     "'peer' or 'client'"),
     (["-c", "MISSING"], "missing.json5: not found"),

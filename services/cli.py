@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import atexit
 import importlib
+import importlib.metadata
 import os
 import re
 import sys
@@ -70,12 +71,21 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+def _version() -> str:
+    """The installed distribution's version (what pip installed, editable or not)."""
+    try:
+        return importlib.metadata.version("vistrack")
+    except importlib.metadata.PackageNotFoundError:  # run from a source tree, not installed
+        return "(not installed)"
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The ``vistrack`` parser. Only ``command``'s module is imported (all of them when None,
     e.g. for documentation), so ``vistrack track`` never loads Zenoh and one broken or slow
     subcommand cannot break the others."""
     parser = _Parser(prog="vistrack", description="Fast, self-tuning visual tracking for "
                      "mobile robots: the services, the launcher and the tools.")
+    parser.add_argument("--version", action="version", version=f"vistrack {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     for name, (module, text) in COMMANDS.items():
@@ -115,11 +125,28 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
 
 
+def _open_standard_streams() -> None:
+    """A standard output or error closed by the caller (``2>&-``, a supervisor that closes
+    them) is opened on /dev/null: Python leaves ``sys.stderr`` None then, and every command
+    failed on it with exit 1 and no word (``vistrack --help 2>&-``, a demo's status line, the
+    capture of OpenCV's messages, which duplicates file descriptor 2)."""
+    for fd, name in ((1, "stdout"), (2, "stderr")):
+        try:
+            os.fstat(fd)
+        except OSError:
+            null = os.open(os.devnull, os.O_WRONLY)
+            if null != fd:
+                os.dup2(null, fd)
+                os.close(null)
+            setattr(sys, name, open(fd, "w", closefd=False, errors="backslashreplace"))
+
+
 def entry(argv: Sequence[str] | None = None) -> NoReturn:
     """The ``vistrack`` command: :func:`main`, then the end of the process as the interpreter
     would end it (an uncaught exception's traceback and exit code 1, threads joined, ``atexit``
     run, the standard streams flushed) but for the teardown of every module, which took 1.2 s
     of the 2.5 s a ``vistrack track`` of 8 frames took here (numba's and LLVM's objects)."""
+    _open_standard_streams()
     try:
         code = main(argv)
     except SystemExit as e:  # argparse's --help, and anything else that exits

@@ -122,7 +122,9 @@ BENCHES: dict[str, Callable[..., dict[str, float]]] = {"tracker": _tracker,
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("which", nargs="?", default="tracker", choices=sorted(BENCHES),
-                        help="which benchmark (default tracker)")
+                        metavar="BENCHMARK",  # its name in errors too, not "which"
+                        help=f"which benchmark: {', '.join(sorted(BENCHES))} (default "
+                             "tracker)")
 
 
 def main(args: argparse.Namespace) -> int:

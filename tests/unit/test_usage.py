@@ -124,3 +124,34 @@ def test_a_flag_after_a_flag_that_wants_a_value_is_still_a_flag(capsys):
         cli.main(["status", "--timeout", "--json"])
     assert exit_.value.code == 2
     assert "argument --timeout: expected one argument" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("argv", "code"), [(["--help"], 0), (["track", "--max-features", "0"],
+                                                              2)])
+def test_a_closed_standard_error_is_no_failure(argv, code):
+    # with 2>&- Python leaves sys.stderr None: every command exited 1 without a word
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", *argv],
+                         preexec_fn=lambda: os.close(2), stdout=subprocess.PIPE, text=True,
+                         timeout=60)
+    assert run.returncode == code
+    if code == 0:
+        assert run.stdout.startswith("usage: vistrack")
+
+
+def test_version_and_the_benchmarks_name_in_errors(capsys):
+    import importlib.metadata
+
+    from vistrack.services import cli
+
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["--version"])  # was: "the following arguments are required: COMMAND"
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out == f"vistrack {importlib.metadata.version('vistrack')}\n"
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["bench", "nope"])
+    assert exit_.value.code == 2
+    # the argument's name in the error, not its internal "which"
+    assert "argument BENCHMARK: invalid choice: 'nope'" in capsys.readouterr().err

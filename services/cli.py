@@ -17,7 +17,7 @@ import threading
 from collections.abc import Sequence
 from typing import NoReturn
 
-from . import threads, usage
+from . import kernels, threads, usage
 
 # name -> (module under vistrack.services, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -107,6 +107,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as e:
         print(f"vistrack: error: {usage.one_line(e)}", file=sys.stderr, flush=True)
         return 2
+    folder = kernels.cache_folder_fallback()  # and before numba reads NUMBA_CACHE_DIR
+    if folder is not None:
+        print(f"vistrack: note: no folder numba can write its kernel cache to (the package's, "
+              f"or $XDG_CACHE_HOME/numba): caching them in {folder}; set NUMBA_CACHE_DIR to "
+              "choose one", file=sys.stderr, flush=True)
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser(command if command in COMMANDS else "")

@@ -42,6 +42,7 @@ import logging
 import os
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -62,6 +63,47 @@ HELPER_TIMEOUT_S = 600.0
 _HELPER = "from vistrack.services.kernels import compile_search; compile_search({parent})"
 #: prctl's option that signals a process when its parent dies
 PR_SET_PDEATHSIG = 1
+
+
+def cache_folder_fallback(candidates: list[Path] | None = None) -> str | None:
+    """Where numba has no folder to write its kernel cache to (a system-wide install whose
+    packages are read-only, a HOME and XDG_CACHE_HOME that cannot be written, and no
+    NUMBA_CACHE_DIR), set NUMBA_CACHE_DIR to a folder of this user's in the temporary
+    folder and return it (else None). Numba's own answer was a traceback at the first
+    import of a kernel (``RuntimeError: cannot cache function '_select': no locator
+    available``). Call it before numba is imported. ``candidates``: the folders numba would
+    write to (default: the kernels' package's ``__pycache__``, then the user-wide
+    ``$XDG_CACHE_HOME/numba``); the first it can write to is used, as numba does."""
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return None
+    if candidates is None:
+        vision = Path(__file__).resolve().parent.parent / "common" / "vision"
+        user = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"),
+                                                                ".cache")
+        candidates = [vision / "__pycache__", Path(user) / "numba"]
+    if any(_writable(folder) for folder in candidates):
+        return None
+    folder = os.path.join(tempfile.gettempdir(), f"vistrack-numba-{os.getuid()}")
+    try:
+        os.makedirs(folder, mode=0o700, exist_ok=True)
+        info = os.stat(folder)
+        # the cache holds code numba runs: only a folder of ours that nobody else can write
+        if info.st_uid != os.getuid() or info.st_mode & 0o022:
+            folder = tempfile.mkdtemp(prefix="vistrack-numba-")
+    except OSError:
+        folder = tempfile.mkdtemp(prefix="vistrack-numba-")
+    os.environ["NUMBA_CACHE_DIR"] = folder
+    return folder
+
+
+def _writable(folder: Path) -> bool:
+    """Whether numba could write its cache into ``folder`` (made if absent), as it tries."""
+    try:
+        os.makedirs(folder, exist_ok=True)
+        tempfile.TemporaryFile(dir=folder).close()
+    except OSError:
+        return False
+    return True
 
 
 def warm_up_kernels(say: Callable[[str], None], *, helper: bool = True,

@@ -333,3 +333,27 @@ def _running(pid: int) -> bool:
             return f.read().split(")")[-1].split()[0] != "Z"
     except FileNotFoundError:
         return False
+
+
+def test_no_writable_cache_folder_falls_back_to_one_of_the_users(tmp_path, monkeypatch):
+    """Numba's answer where it can write to no cache folder (a read-only install, HOME and
+    XDG_CACHE_HOME unwritable) was a traceback at the first import of a kernel. A path
+    under a regular file cannot be made, by root either: the folders numba would try."""
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    monkeypatch.setattr(kernels.tempfile, "tempdir", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    folder = kernels.cache_folder_fallback([blocker / "a", blocker / "b"])
+    assert folder == str(tmp_path / "tmp" / f"vistrack-numba-{os.getuid()}")
+    assert os.environ["NUMBA_CACHE_DIR"] == folder and os.path.isdir(folder)
+    assert os.stat(folder).st_mode & 0o077 == 0  # numba runs what it holds: ours alone
+    # one it can write to: nothing changes
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    assert kernels.cache_folder_fallback([blocker / "a", tmp_path / "ok"]) is None
+    assert "NUMBA_CACHE_DIR" not in os.environ
+    # a folder of that name that another could write to is not used
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    os.chmod(folder, 0o777)
+    other = kernels.cache_folder_fallback([blocker / "a"])
+    assert other != folder and os.path.dirname(other) == str(tmp_path / "tmp")

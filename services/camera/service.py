@@ -266,10 +266,10 @@ def released(node: Node, args: argparse.Namespace) -> bool:
     return False
 
 
-def loop(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray] | None = None
-         ) -> int:
-    """Publish the frames of ``--source`` (``frames``, already opened by :func:`main`), once
-    :func:`released`."""
+def loop(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray] | None = None,
+         skipped: Skipped | None = None) -> int:
+    """Publish the frames of ``--source`` (``frames``, already opened by :func:`main`, the
+    frames it leaves out counted by ``skipped``), once :func:`released`."""
     if frames is None:
         if _is_sim(args):
             sim = make_simulator(args)
@@ -291,16 +291,19 @@ def loop(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray] | No
     if not args.source.startswith("device:") and not wait_for_consumers(node, node.keys.frame):
         return 0  # stopped before anyone subscribed
     try:
-        return _run(node, args, frames, acks, window)
+        return _run(node, args, frames, acks, window, skipped)
     except SourceError as e:
         log.error("%s", e)
         return 2
 
 
 def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], acks: _Acks,
-         window: int) -> int:
+         window: int, skipped: Skipped | None = None) -> int:
     """Publish every frame: at ``--fps``, or (``--fps 0``) frame n once pre-processing has
-    published frame n-1 and motion-estimation frame n-window."""
+    published frame n-1 and motion-estimation frame n-window. A frame the source left out
+    (``skipped``) takes its ``seq`` with it: the gap says a frame is missing there, as a
+    drop does, and the tracker predicts over it (the frame after one that was left out was
+    sent as its ``seq``, and tracked as one step where two had passed)."""
     keys = node.keys
     period = 1.0 / args.fps if args.fps > 0 else 0.0
     next_t = time.perf_counter()
@@ -311,9 +314,10 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
     faults = Faults(node, log)
     device = frames if isinstance(frames, DeviceFrames) else None
     try:
-        for seq, image in enumerate(frames):
+        for sent_before, image in enumerate(frames):
+            seq = sent_before + (skipped.count if skipped is not None else 0)
             if node.stop.is_set():
-                log.info("stopped after %d frames", seq)
+                log.info("stopped after %d frames", sent_before)
                 return 0
             if period:
                 next_t += period
@@ -330,7 +334,7 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
                     sent.clear()  # lost downstream (a service restarted): go on
             # a device's frame: when it was read from the device (its newest, not when sent)
             stamp = device.capture_ns if device is not None else time.time_ns()
-            node.status.extra["frames"] = seq + 1
+            node.status.extra["frames"] = sent_before + 1
             if not faults.call(keys.frame, seq, _publish, node, image, seq, stamp, last, reliable):
                 continue  # skipped (counted in failed): nothing to wait for
             acks.sent = stamp
@@ -460,7 +464,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         def run(node: Node, a: argparse.Namespace) -> int:
             skipped.attach(node)
-            return loop(node, a, frames)
+            return loop(node, a, frames, skipped)
 
         return serve("camera", args, run, publishes_frames=True)
     finally:

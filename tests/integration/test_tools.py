@@ -592,6 +592,28 @@ def test_a_looping_file_camera_plays_a_video_cut_short_again(endpoint, session, 
         assert d == data[(seqs[k] - first) % len(held)]
 
 
+def test_a_frame_the_file_camera_leaves_out_leaves_a_gap_in_seq(endpoint, session, tmp_path):
+    """A folder whose third image has another size: the camera leaves it out (a warning) and
+    sends the others; the frame after it carries seq 3, not 2, so that a reader sees a frame
+    is missing there, as for a drop (the tracker then predicts over two steps)."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(1)
+    for i in range(5):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"),
+                    rng.integers(0, 256, (100, 100) if i == 2 else (60, 80), dtype=np.uint8))
+    robot = "skipgap"
+    with collecting(session, f"vistrack/{robot}/camera/frame") as frames:
+        cam = Proc(["camera", "-e", endpoint, NS, "--robot", robot, "--source",
+                    f"file:{tmp_path}", "--fps", "50"])
+        try:
+            got = frames.wait(lambda items: len(items) >= 4, timeout=60)
+        finally:
+            cam.stop()
+    assert [msgpack.unpackb(payload)["seq"] for _, payload in got] == [0, 1, 3, 4]
+
+
 def status_of_robot(session: zenoh.Session, robot: str, service: str) -> dict:
     for reply in session.get(f"vistrack/{robot}/{service}/status", timeout=2.0):
         if reply.ok is not None:

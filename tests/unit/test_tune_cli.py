@@ -41,8 +41,13 @@ def test_text_sections_progress_and_plots(tmp_path):
                    "--tolerance", "0.75", "--method", "anova", check=True)
     text = res.stdout
     for section in ("## Design", "## Alias structure", "## Effects", "## Table 3",
-                    "## Sensitivity sweep", "## Optimum"):
+                    "## Sensitivity sweep"):
         assert section in text, section
+    # the choice's heading says whether it met the tolerance
+    met = "no swept window within" not in text
+    assert ("\n## Optimum\n" in text) == met
+    assert ("\n## Closest to the reference (no swept window within the tolerance)\n"
+            in text) == (not met)
     table3 = text.split("## Table 3")[1].split("##")[0].splitlines()
     assert [line.split()[0] for line in table3[2:6]] == ["t1", "tf", "ex", "ey"]
     assert "1 = 2345" in text and "34 = 125" in text  # I = ABCDE
@@ -54,6 +59,14 @@ def test_text_sections_progress_and_plots(tmp_path):
     assert written == PNGS
     for p in out.iterdir():
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 5000
+
+
+def test_a_choice_that_misses_the_tolerance_says_so_in_its_heading():
+    # "## Optimum" with a speed-up, and the caveat only on the line below it
+    res = vistrack("tune", *FAST, "--seed", "3", "--tolerance", "0", check=True)
+    chosen = res.stdout.split("\n## Closest to the reference (no swept window within the "
+                              "tolerance)\n")[1]
+    assert "## Optimum" not in res.stdout and "no swept window within 0 px" in chosen
 
 
 @pytest.mark.parametrize("args,message", [

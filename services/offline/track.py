@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import itertools
 import json
 import sys
 from collections.abc import Callable
@@ -46,6 +47,13 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     params = params_from_args(args)
     size = parse_size(args.resize, "--resize") if args.resize is not None else None
     source = open_files(args.frames, size)
+    # the first frame before any output: a source that gives none (a file that is no video)
+    # is one line on stderr, not a table's header on stdout and then the error; and before
+    # the kernels' compile, which a bad source need not wait for
+    frames = iter(source)
+    first = next(frames, None)
+    if first is None:
+        raise SourceError("no frame was read")
     # numba compile (said on stderr) or cache load, so t1 measures the tracker, not the JIT
     warm_up_kernels(say_on_stderr("track"), params=params)
     tracker = Tracker(params)
@@ -63,7 +71,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     elif args.format == "csv":
         writer = csv.writer(out, lineterminator="\n")
         writer.writerow(CSV_FIELDS)
-    for frame in source:
+    for frame in itertools.chain([first], frames):
         e = tracker.process(frame)
         estimates.append(e)
         if args.format == "table":

@@ -181,12 +181,17 @@ def test_bad_files_are_one_line_and_exit_2(tmp_path):
               "files"),
              ([str(tmp_path / "junk.png")], "not a readable image"),
              ([str(tmp_path / "a.png"), str(tmp_path / "b.png")], "60x40 but the first was 50x40"),
-             ([str(tmp_path / "nothing*.png")], "matches no image file")]
+             ([str(tmp_path / "nothing*.png")], "matches no image file"),
+             ([str(tmp_path / "text.mp4")], "not a readable video")]
+    (tmp_path / "text.mp4").write_text("not a video")
     for args, needle in cases:
         r = vistrack("track", *args)
         assert r.returncode == 2, args
         lines = r.stderr.strip().splitlines()
         assert len(lines) == 1 and needle in lines[0], r.stderr
+    # a source that gives no frame says so before any output (the table's header came first)
+    r = vistrack("track", str(tmp_path / "text.mp4"))
+    assert r.stdout == ""
 
 
 @pytest.mark.parametrize("service", ["preprocessing", "motion-estimation", "auto-tuner"])

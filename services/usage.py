@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import re
 import sys
 from collections.abc import Callable
@@ -269,6 +270,13 @@ def one_line(message: object) -> str:
 def print_error(command: str, message: object) -> None:
     """The one-line error of a subcommand on stderr: ``vistrack COMMAND: error: MESSAGE``."""
     print(f"vistrack {command}: error: {one_line(message)}", file=sys.stderr, flush=True)
+
+
+def rewrites_lines(stream: TextIO) -> bool:
+    """Whether a status line may be rewritten in place on ``stream`` (carriage return and the
+    erase-line escape): a terminal that understands them, not a file, a pipe or TERM=dumb
+    (an editor's shell, where they came out as raw characters)."""
+    return stream.isatty() and os.environ.get("TERM", "") not in ("", "dumb")
 
 
 def say_on_stderr(command: str, stream: TextIO | None = None) -> Callable[[str], None]:

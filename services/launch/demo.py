@@ -40,7 +40,7 @@ from ...common.bus import BusError, add_zenoh_args
 from ..camera.scenarios import ScenarioError, load_scenario
 from ..camera.sim import Camera, image_truth
 from ..fuzzy_controller.control import ControllerConfig
-from ..usage import add_number, print_error
+from ..usage import add_number, print_error, rewrites_lines
 from .launchfile import LaunchError, LaunchSpec, default_launch
 from .router import listen_endpoints, router_config
 from .supervisor import Launcher, compile_kernels
@@ -403,7 +403,7 @@ def main(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, launch: LaunchSpec, scenario: Any, duration: float,
          out: Path) -> int:
-    tty = sys.stderr.isatty()
+    tty = rewrites_lines(sys.stderr)
     with open(out / "services.log", "w") as log:
         launcher = Launcher(launch, connect=args.connect, router_config=args.config,
                             multicast_scouting=not args.no_multicast_scouting, mode=args.mode,

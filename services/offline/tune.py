@@ -52,6 +52,7 @@ from ..usage import (
     add_search_flag,
     add_tracker_flags,
     params_from_args,
+    rewrites_lines,
     say_on_stderr,
 )
 from .track import offline_main
@@ -283,7 +284,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
     seed = new_seed() if args.seed is None else args.seed
     # a first run compiles: said, not silent
     warm_up_kernels(say_on_stderr("tune", err), params=base)
-    show = err.isatty() if args.progress is None else args.progress
+    show = rewrites_lines(err) if args.progress is None else args.progress
     progress = ProgressLine(err) if show else None
     start = time.perf_counter()
     try:

@@ -155,3 +155,20 @@ def test_version_and_the_benchmarks_name_in_errors(capsys):
     assert exit_.value.code == 2
     # the argument's name in the error, not its internal "which"
     assert "argument BENCHMARK: invalid choice: 'nope'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("term", "tty", "rewrites"), [
+    ("xterm-256color", True, True), ("dumb", True, False), ("", True, False),
+    ("xterm", False, False)])
+def test_a_status_line_is_rewritten_in_place_only_on_a_terminal_that_can(term, tty, rewrites,
+                                                                        monkeypatch):
+    import io
+
+    from vistrack.services.usage import rewrites_lines
+
+    class Stream(io.StringIO):
+        def isatty(self) -> bool:
+            return tty
+
+    monkeypatch.setenv("TERM", term)
+    assert rewrites_lines(Stream()) is rewrites

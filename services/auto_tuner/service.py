@@ -374,7 +374,11 @@ class AutoTuner:
                  "" if changed else " (a user's set arrived meanwhile: kept)" if user_meanwhile
                  else f" (the windows in force, {st.params.search_size}/"
                       f"{st.params.corr_size}, are within the tolerance and "
-                      f"{100 * KEEP_WITHIN:.0f} % of its time: kept)" if kept
+                      f"{100 * KEEP_WITHIN:.0f} % of its time: kept)"
+                 if kept and report.get("within_tolerance", True)
+                 else f" (no swept window within the tolerance; the windows in force, "
+                      f"{st.params.search_size}/{st.params.corr_size}, are within it of the "
+                      "closest: kept)" if kept
                  else f" (not published: params_id {st.params_id} in force is the largest a "
                       "message may carry; restart the pipeline to count from 0 again)"
                  if unannounced else " (already in force)")

@@ -260,6 +260,17 @@ def test_a_tuning_changes_the_windows_and_keeps_the_rest_in_force():
         assert (sent.max_features, sent.search_size, sent.params_id) == (150, 11, 5)
 
 
+def _report(optimum: dict, searches: list[int], corrs: list[int], tf: np.ndarray,
+            ex: np.ndarray, **extra: object) -> dict:
+    """A tuner/report of a sweep whose tf and ex (= ey) are given, the rest of it small."""
+    return {"design": [[-1, 1], [1, -1]], "factors": ["A", "B"], "order": [1, 0],
+            "responses": {"tf": [0.2, 0.3]}, "effects": {"tf": {"1": 0.1}},
+            "significant": {"tf": {"99": ["1"], "95": ["1"]}}, "optimum": optimum,
+            "tolerance": 0.5, **extra,
+            "sweep": {"search_size": searches, "corr_size": corrs, "tf": tf.tolist(),
+                      "ex": ex.tolist(), "ey": ex.tolist()}}
+
+
 @pytest.mark.parametrize(("slower", "err", "kept"), [
     (1.05, 0.2, True), (1.25, 0.2, False), (1.05, 0.7, False)])
 def test_a_tuning_keeps_windows_about_as_fast_as_its_optimum(slower, err, kept):
@@ -289,12 +300,7 @@ def test_a_tuning_keeps_windows_about_as_fast_as_its_optimum(slower, err, kept):
     about_as_good = result.keeps(15, 9)
     assert about_as_good is kept
     assert not result.keeps(31, 15)  # not on the grid
-    report = {"design": [[-1, 1], [1, -1]], "factors": ["A", "B"], "order": [1, 0],
-              "responses": {"tf": [0.2, 0.3]}, "effects": {"tf": {"1": 0.1}},
-              "significant": {"tf": {"99": ["1"], "95": ["1"]}},
-              "optimum": {"search_size": 10, "corr_size": 5}, "tolerance": 0.5,
-              "sweep": {"search_size": searches, "corr_size": corrs, "tf": tf.tolist(),
-                        "ex": ex.tolist(), "ey": ex.tolist()}}
+    report = _report({"search_size": 10, "corr_size": 5}, searches, corrs, tf, ex)
     args = parse("auto-tuner", "--no-tune")
     with MemoryNode("auto_tuner") as node:
         tuner = AutoTuner(node, args, check_flags(args))
@@ -306,6 +312,51 @@ def test_a_tuning_keeps_windows_about_as_fast_as_its_optimum(slower, err, kept):
         assert ((p.search_size, p.corr_size) == (15, 9)) is kept
         assert (node.published_on(node.keys.params) == []) is kept
         assert msgpack.unpackb(node.published_on(node.keys.report)[-1])["changed"] is not kept
+
+
+@pytest.mark.parametrize(("err", "kept"), [(4.3, True), (4.6, True), (6.0, False)])
+def test_where_no_window_meets_the_tolerance_the_windows_in_force_stay_unless_far_worse(
+        err, kept, caplog):
+    """No swept window within the tolerance (0.5 px): the optimum is only the closest to the
+    reference (ex 4.1 px). The windows in force stay where their error is within the
+    tolerance of the closest's (4.3, 4.6), whatever their speed; far worse (6.0), the closest
+    is taken. Published always, such choices flipped the windows from cycle to cycle on a
+    scene of walkers and put slower windows as far off in force on large motion."""
+    import logging
+
+    from vistrack.services.auto_tuner.sensitivity import Optimum, Sweep, TuneResult
+    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
+
+    searches, corrs = [10, 12, 14, 16, 18, 20], [5, 7, 9, 11, 13, 15]
+    tf = np.full((6, 6), 1.0)
+    tf[2, 2] = 2.0  # in force, 15/9: twice as slow as the closest, which does not matter
+    ex = np.full((6, 6), 8.0)
+    ex[1, 4] = 4.1  # the closest, 12/13
+    ex[2, 2] = err
+    sweep = Sweep(search_sizes=tuple(searches), corr_sizes=tuple(corrs), fixed={}, t1=tf,
+                  tf=tf, ex=ex, ey=ex, npi=tf, reference=None,  # type: ignore[arg-type]
+                  reference_windows=(50, 30), base=TrackerParams())
+    closest = Optimum(params={"search_size": 12, "corr_size": 13}, index=(1, 4), t1=1.0,
+                      tf=1.0, ex=4.1, ey=4.1, within_tolerance=False, speedup=1.0, reason="")
+    result = TuneResult(run=None, analysis=None, sweep=sweep,  # type: ignore[arg-type]
+                        optimum=closest, tolerance=0.5, frames=30, size=(256, 256), repeats=1,
+                        seconds={})
+    assert result.keeps(15, 9) is kept
+    assert not result.keeps(31, 15)  # not on the grid
+    report = _report({"search_size": 12, "corr_size": 13}, searches, corrs, tf, ex,
+                     within_tolerance=False)
+    args = parse("auto-tuner", "--no-tune")
+    with MemoryNode("auto_tuner") as node, caplog.at_level(logging.INFO):
+        tuner = AutoTuner(node, args, check_flags(args))
+        tuner.reason = "scene change"
+        tuner._finish(("ok", report, {"search_size": 12, "corr_size": 13}, kept),
+                      time.monotonic())
+        p = tuner.state.params
+        assert ((p.search_size, p.corr_size) == (15, 9)) is kept
+        assert (node.published_on(node.keys.params) == []) is kept
+        said = " ".join(r.getMessage() for r in caplog.records)
+        assert ("no swept window within the tolerance; the windows in force, 15/9, are within "
+                "it of the closest: kept" in said) is kept
 
 
 def test_the_camera_takes_no_acknowledgement_of_a_frame_it_has_not_sent():

@@ -201,6 +201,7 @@ class Launcher:
         self._tokens: dict[str, float] = {}  # service -> when its token appeared (monotonic)
         self._tokens_lost: dict[str, float] = {}  # service -> when its token went (monotonic)
         self._watches: dict[str, _Watch] = {}  # service -> its process's hang watch
+        self._router_lost_at: float | None = None  # when the external router went (monotonic)
         # a warmed-up process a restart becomes (see spare.py), once every service is ready
         self._use_spare = spare and any(s.restart != "never" for s in launch.services)
         self._spare: subprocess.Popen[bytes] | None = None
@@ -475,7 +476,15 @@ class Launcher:
         """Ask every ready service for its status once a second, and SIGKILL one that has not
         answered for its ``hang_timeout``, answers that its loop has been busy on one input
         that long, or whose liveliness token has been gone that long while its process lives;
-        its exit is then handled like any other (restart by policy)."""
+        its exit is then handled like any other (restart by policy).
+
+        Not while the launcher has lost the router it joined (``connect``): the services are
+        asked through it, and they go on without it (they talk to each other directly). A
+        router gone for 3 s or more had every service of every robot on it killed as hung,
+        and the runs ended (a camera is not restarted), where the pipelines had kept tracking;
+        now the launcher says the router went and came back, and judges again from then."""
+        if not self._router_reachable(now):
+            return
         for child in self._children:
             timeout = child.spec.hang_timeout
             if not (timeout and child.ready and child.running and child.proc is not None):
@@ -507,6 +516,33 @@ class Launcher:
                 os.killpg(pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass  # it exited meanwhile
+
+    def _router_reachable(self, now: float) -> bool:
+        """Whether the launcher's client session reaches the router it joined (always, for an
+        embedded router: it is the launcher's own session); the loss and the return said once,
+        and on the return every watch starts again (the outage is no service's silence)."""
+        session = self._session
+        if not self._connect or session is None:
+            return True
+        try:
+            reached = bool(list(session.info.routers_zid()))
+        except zenoh.ZError:
+            return True  # the session is closing
+        if not reached:
+            if self._router_lost_at is None:
+                self._router_lost_at = now
+                self._log(f"lost the router at {', '.join(self._connect)}: the services "
+                          "cannot be asked how they are until it is back, and are not judged "
+                          "meanwhile")
+            return False
+        if self._router_lost_at is not None:
+            self._log(f"the router is back after {now - self._router_lost_at:.1f} s")
+            self._router_lost_at = None
+            with self._cond:
+                for watch in self._watches.values():
+                    watch.since = watch.answered_at = now
+                    watch.busy_s = 0.0
+        return True
 
     def _ask_status(self, service: str, pid: int) -> None:
         """Query ``service``'s status; the answer of process ``pid`` updates its watch."""

@@ -479,6 +479,50 @@ def test_file_camera_ends_the_run_through_an_external_router(procs, tmp_path, fr
     router.wait_line(r"^vistrack router: stopped$", 1)
 
 
+def test_a_router_outage_is_no_service_s_hang(procs, tmp_path, free_port):
+    """The router that vistrack up joined goes for 7 s, longer than the services' 5 s hang
+    timeout, and comes back on its port. The launcher asks the services through it, so it
+    heard none of them: it killed every one as hung and the run ended (the camera is not
+    restarted), where the services, which talk to each other directly, had kept tracking.
+    It now says it lost the router and that it is back, kills nothing, and the run goes on:
+    estimates come through the new router."""
+    launch = write_launch(tmp_path / "three.yaml", """\
+        services:
+          - name: camera
+            flags: [--source, builtin, --loop, --fps, "20"]
+            restart: never
+          - {name: preprocessing}
+          - {name: motion-estimation}
+    """)
+    endpoint = f"tcp/127.0.0.1:{free_port}"
+
+    def start_router() -> Proc:
+        router = Proc("router", "-l", endpoint, "--no-multicast-scouting")
+        procs.append(router)
+        router.wait_line(rf"^vistrack router: ready, listening on tcp/127\.0\.0\.1:{free_port}",
+                         20)
+        return router
+
+    router = start_router()
+    robot = f"t{uuid.uuid4().hex[:8]}"
+    up = Proc("up", str(launch), "-e", endpoint, "--robot", robot)
+    procs.append(up)
+    up.wait_line(r"^vistrack up: ready", READY_S)
+    router.proc.send_signal(signal.SIGINT)
+    assert router.wait_exit(STOP_S) == 0
+    up.wait_line(rf"lost the router at {re.escape(endpoint)}", 10)
+    time.sleep(7.0)  # the outage itself, longer than the hang timeout: not a wait for a state
+    start_router()
+    up.wait_line(r"the router is back after \d+\.\d s", 20)
+    with client_session(free_port) as session:
+        estimates: list[Estimate] = []
+        session.declare_subscriber(Keys(robot).estimate, lambda sample: estimates.append(
+            Estimate.decode(sample.payload.to_bytes())))
+        wait_for(lambda: len(estimates) >= 20, 20, "20 estimates through the new router")
+    assert up.proc.poll() is None, up.output
+    assert "is hung" not in up.output and "exited with" not in up.output, up.output
+
+
 # -- launch files ----------------------------------------------------------------------------
 
 BAD_LAUNCH_FILES = {

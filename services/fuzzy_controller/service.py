@@ -211,6 +211,12 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     ready(node)
     dispatch(node, {node.keys.estimate: on_estimate}, log, timeout=STALE_REPEAT_S / 2,
              tick=watchdog, recover=recover)
+    if seq > 0:
+        # stopped (SIGTERM, Ctrl-C, the launcher's stop): the last word is a stop, not the
+        # last move, which a base without a timeout of its own went on with (a clean stop of
+        # vistrack up ended the controller 0.1 s after the camera, before its watchdog's 0.3 s)
+        send(time.time_ns(), 0.0, 0.0, 0.0, True)
+        log.info("stopping: sent a stop command (stale)")
 
 
 def main(args: argparse.Namespace) -> int:

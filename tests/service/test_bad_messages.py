@@ -442,6 +442,33 @@ def test_the_controller_refuses_an_estimate_from_the_future():
         assert not answered(future) and node.status.rejected == 1
 
 
+def test_a_controller_that_stops_sends_a_stop_last():
+    """Stopped (SIGTERM, Ctrl-C, the launcher's stop) after a moving command, its last
+    command is a stale zero: a clean stop of vistrack up left the last move standing (the
+    controller ended before its watchdog fired), for a base without a timeout of its own."""
+    from vistrack.services.fuzzy_controller.service import loop
+
+    with MemoryNode("fuzzy_controller") as node:
+        thread = threading.Thread(target=loop, args=(node, parse("fuzzy-controller")))
+        thread.start()
+        try:
+            for seq in range(3):  # the target moving sideways: commands that move
+                est = Estimate(seq=seq, stamp_ns=time.time_ns(), npi=50, xc=128.0 + 20 * seq,
+                               yc=128.0, xe=400.0, ye=400.0, dx=20.0 * seq, dy=0.0, scale=1.0,
+                               t_ms=1.0, first=seq == 0, features=[], params_id=0).encode()
+                wait_for(lambda est=est: node.feed(node.keys.estimate, est),
+                         what="the controller's subscription")
+                wait_for(lambda seq=seq: len(node.published_on(node.keys.cmd_vel)) > seq,
+                         what=f"command {seq}")
+            moving = CmdVel.decode(node.published_on(node.keys.cmd_vel)[-1])
+            assert not moving.stale and (moving.vx, moving.vy, moving.wz) != (0.0, 0.0, 0.0)
+        finally:
+            node.stop.set()
+            thread.join(5)
+        last = CmdVel.decode(node.published_on(node.keys.cmd_vel)[-1])
+        assert last.stale and (last.vx, last.vy, last.wz) == (0.0, 0.0, 0.0)
+
+
 def test_on_the_cameras_clock_a_simulated_clock_ahead_of_the_host_is_followed():
     """A lockstep simulator stamps its frames on a simulated clock running faster than real
     time. On the host's clock its estimates more than 1 s ahead were refused and the simulator

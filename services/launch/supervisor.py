@@ -65,6 +65,8 @@ KILL_WAIT_S = 1.0
 # Period of the supervision loop: how soon an exit is noticed when nothing else wakes it.
 TICK_S = 0.1
 PR_SET_PDEATHSIG = 1
+#: How long the launcher asks the router it joins for services of its robot already there, s
+ALIVE_QUERY_S = 1.0
 #: How often each running service is asked for its status (hang detection), s.
 STATUS_PERIOD_S = 1.0
 
@@ -367,7 +369,26 @@ class Launcher:
                                   config=self._router_config, no_multicast_scouting=True)
         session = open_session(config_from_args(args))
         self._log(f"connected to {', '.join(self._connect)}")
+        try:
+            self._check_robot_free(session)
+        except LaunchError:
+            session.close()
+            raise
         return session
+
+    def _check_robot_free(self, session: zenoh.Session) -> None:
+        """Refuse to start where services of this robot id already live on the router: a
+        second vistrack up with a robot's id doubled its every key (estimates at 118 Hz), and
+        each launcher killed the other's services as hung."""
+        live = sorted({str(reply.ok.key_expr).rsplit("/", 1)[-1]
+                       for reply in session.liveliness().get(self.keys.alive_any(),
+                                                             timeout=ALIVE_QUERY_S)
+                       if reply.ok is not None})
+        if live:
+            raise LaunchError(f"robot {self.launch.robot!r} already has live services at "
+                              f"{', '.join(self._connect or [])}: {', '.join(live)}; give "
+                              "another --robot (or robot: in the launch file), or stop them "
+                              "first")
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         service = str(sample.key_expr).rsplit("/", 1)[-1]

@@ -523,6 +523,33 @@ def test_a_router_outage_is_no_service_s_hang(procs, tmp_path, free_port):
     assert "is hung" not in up.output and "exited with" not in up.output, up.output
 
 
+def test_a_robot_id_already_live_on_the_router_is_refused(procs, tmp_path, free_port):
+    """A second vistrack up with a robot id whose services already live on the router it
+    joins: it doubled that robot's every key (estimates at 118 Hz), and each launcher killed
+    the other's services as hung. It is now refused before it starts anything, naming them;
+    the first goes on."""
+    launch = write_launch(tmp_path / "two.yaml", """\
+        services:
+          - {name: preprocessing}
+          - {name: motion-estimation}
+    """)
+    endpoint = f"tcp/127.0.0.1:{free_port}"
+    router = Proc("router", "-l", endpoint, "--no-multicast-scouting")
+    procs.append(router)
+    router.wait_line(r"^vistrack router: ready", 20)
+    robot = f"t{uuid.uuid4().hex[:8]}"
+    first = Proc("up", str(launch), "-e", endpoint, "--robot", robot)
+    procs.append(first)
+    first.wait_line(r"^vistrack up: ready", READY_S)
+    second = Proc("up", str(launch), "-e", endpoint, "--robot", robot)
+    procs.append(second)
+    assert second.wait_exit(30) == 1, second.output
+    assert (f"vistrack up: error: robot '{robot}' already has live services at {endpoint}: "
+            "motion_estimation, preprocessing; give another --robot") in second.output
+    assert "started" not in second.output
+    assert first.proc.poll() is None, first.output
+
+
 # -- launch files ----------------------------------------------------------------------------
 
 BAD_LAUNCH_FILES = {

@@ -506,6 +506,7 @@ class Launcher:
         now the launcher says the router went and came back, and judges again from then."""
         if not self._router_reachable(now):
             return
+        self._watch_restarts(now)
         for child in self._children:
             timeout = child.spec.hang_timeout
             if not (timeout and child.ready and child.running and child.proc is not None):
@@ -533,6 +534,31 @@ class Launcher:
                 continue
             watch.killed = True
             self._log(f"{child.spec.cli_name} (pid {pid}) is hung: {seen}; killing it")
+            try:
+                os.killpg(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass  # it exited meanwhile
+
+    def _watch_restarts(self, now: float) -> None:
+        """SIGKILL a restarted service that has not become ready within the launch's
+        ``ready_timeout`` (its exit is then handled like any other): a restart that never came
+        up (the spare stopped, a liveliness token another process held) was never killed,
+        since only ready services are asked how they are, and the pipeline stayed down
+        (more than 90 s seen). At start-up :meth:`wait_ready` has the same limit."""
+        limit = self.launch.ready_timeout
+        for child in self._children:
+            if not (child.restarts and child.running and not child.ready
+                    and child.proc is not None and not child.held
+                    and now - child.started_at > limit):
+                continue
+            pid = child.proc.pid
+            with self._cond:
+                watch = self._watches.get(child.spec.name)
+                if watch is not None and watch.pid == pid and watch.killed:
+                    continue
+                self._watches[child.spec.name] = _Watch(pid, since=now, killed=True)
+            self._log(f"{child.spec.cli_name} (pid {pid}) is not ready {limit:g} s after its "
+                      "restart; killing it")
             try:
                 os.killpg(pid, signal.SIGKILL)
             except ProcessLookupError:

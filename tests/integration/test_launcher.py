@@ -550,6 +550,64 @@ def test_a_robot_id_already_live_on_the_router_is_refused(procs, tmp_path, free_
     assert first.proc.poll() is None, first.output
 
 
+def test_a_restart_that_never_becomes_ready_is_killed_and_tried_again(procs, tmp_path,
+                                                                     free_port):
+    """motion-estimation killed while the spare that replaces it is stopped (SIGSTOP): the
+    restart never becomes ready, and it was never watched (only ready services are asked how
+    they are): the pipeline stayed down for good. It is now killed once the launch's
+    ready_timeout has passed since the restart, and restarted: estimates flow again."""
+    launch = write_launch(tmp_path / "three.yaml", """\
+        ready_timeout: 12
+        services:
+          - name: camera
+            flags: [--source, builtin, --loop, --fps, "20"]
+          - {name: preprocessing}
+          - {name: motion-estimation}
+    """)
+    robot = f"t{uuid.uuid4().hex[:8]}"
+    keys = Keys(robot)
+    up = Proc("up", str(launch), "-l", f"tcp/127.0.0.1:{free_port}", "--no-multicast-scouting",
+              "--robot", robot)
+    procs.append(up)
+    up.wait_line(r"^vistrack up: ready", READY_S)
+
+    def spare() -> int | None:
+        for entry in os.listdir("/proc"):
+            try:
+                with open(f"/proc/{entry}/cmdline", "rb") as f:
+                    argv = f.read().split(b"\0")
+                with open(f"/proc/{entry}/stat") as f:
+                    ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError):
+                continue
+            if ppid == up.proc.pid and b"vistrack.services.launch.spare" in argv:
+                return int(entry)
+        return None
+
+    stopped = wait_for(spare, 30, "the launcher's spare")
+    os.kill(stopped, signal.SIGSTOP)
+    try:
+        with client_session(free_port) as session:
+            tracker = wait_for(lambda: {s["service"]: s["pid"] for s in query_status(
+                session, keys, timeout=1.0)}.get("motion_estimation"), 10,
+                "motion-estimation's status")
+            os.kill(tracker, signal.SIGKILL)
+            up.wait_line(rf"^\[launcher\] started motion-estimation \(pid {stopped}, from the "
+                         r"spare\)", 10)
+            up.wait_line(rf"^\[launcher\] motion-estimation \(pid {stopped}\) is not ready 12 s "
+                         r"after its restart; killing it$", 30)
+            estimates: list[float] = []
+            session.declare_subscriber(keys.estimate,
+                                       lambda sample: estimates.append(time.monotonic()))
+            wait_for(lambda: estimates, 30, "an estimate from the motion-estimation after it")
+    finally:
+        try:
+            os.kill(stopped, signal.SIGCONT)
+        except ProcessLookupError:
+            pass
+    assert not alive(stopped)
+
+
 # -- launch files ----------------------------------------------------------------------------
 
 BAD_LAUNCH_FILES = {

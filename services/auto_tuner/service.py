@@ -51,8 +51,10 @@ import itertools
 import logging
 import math
 import time
+from collections.abc import Callable
 from typing import Any
 
+import msgpack
 import numpy as np
 
 from ...common.bus import Node
@@ -65,6 +67,7 @@ from ...common.messages import (
     next_params_id,
     pack,
 )
+from ...common.params import FACTORS, ParamError
 from ..runtime import (
     NO_ESTIMATE,
     ParamsInForce,
@@ -158,8 +161,12 @@ def check_flags(args: argparse.Namespace) -> tr.TriggerConfig:
 class AutoTuner:
     """The service between messages: the buffer, the parameters in force, the triggers."""
 
-    def __init__(self, node: Node, args: argparse.Namespace, config: tr.TriggerConfig) -> None:
+    def __init__(self, node: Node, args: argparse.Namespace, config: tr.TriggerConfig,
+                 ask_in_force: Callable[[], dict[str, Any] | None] | None = None) -> None:
         self.node, self.args = node, args
+        # the set motion-estimation runs, from its status (a restarted tuner takes it on)
+        self.ask_in_force = ask_in_force if ask_in_force is not None else \
+            (lambda: in_force_of(node))
         self.state = ParamsInForce.from_args(args)
         self.frames: collections.deque[tuple[np.ndarray, int]] = collections.deque(
             maxlen=args.buffer)
@@ -168,6 +175,7 @@ class AutoTuner:
         self.params_seq, self.report_seq = itertools.count(), itertools.count()  # per key
         self.seen_id = 0  # largest params_id seen in estimates (a restarted tuner lags)
         self._lagging = False  # reminders held back: the estimates run a newer set (announce)
+        self._asked_for = -1  # the seen_id motion-estimation was last asked the set of
         self.last_estimate = NO_ESTIMATE  # (seq, stamp_ns) of the last estimate watched
         self.started = 0.0
         self.reason = ""
@@ -198,7 +206,7 @@ class AutoTuner:
             st.publish_status(self.node)
             log.info("publishing params_id %d (%s): %s", st.params_id, reason,
                      st.params.factors())
-        elif self.seen_id > st.params_id:
+        elif self.seen_id > st.params_id and not self._take_on_in_force():
             # the estimates run a newer set than this tuner knows (one it missed before it
             # subscribed: a recording's, replayed while it started): reminding of its older
             # one would only be refused as stale by every service, every second
@@ -214,6 +222,33 @@ class AutoTuner:
                                          stamp_ns=time.time_ns(), params_id=st.params_id,
                                          source=source, reason=st.reason)
         self.node.publish(self.node.keys.params, msg.encode(), reliable=True)
+        return True
+
+    def _take_on_in_force(self) -> bool:
+        """Take on the set motion-estimation runs where it is the newest seen in the
+        estimates (its values, ``params_id``, source and reason): a tuner restarted after a
+        user's set knew only its flags' values. It reminded no one, so a service restarted
+        after it ran its own flags, and its next tuning published its flags' max_features,
+        thres_percent and ungroup_size with the windows it chose: the user's set was gone,
+        with no line saying so. Reminding of the set taken on puts a restarted service back
+        on it. False where it cannot be asked, or runs another set."""
+        if self._asked_for == self.seen_id:  # once a set: the query waits up to 0.5 s
+            return False
+        self._asked_for = self.seen_id
+        got = self.ask_in_force()
+        if not got or got.get("params_id") != self.seen_id:
+            return False
+        st = self.state
+        try:
+            params = st.params.replace(**{k: got[k] for k in FACTORS})
+        except (KeyError, TypeError, ParamError):
+            return False
+        st.params, st.params_id = params, int(got["params_id"])
+        st.source, st.reason = str(got.get("source", "tuner")), str(got.get("reason", ""))
+        st.publish_status(self.node)
+        self._lagging = False
+        log.info("took on params_id %d from motion-estimation (%s, %s): %s", st.params_id,
+                 st.source, st.reason or "no reason given", params.factors())
         return True
 
     def on_params(self, payload: bytes) -> None:
@@ -400,6 +435,28 @@ class AutoTuner:
             log.error("tuner/report not published: %s", e)
             return
         self.node.publish(self.node.keys.report, payload, reliable=True)
+
+
+#: How long a restarted tuner waits for motion-estimation's status (the set in force), s
+IN_FORCE_QUERY_S = 0.5
+
+
+def in_force_of(node: Node) -> dict[str, Any] | None:
+    """The parameters motion-estimation runs (its status's ``params``: the factors,
+    ``params_id``, ``source``, ``reason``), asked over the node's Zenoh session; None where
+    there is none (an in-process node) or no answer."""
+    session = getattr(node, "session", None)
+    if session is None:
+        return None
+    try:
+        for reply in session.get(node.keys.status("motion_estimation"),
+                                 timeout=IN_FORCE_QUERY_S):
+            if reply.ok is not None:
+                params = msgpack.unpackb(reply.ok.payload.to_bytes()).get("params")
+                return params if isinstance(params, dict) else None
+    except Exception:  # noqa: BLE001 - a bad or absent answer: the tuner goes on as it was
+        return None
+    return None
 
 
 def loop(node: Node, args: argparse.Namespace) -> None:

@@ -120,6 +120,48 @@ def test_the_tuner_at_the_largest_params_id_keeps_what_is_in_force():
         assert node.published_on(node.keys.params) == []
 
 
+def test_a_restarted_tuner_takes_on_the_set_motion_estimation_runs(caplog):
+    """A tuner restarted after a user's set (params_id 5: max_features 50, thres_percent 3,
+    ungroup_size 8) knew only its flags' values: it reminded no one, a service restarted
+    after it ran its flags, and its next tuning published its flags' max_features,
+    thres_percent and ungroup_size with its windows: the user's set was gone. It now takes
+    on the set motion-estimation runs (its status's params) where that is the newest the
+    estimates carry, reminds of it, and tunes from it; asked once per set."""
+    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
+
+    asked = []
+    in_force = {"max_features": 50, "thres_percent": 3.0, "search_size": 15, "corr_size": 9,
+                "ungroup_size": 8, "params_id": 5, "source": "user", "reason": "by hand"}
+
+    def ask():
+        asked.append(1)
+        return in_force
+
+    args = parse("auto-tuner", "--no-tune")
+    with MemoryNode("auto_tuner") as node, caplog.at_level(logging.INFO,
+                                                            logger="vistrack.auto_tuner"):
+        tuner = AutoTuner(node, args, check_flags(args), ask_in_force=ask)
+        assert tuner.announce("start-up (flags)")  # params_id 1, from its flags
+        tuner.seen_id = 5  # the estimates run the user's set
+        for _ in range(3):
+            assert tuner.announce()
+        sent = [Params.decode(p) for p in node.published_on(node.keys.params)]
+        assert [m.params_id for m in sent] == [1, 5, 5, 5] and len(asked) == 1
+        reminder = sent[-1]
+        assert (reminder.max_features, reminder.thres_percent, reminder.ungroup_size,
+                reminder.source) == (50, 3.0, 8, "user")
+        assert any("took on params_id 5 from motion-estimation (user, by hand)" in r.getMessage()
+                   for r in caplog.records)
+        # a tuning's set keeps the user's other factors, with the windows it chose
+        tuner.reason, tuner.id_at_start = "scene change", tuner.state.params_id
+        tuner._finish(("ok", _report({"search_size": 21, "corr_size": 11}, [15], [9],
+                                     np.ones((1, 1)), np.zeros((1, 1))),
+                       {"search_size": 21, "corr_size": 11}, False), time.monotonic())
+        p = tuner.state.params
+        assert (p.max_features, p.thres_percent, p.ungroup_size, p.search_size,
+                p.corr_size, tuner.state.params_id) == (50, 3.0, 8, 21, 11, 6)
+
+
 def test_a_tuner_behind_the_estimates_holds_its_reminders_back(caplog):
     """The estimates run a params_id newer than the tuner's (a recording's set, replayed
     while the tuner started, which it never received): its reminders of its older set were

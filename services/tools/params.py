@@ -242,6 +242,14 @@ def _publish_until_confirmed(session: zenoh.Session, keys: Keys, publisher: Sour
             raise ToolError(f"params_id {params_id} was superseded by {found} from "
                             f"{seen.get('source')} ({seen.get('reason')}) before it was "
                             "confirmed")
+        if found == params_id:
+            # another set (a concurrent params set, a tuning) took this params_id first: the
+            # services keep it and refuse ours as stale, so waiting cannot confirm it (the
+            # timeout used to say only that the set "may have been lost")
+            values = " ".join(f"{f}={seen.get(f)}" for f in FACTORS)
+            raise ToolError(f"params_id {params_id} was taken first by another set from "
+                            f"{seen.get('source')} ({seen.get('reason')}): {values}; set "
+                            "again")
         if time.monotonic() >= deadline:
             raise ToolError(f"{CONFIRMING_SERVICE} did not confirm params_id {params_id} "
                             f"(still runs params_id {found} from {seen.get('source')}); the "

@@ -324,9 +324,10 @@ def test_params_set_is_not_confirmed_by_another_set_with_its_id(endpoint, sessio
     """The tool takes the id after the largest in force; if the tuner takes the same id first
     (its initial tuning, finishing meanwhile), motion-estimation runs that id with the tuner's
     values and refuses the user's as stale. Confirming by the id alone then reported the user's
-    set as in force (seen in the multi-host test); it must say it was not confirmed, and who
-    runs that id. A stand-in motion-estimation (robot "race") answers its status with
-    params_id 2, then, once the set arrives, with the tuner's params_id 3."""
+    set as in force (seen in the multi-host test); it must say that another set took the id,
+    whose, and its values (concurrent params sets took one id in a fault test). A stand-in
+    motion-estimation (robot "race") answers its status with params_id 2, then, once the set
+    arrives, with the tuner's params_id 3."""
     keys = Keys("race")
     tuner = {"params_id": 3, "source": "tuner", "reason": "initial tuning",
              **TrackerParams(search_size=12, corr_size=5).factors()}
@@ -338,8 +339,11 @@ def test_params_set_is_not_confirmed_by_another_set_with_its_id(endpoint, sessio
                    "--robot", "race")
     assert run.returncode == 1, run.stdout + run.stderr
     assert run.stderr.count("\n") == 1
-    assert "did not confirm params_id 3" in run.stderr
-    assert "runs params_id 3 from tuner" in run.stderr
+    # said as soon as it is seen, with the values that took the id (it used to wait for the
+    # timeout and say only "did not confirm ... the set may have been lost")
+    assert "params_id 3 was taken first by another set from tuner (initial tuning)" in \
+        run.stderr
+    assert "search_size=12 corr_size=5" in run.stderr and run.stderr.endswith("set again\n")
 
 
 def test_params_set_waits_for_a_set_accepted_pending_its_kernels(endpoint, session):

@@ -313,6 +313,29 @@ def _report(optimum: dict, searches: list[int], corrs: list[int], tf: np.ndarray
                       "ex": ex.tolist(), "ey": ex.tolist()}}
 
 
+#: the sweeps of the keep tests: SEARCH_SIZE rows, CORR_SIZE columns (15/9 in force)
+GRID = ([10, 12, 14, 16, 18, 20], [5, 7, 9, 11, 13, 15])
+
+
+def _tuned(tf: np.ndarray, ex: np.ndarray, optimum: dict, index: tuple[int, int],
+           within: bool):
+    """A TuneResult over GRID whose tf and ex (= ey) are given and whose optimum is at
+    ``index``: only the sweep's grid and responses, the optimum's and the tolerance (0.5)
+    are read."""
+    from vistrack.services.auto_tuner.sensitivity import Optimum, Sweep, TuneResult
+
+    searches, corrs = GRID
+    sweep = Sweep(search_sizes=tuple(searches), corr_sizes=tuple(corrs), fixed={}, t1=tf,
+                  tf=tf, ex=ex, ey=ex, npi=tf, reference=None,  # type: ignore[arg-type]
+                  reference_windows=(50, 30), base=TrackerParams())
+    i, j = index
+    best = Optimum(params=optimum, index=index, t1=1.0, tf=float(tf[i, j]), ex=float(ex[i, j]),
+                   ey=float(ex[i, j]), within_tolerance=within, speedup=1.0, reason="")
+    return TuneResult(run=None, analysis=None, sweep=sweep,  # type: ignore[arg-type]
+                      optimum=best, tolerance=0.5, frames=30, size=(256, 256), repeats=1,
+                      seconds={})
+
+
 @pytest.mark.parametrize(("slower", "err", "kept"), [
     (1.05, 0.2, True), (1.25, 0.2, False), (1.05, 0.7, False)])
 def test_a_tuning_keeps_windows_about_as_fast_as_its_optimum(slower, err, kept):
@@ -321,24 +344,15 @@ def test_a_tuning_keeps_windows_about_as_fast_as_its_optimum(slower, err, kept):
     fastest point of a flat sweep is the noise's pick, and each retune published another
     (10/5, 12/5, 18/5, 10/5, ...). 25 % slower, or off the tolerance, the optimum is taken.
     The worker judges on its sweep (TuneResult.keeps) and the service acts on the verdict."""
-    from vistrack.services.auto_tuner.sensitivity import Optimum, Sweep, TuneResult
     from vistrack.services.auto_tuner.service import AutoTuner, check_flags
 
-    searches, corrs = [10, 12, 14, 16, 18, 20], [5, 7, 9, 11, 13, 15]
+    searches, corrs = GRID
     tf = np.array([[1.0 + 0.01 * (i + j) for j in range(6)] for i in range(6)])
     ex = np.full((6, 6), 0.1)
     tf[0, 0] = 1.0  # the optimum, 10/5
     tf[2, 2] = slower  # 14 (15) / 9, in force
     ex[2, 2] = err
-    # only the sweep's grid and responses, the optimum's tf and the tolerance are read
-    sweep = Sweep(search_sizes=tuple(searches), corr_sizes=tuple(corrs), fixed={}, t1=tf,
-                  tf=tf, ex=ex, ey=ex, npi=tf, reference=None,  # type: ignore[arg-type]
-                  reference_windows=(50, 30), base=TrackerParams())
-    best = Optimum(params={"search_size": 10, "corr_size": 5}, index=(0, 0), t1=1.0, tf=1.0,
-                   ex=0.1, ey=0.1, within_tolerance=True, speedup=1.0, reason="")
-    result = TuneResult(run=None, analysis=None, sweep=sweep,  # type: ignore[arg-type]
-                        optimum=best, tolerance=0.5, frames=30, size=(256, 256), repeats=1,
-                        seconds={})
+    result = _tuned(tf, ex, {"search_size": 10, "corr_size": 5}, (0, 0), True)
     about_as_good = result.keeps(15, 9)
     assert about_as_good is kept
     assert not result.keeps(31, 15)  # not on the grid
@@ -366,23 +380,15 @@ def test_where_no_window_meets_the_tolerance_the_windows_in_force_stay_unless_fa
     scene of walkers and put slower windows as far off in force on large motion."""
     import logging
 
-    from vistrack.services.auto_tuner.sensitivity import Optimum, Sweep, TuneResult
     from vistrack.services.auto_tuner.service import AutoTuner, check_flags
 
-    searches, corrs = [10, 12, 14, 16, 18, 20], [5, 7, 9, 11, 13, 15]
+    searches, corrs = GRID
     tf = np.full((6, 6), 1.0)
     tf[2, 2] = 2.0  # in force, 15/9: twice as slow as the closest, which does not matter
     ex = np.full((6, 6), 8.0)
     ex[1, 4] = 4.1  # the closest, 12/13
     ex[2, 2] = err
-    sweep = Sweep(search_sizes=tuple(searches), corr_sizes=tuple(corrs), fixed={}, t1=tf,
-                  tf=tf, ex=ex, ey=ex, npi=tf, reference=None,  # type: ignore[arg-type]
-                  reference_windows=(50, 30), base=TrackerParams())
-    closest = Optimum(params={"search_size": 12, "corr_size": 13}, index=(1, 4), t1=1.0,
-                      tf=1.0, ex=4.1, ey=4.1, within_tolerance=False, speedup=1.0, reason="")
-    result = TuneResult(run=None, analysis=None, sweep=sweep,  # type: ignore[arg-type]
-                        optimum=closest, tolerance=0.5, frames=30, size=(256, 256), repeats=1,
-                        seconds={})
+    result = _tuned(tf, ex, {"search_size": 12, "corr_size": 13}, (1, 4), False)
     assert result.keeps(15, 9) is kept
     assert not result.keeps(31, 15)  # not on the grid
     report = _report({"search_size": 12, "corr_size": 13}, searches, corrs, tf, ex,

@@ -157,11 +157,13 @@ def _start_helper() -> subprocess.Popen[bytes]:
                             stderr=subprocess.DEVNULL)
 
 
-def _die_with(parent: int) -> None:
-    """SIGKILL this process when ``parent`` dies (Linux; elsewhere nothing). A service stopped
-    while it started ends at once (``os._exit``, no ``finally``) and left its helper
-    compiling for half a minute more, for nobody (seen after a Ctrl-C to a first
-    ``vistrack up``)."""
+def die_with_parent(parent: int) -> None:
+    """SIGKILL this process when ``parent`` dies (Linux; elsewhere nothing), and end it now if
+    that has happened already. For the processes a vistrack process starts to work for it: the
+    auto-tuner's worker (a service that crashes ends without closing it, which would finish
+    its cycle for nobody) and the search's compile helper (a service stopped while it starts
+    ends with ``os._exit``, no ``finally``, and left its helper compiling for half a minute,
+    seen after a Ctrl-C to a first ``vistrack up``)."""
     if not sys.platform.startswith("linux"):
         return
     import ctypes
@@ -171,7 +173,7 @@ def _die_with(parent: int) -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0,
                                                        0)
     except (OSError, AttributeError):
-        return  # not glibc
+        pass  # not glibc: the parent's death is at least checked once, below
     if os.getppid() != parent:  # it died before prctl took effect
         os._exit(1)
 
@@ -429,7 +431,7 @@ def compile_search(parent: int | None = None) -> None:
     search calls before it and then loads from the cache. The paper's ``track_ssd``
     (``--paper``) compiles when first used."""
     if parent is not None:
-        _die_with(parent)
+        die_with_parent(parent)
     import numpy as np
 
     from ..common.params import TrackerParams

@@ -7,19 +7,18 @@ optimum. Pure multiprocessing: no Zenoh here (the service loop owns the session)
 
 from __future__ import annotations
 
-import ctypes
 import logging
 import multiprocessing
 import os
 import signal
-import sys
 import threading
 from typing import Any
+
+from ..kernels import die_with_parent
 
 log = logging.getLogger("vistrack.auto_tuner")
 
 WORKER_NICE = 10  # where SCHED_IDLE is refused: the experiments yield to the pipeline
-PR_SET_PDEATHSIG = 1
 
 
 def _idle_priority() -> str:
@@ -43,24 +42,11 @@ def _idle_priority() -> str:
         return f"nice +{WORKER_NICE}"
 
 
-def _die_with_parent(parent_pid: int) -> None:
-    """SIGKILL this process when the service dies: a service that crashes ends at once,
-    without closing its worker, which would otherwise finish its cycle for nobody."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-    except (OSError, AttributeError):
-        pass  # not glibc: the worker still ends when its pipe closes
-    if os.getppid() != parent_pid:  # the service died before prctl took effect
-        os._exit(1)
-
-
 def _work(conn: Any, parent_pid: int) -> None:
     """The worker process: idle priority, one OpenCV thread, compiled kernels, then one cycle
     per job."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the group: the service stops us
-    _die_with_parent(parent_pid)
+    die_with_parent(parent_pid)
     priority = _idle_priority()
     import cv2
 

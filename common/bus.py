@@ -1301,6 +1301,21 @@ def query_status(session: zenoh.Session, keys: Keys, timeout: float = 1.0) -> li
     return sorted(statuses, key=lambda s: str(s.get("service", "")))
 
 
+def service_status(session: zenoh.Session, keys: Keys, service: str, timeout: float
+                   ) -> dict[str, Any] | None:
+    """One service's status reply (a map), or None if it did not answer with one."""
+    for reply in session.get(keys.status(service), timeout=timeout):
+        if reply.ok is None:
+            continue
+        try:
+            status = unpack(reply.ok.payload.to_bytes())
+        except MessageError:
+            continue
+        if isinstance(status, dict):
+            return status
+    return None
+
+
 def alive_services(session: zenoh.Session, keys: Keys, timeout: float = 1.0) -> list[str]:
     """Names of the services of ``keys.robot`` whose liveliness token is present, sorted."""
     names = set()

@@ -54,10 +54,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import msgpack
 import numpy as np
+import zenoh
 
-from ...common.bus import Node
+from ...common.bus import Node, service_status
 from ...common.messages import (
     Estimate,
     Frame,
@@ -449,14 +449,11 @@ def in_force_of(node: Node) -> dict[str, Any] | None:
     if session is None:
         return None
     try:
-        for reply in session.get(node.keys.status("motion_estimation"),
-                                 timeout=IN_FORCE_QUERY_S):
-            if reply.ok is not None:
-                params = msgpack.unpackb(reply.ok.payload.to_bytes()).get("params")
-                return params if isinstance(params, dict) else None
-    except Exception:  # noqa: BLE001 - a bad or absent answer: the tuner goes on as it was
+        status = service_status(session, node.keys, "motion_estimation", IN_FORCE_QUERY_S)
+    except zenoh.ZError:  # the session is closing: the tuner goes on as it was
         return None
-    return None
+    params = status.get("params") if status is not None else None
+    return params if isinstance(params, dict) else None
 
 
 def loop(node: Node, args: argparse.Namespace) -> None:

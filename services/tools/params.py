@@ -28,9 +28,9 @@ from typing import Any
 
 import zenoh
 
-from ...common.bus import SourcedPublisher
+from ...common.bus import SourcedPublisher, service_status
 from ...common.keys import Keys
-from ...common.messages import MessageError, Params, next_params_id, unpack
+from ...common.messages import MessageError, Params, next_params_id
 from ...common.params import BOUNDS, FACTORS, ParamError, TrackerParams
 from ..usage import add_number, say_on_stderr
 from .shared import (
@@ -220,7 +220,7 @@ def _publish_until_confirmed(session: zenoh.Session, keys: Keys, publisher: Sour
             publisher.put(msg.encode())
             seq += 1
             next_put = now + REPEAT_S
-        status = _service_status(session, keys, CONFIRMING_SERVICE, timeout=0.5)
+        status = service_status(session, keys, CONFIRMING_SERVICE, timeout=0.5)
         if status is not None and isinstance(status.get("params"), dict):
             seen = status["params"]
         extra = status.get("extra") if status is not None else None
@@ -257,17 +257,4 @@ def _publish_until_confirmed(session: zenoh.Session, keys: Keys, publisher: Sour
         time.sleep(POLL_S)
 
 
-def _service_status(session: zenoh.Session, keys: Keys, service: str, timeout: float
-                    ) -> dict[str, Any] | None:
-    """One service's status reply (a map), or None if it did not answer."""
-    for reply in session.get(keys.status(service), timeout=timeout):
-        if reply.ok is None:
-            continue
-        try:
-            status = unpack(reply.ok.payload.to_bytes())
-        except MessageError:
-            continue
-        if isinstance(status, dict):
-            return status
-    return None
 

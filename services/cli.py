@@ -79,6 +79,22 @@ def _version() -> str:
         return "(not installed)"
 
 
+#: reStructuredText in the modules' docstrings, which are the subcommands' ``--help``: a role
+#: (``:func:`~vistrack.common.vision.tracker.warm_up` ``, ``:mod:`.tracker` ``) and an inline
+#: literal (````--json````). A terminal shows them as typed; the help shows their text alone.
+_ROLE = re.compile(r":(mod|func|meth|class|data|attr|exc|obj):`~?\.?([^`]*)`")
+_LITERAL = re.compile(r"``([^`]+)``")
+
+
+def plain(doc: str) -> str:
+    """A docstring's reStructuredText made plain text for ``--help``: a role by its target's
+    last name (a function's and a method's with ``()``), an inline literal by its text."""
+    def target(m: re.Match[str]) -> str:
+        name = m.group(2).rsplit(".", 1)[-1]
+        return name + "()" if m.group(1) in ("func", "meth") else name
+    return _LITERAL.sub(r"\1", _ROLE.sub(target, doc))
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The ``vistrack`` parser. Only ``command``'s module is imported (all of them when None,
     e.g. for documentation), so ``vistrack track`` never loads Zenoh and one broken or slow
@@ -93,7 +109,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
             sub.add_parser(name, help=text, add_help=False)
             continue
         mod = importlib.import_module(f"vistrack.services.{module}")
-        p = sub.add_parser(name, help=text, description=(mod.__doc__ or text).strip(),
+        p = sub.add_parser(name, help=text, description=plain(mod.__doc__ or text).strip(),
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         mod.add_arguments(p)
         p.set_defaults(_module=mod)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 
 import pytest
 
@@ -172,3 +173,22 @@ def test_a_status_line_is_rewritten_in_place_only_on_a_terminal_that_can(term, t
 
     monkeypatch.setenv("TERM", term)
     assert rewrites_lines(Stream()) is rewrites
+
+
+def test_help_is_plain_text_without_the_docstrings_markup():
+    # the subcommands' descriptions are their modules' docstrings, written in
+    # reStructuredText for the API docs; a terminal showed ``--json`` and :mod:`.tracker`
+    from vistrack.services import cli
+
+    text = {}
+    for name in cli.COMMANDS:
+        sub = next(a for a in cli.build_parser(name)._actions
+                   if isinstance(a, argparse._SubParsersAction))
+        text[name] = sub.choices[name].format_help()
+    for name, help_text in text.items():
+        assert "``" not in help_text, name
+        assert not re.search(r":(mod|func|meth|class|data|attr):`", help_text), name
+    assert "* tracker: the SSD tracker against cv2.matchTemplate" in text["bench"]
+    assert "(vistrack/<robot>/<service>/status)" in text["status"]
+    assert cli.plain(":func:`~vistrack.common.vision.warm_up` and :class:`.Tracker`") == \
+        "warm_up() and Tracker"

@@ -193,8 +193,10 @@ class LaunchSpec:
                     size: str | None = None, loop: bool = False) -> LaunchSpec:
         """A copy whose camera flags are overridden (``vistrack up --camera/--fps/--size``).
 
-        A new ``source`` drops the launch file's ``--loop`` unless ``loop`` is true. Later
-        flags win in argparse, so overrides are appended. ``source="none"`` leaves the camera
+        A new ``source`` drops the launch file's ``--loop`` unless ``loop`` is true. Each
+        flag given takes the place of the launch file's (``--fps 30`` and ``--fps=30`` alike),
+        so that the camera's command line, in ``ps`` and the log, says each once.
+        ``source="none"`` leaves the camera
         out: the pipeline waits for frames from elsewhere (``vistrack replay``, a camera of
         your own publishing ``camera/frame``).
 
@@ -224,11 +226,27 @@ class LaunchSpec:
             raise LaunchError(f"{self.source}: --camera/--fps/--size/--loop given but the "
                               "launch starts no camera")
         flags = list(camera.flags)
-        if source is not None:
+        if source is not None or loop:
             flags = [f for f in flags if f != "--loop"]
+        for flag in (f for f in extra if f.startswith("--") and f != "--loop"):
+            flags = _without(flags, flag)
         new = dataclasses.replace(camera, flags=(*flags, *extra))
         services = tuple(new if s is camera else s for s in self.services)
         return dataclasses.replace(self, services=services)
+
+
+def _without(flags: list[str], flag: str) -> list[str]:
+    """``flags`` without ``flag`` and its value, in either form (``--fps 30``, ``--fps=30``)."""
+    out: list[str] = []
+    skip = False
+    for f in flags:
+        if skip:
+            skip = False
+        elif f == flag:
+            skip = True
+        elif not f.startswith(flag + "="):
+            out.append(f)
+    return out
 
 
 # -- launch file parsing: YAML nodes carry the line numbers errors need -------------------

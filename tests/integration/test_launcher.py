@@ -734,9 +734,13 @@ def test_flag_list_and_mapping_forms_and_camera_overrides():
     assert spec.service("motion-estimation").flags == ("--search-size", "21",
                                                        "--corr-size", "11")
     moved = spec.with_camera(source="file:clip.mp4", fps=12.5, size="128x128")
-    assert moved.service("camera").flags == ("--source", "builtin", "--fps", "30",
-                                             "--source", "file:clip.mp4", "--fps", "12.5",
+    # each flag given replaces the launch file's (the camera's command line says each once);
+    # a new source drops the file's --loop
+    assert moved.service("camera").flags == ("--source", "file:clip.mp4", "--fps", "12.5",
                                              "--size", "128x128")
+    looped = load_launch("services: {camera: {flags: [--fps=30, --size, 64x64, --loop]}}\n"
+                         ).with_camera(fps=5.0, loop=True)
+    assert looped.service("camera").flags == ("--size", "64x64", "--fps", "5", "--loop")
     assert spec.with_camera() is spec
     with pytest.raises(LaunchError, match="starts no camera"):
         load_launch("services: {preprocessing: }\n").with_camera(source="builtin")

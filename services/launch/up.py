@@ -34,8 +34,9 @@ strictly and every error names the file, the line, the key and what is allowed.
   has been processed, a simulator's scenario ended) ends the run, as do ``--duration``,
   Ctrl-C and SIGTERM; one that exits with an error under ``never`` (a video cut short, a
   failed device) ends it as a run failure (exit 1).
-* Stopping sends SIGTERM to every child's process group, SIGKILL to what is left after
-  3 s, and closes the router. Children also get SIGTERM if the launcher dies (Linux
+* Stopping sends SIGTERM to every child's process group (the ``ros2`` bridge's once the
+  others have exited: it passes on the controller's last command, a stop), SIGKILL to what
+  is left after 3 s, and closes the router. Children also get SIGTERM if the launcher dies (Linux
   ``PR_SET_PDEATHSIG``).
 
 Exit codes: 0 clean stop, 1 start-up or run failure, 2 bad command line or launch file.

@@ -127,9 +127,14 @@ def loop(node: Node, args: argparse.Namespace, participant: rmw.Participant | No
             log.info("%s -> %s (%s)", getattr(node.keys, b.attr), names[b.attr], pub.key)
         node.status.extra.update({names[b.attr]: 0 for b in BRIDGES})
         ready(node)
-        while not node.stop.is_set():
+        while True:
+            # what came before the stop is passed on before the loop ends (recv returns None
+            # once stopped only with nothing pending): the controller's last command, the
+            # stop it sends as it exits, reaches the base (the launcher stops this last)
             item = node.recv(timeout=0.1)
             if item is None:
+                if node.stop.is_set():
+                    break
                 continue
             key, payload = item
             bridge, pub = routes[key]

@@ -580,6 +580,48 @@ def test_memory_node_counts_gaps_per_publisher():
         assert node.status.received == 6 + 1 + 4
 
 
+def test_a_latest_only_stream_follows_one_publisher_at_a_time(monkeypatch):
+    """A replay beside the live camera interleaved its frames with the camera's: every seq
+    went back or jumped by thousands, motion-estimation started a new track on each frame
+    and every service downstream counted 186,721 drops in 3 s. The stream now follows one
+    publisher until it has been silent SOURCE_SILENT_S; the other's samples are counted,
+    not taken, and no drop is counted for them."""
+    from vistrack.common import bus
+
+    clock = [0.0]  # time moved on by the test, beside the real clock's few ms
+    monkeypatch.setattr(bus, "_monotonic", lambda: time.monotonic() + clock[0])
+
+    def seq_of(item):
+        assert item is not None and item[0] == node.keys.frame
+        return unpack(item[1])["seq"]
+
+    with MemoryNode("preprocessing") as node:
+        node.subscribe(node.keys.frame, latest=True)
+        taken = []
+        for seq in range(5):  # 30 fps, the replay's frames between the camera's
+            node.feed(node.keys.frame, msg(seq), source="camera")
+            node.feed(node.keys.frame, msg(2000 + seq), source="replay")
+            taken.append(seq_of(node.recv(timeout=1.0)))
+            clock[0] += 1 / 30
+        assert taken == [0, 1, 2, 3, 4]
+        assert (node.status.received, node.status.dropped) == (10, 0)
+        assert node.status.extra["other_publishers"] == 5
+        # the camera stops: the replay is taken once the camera has been silent long enough
+        clock[0] += bus.SOURCE_SILENT_S / 2
+        node.feed(node.keys.frame, msg(2005), source="replay")
+        assert node.recv(timeout=0.05) is None
+        clock[0] += bus.SOURCE_SILENT_S
+        node.feed(node.keys.frame, msg(2006), source="replay")
+        assert seq_of(node.recv(timeout=1.0)) == 2006
+        # the camera back (a restart: another publisher) waits its turn in the same way
+        node.feed(node.keys.frame, msg(0), source="camera")
+        assert node.recv(timeout=0.05) is None
+        # a publisher without a source id (an outside program) is always taken
+        node.feed(node.keys.frame, msg(7))
+        assert seq_of(node.recv(timeout=1.0)) == 7
+        assert node.status.dropped == 0 and node.status.extra["other_publishers"] == 7
+
+
 # -- MemoryNode: the same semantics ------------------------------------------------------
 
 # (key attribute, payload, reliable subscription?) in arrival order

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import time
 
 from ...common.bus import Node
@@ -129,7 +130,11 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     node.subscribe(node.keys.estimate, latest=True)
     node.advertise(node.keys.cmd_vel, reliable=True)
     seq = 0
-    last_stop = 0.0
+    # the watchdog's own times are the host's monotonic clock: a step of the wall clock (an
+    # NTP correction, date -s) back by 20 s made every age negative, and the robot went on
+    # with its last move for 18 s after the estimates stopped
+    last_stop = -math.inf  # when the last stop was sent
+    last_taken = math.inf  # when the last estimate was turned into a command (none yet)
     camera_clock = CameraClock() if args.clock == "camera" else None
     clock = time.time if camera_clock is None else camera_clock.now
     xc0: float | None = None  # xc of the track's first estimate
@@ -145,16 +150,17 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     def watchdog() -> None:
         """Repeat the stop while the estimates are stale (none for a while, or too old)."""
         nonlocal last_stop
-        now = clock()
-        if now - last_stop >= STALE_REPEAT_S and ctrl.x_ref is not None \
-                and ctrl.command_at(now).stale:
+        mono = time.monotonic()
+        if mono - last_stop >= STALE_REPEAT_S and ctrl.x_ref is not None and (
+                ctrl.command_at(clock()).stale
+                or mono - last_taken > ctrl.config.stale_after_s):
             # stamped on the host's clock whatever --clock says: on the camera's, a stop
             # stamped after a lockstep simulator's next frame would pass for that frame's answer
             send(time.time_ns(), 0.0, 0.0, 0.0, True)
-            last_stop = now
+            last_stop = mono
 
     def on_estimate(payload: bytes) -> None:
-        nonlocal last_stop, xc0, used, last
+        nonlocal last_stop, last_taken, xc0, used, last
         t0 = time.perf_counter()
         now = clock()
         est = decode_or_reject(Estimate, payload, node, log)
@@ -166,6 +172,16 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         # The old track's set point and time go with it: a lockstep simulator's clock, ahead
         # of the host's, starts again from the host's time, below the old track's stamps.
         new_track = starts_track(est, last)
+        if not new_track and est.seq > last[0] and est.stamp_ns <= last[1]:
+            # a later frame stamped before the one before it: the camera's clock was set
+            # back (a step of its wall clock). Every estimate was refused as out of order
+            # until the clock had caught up (20 s for a 20 s step), the robot not stopped.
+            # The controller's timing starts again from this one, as for a new track.
+            log.warning("estimate seq %d is stamped %.3g s before seq %d: the camera's clock "
+                        "was set back; the controller's timing starts again from it",
+                        est.seq, (last[1] - est.stamp_ns) * 1e-9, last[0])
+            node.status.extra["clock_steps"] = node.status.extra.get("clock_steps", 0) + 1
+            new_track = True
         if camera_clock is not None:
             camera_clock.arrived(est.stamp_ns * 1e-9, restart=new_track)
             now = camera_clock.now()
@@ -197,7 +213,8 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             cmd = late
             node.status.extra["late"] = node.status.extra.get("late", 0) + 1
         if cmd is STOP or cmd.stale:
-            last_stop = now
+            last_stop = time.monotonic()
+        last_taken = time.monotonic()
         used = (est.seq, est.stamp_ns)
         send(est.stamp_ns, cmd.vx, cmd.vy, cmd.wz, cmd.stale)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)

@@ -17,6 +17,7 @@ from vistrack.common.messages import (
     MAX_PARAMS_ID,
     CmdVel,
     Estimate,
+    Frame,
     MessageError,
     Params,
     encode_frame,
@@ -408,12 +409,12 @@ def test_where_no_window_meets_the_tolerance_the_windows_in_force_stay_unless_fa
 
 
 def test_the_camera_takes_no_acknowledgement_of_a_frame_it_has_not_sent():
-    """An estimate stamped in the future would stand for every frame still to come: a paced
+    """An estimate of a frame not sent yet would stand for every frame still to come: a paced
     camera would stop waiting and end a file before its last frames were processed."""
     from vistrack.services.camera.service import _Acks
 
-    def estimate(stamp_ns: int) -> bytes:
-        return Estimate(seq=0, stamp_ns=stamp_ns, npi=0, xc=0.0, yc=0.0, xe=0.0, ye=0.0,
+    def estimate(seq: int) -> bytes:
+        return Estimate(seq=seq, stamp_ns=5, npi=0, xc=0.0, yc=0.0, xe=0.0, ye=0.0,
                         dx=0.0, dy=0.0, scale=1.0, t_ms=0.0, first=True, features=[],
                         params_id=0).encode()
 
@@ -423,15 +424,15 @@ def test_the_camera_takes_no_acknowledgement_of_a_frame_it_has_not_sent():
         node.feed(node.keys.estimate, estimate(10**18))
         assert not acks.wait({node.keys.estimate: 1000}, 0.05)
         assert node.status.rejected == 1
-        assert "stamp_ns 1000000000000000000 is after the newest frame sent (1000)" in \
+        assert "seq 1000000000000000000 is after the newest frame sent (1000)" in \
             node.status.last_error
         node.feed(node.keys.estimate, estimate(1000))
         assert acks.wait({node.keys.estimate: 1000}, 1.0)
 
 
 def test_the_camera_takes_a_bad_done_for_no_acknowledgement_and_an_estimate_for_one():
-    """``preprocessing/done`` is checked as estimates are: one stamped after the newest frame
-    sent, or without a stamp, is rejected and named, and pre-processing is not taken for
+    """``preprocessing/done`` is checked as estimates are: one of a frame after the newest
+    sent, or without a ``seq``, is rejected and named, and pre-processing is not taken for
     free; an estimate of the frame says it is (the frame was pre-processed to be tracked)."""
     from vistrack.common.messages import PreDone
     from vistrack.services.camera.service import _Acks
@@ -440,17 +441,121 @@ def test_the_camera_takes_a_bad_done_for_no_acknowledgement_and_an_estimate_for_
         keys = node.keys
         acks = _Acks(node, (keys.estimate, keys.pre_done))
         acks.sent = 1000
-        node.feed(keys.pre_done, PreDone(seq=0, stamp_ns=10**18).encode())
+        node.feed(keys.pre_done, PreDone(seq=10**18, stamp_ns=0).encode())
         assert not acks.wait({keys.pre_done: 1000}, 0.05)
-        assert "preprocessing/done: stamp_ns 1000000000000000000 is after the newest frame " \
+        assert "preprocessing/done: seq 1000000000000000000 is after the newest frame " \
             "sent (1000)" in node.status.last_error
-        node.feed(keys.pre_done, msgpack.packb({"v": 1, "seq": 0}))
+        node.feed(keys.pre_done, msgpack.packb({"v": 1, "stamp_ns": 0}))
         assert not acks.wait({keys.pre_done: 1000}, 0.05)
-        assert node.status.rejected == 2 and "no valid stamp_ns" in node.status.last_error
-        node.feed(keys.estimate, Estimate(seq=0, stamp_ns=1000, npi=0, xc=0.0, yc=0.0, xe=0.0,
+        assert node.status.rejected == 2 and "no valid seq" in node.status.last_error
+        node.feed(keys.estimate, Estimate(seq=1000, stamp_ns=0, npi=0, xc=0.0, yc=0.0, xe=0.0,
                                           ye=0.0, dx=0.0, dy=0.0, scale=1.0, t_ms=0.0,
                                           first=True, features=[], params_id=0).encode())
         assert acks.wait({keys.pre_done: 1000}, 1.0)
+
+
+class _SteppedClock:
+    """A module's ``time`` whose wall clock (``time``, ``time_ns``) can be set back, as an NTP
+    correction or ``date -s`` does; the monotonic clocks go on."""
+
+    def __init__(self) -> None:
+        self.offset_s = 0.0
+        self.monotonic, self.perf_counter, self.sleep = (time.monotonic, time.perf_counter,
+                                                         time.sleep)
+
+    def time(self) -> float:
+        return time.time() + self.offset_s
+
+    def time_ns(self) -> int:
+        return time.time_ns() + round(self.offset_s * 1e9)
+
+
+def test_a_paced_camera_keeps_pacing_after_its_wall_clock_is_set_back(monkeypatch):
+    """--fps 0 sends a frame once the one before has its estimate. Acknowledgements were
+    matched by stamp: after the wall clock was set back 10 s every frame looked acknowledged
+    already and the camera sent 17,390 frames a second, a run meant to lose none."""
+    from vistrack.services.camera import service as camera
+
+    clock = _SteppedClock()
+    monkeypatch.setattr(camera, "time", clock)
+    with MemoryNode("camera") as node:
+        thread = threading.Thread(target=camera.loop, args=(
+            node, parse("camera", "--source", "builtin", "--fps", "0", "--loop")), daemon=True)
+        thread.start()
+
+        def answer() -> None:  # the pipeline: each frame's estimate 20 ms after it was sent
+            done = 0
+            while not node.stop.is_set():
+                frames = node.published_on(node.keys.frame)
+                if len(frames) > done:
+                    done = len(frames)
+                    time.sleep(0.02)
+                    node.feed(node.keys.estimate, Estimate(
+                        seq=Frame.decode(frames[-1]).seq,
+                        stamp_ns=Frame.decode(frames[-1]).stamp_ns, npi=10, xc=1.0, yc=1.0,
+                        xe=1.0, ye=1.0, dx=0.0, dy=0.0, scale=1.0, t_ms=1.0, first=False,
+                        features=[], params_id=0).encode())
+                else:
+                    time.sleep(0.002)
+        responder = threading.Thread(target=answer, daemon=True)
+        try:
+            responder.start()
+            wait_for(lambda: len(node.published_on(node.keys.frame)) >= 5, what="frames")
+            clock.offset_s = -10.0
+            before = len(node.published_on(node.keys.frame))
+            time.sleep(0.5)
+            sent = len(node.published_on(node.keys.frame)) - before
+        finally:
+            node.stop.set()
+            thread.join(5)
+            responder.join(5)
+    assert 3 <= sent <= 30, sent  # one a frame's answer, 20 ms and more apart: not thousands
+
+
+def test_a_controller_whose_wall_clock_is_set_back_tracks_on_and_still_stops(monkeypatch):
+    """The controller judged ages and the order of estimates on the wall clock. Set back by
+    20 s, it refused every estimate as out of order for 20 s, and its watchdog saw every age
+    negative: once the estimates stopped, the robot went on with its last move for 18 s. It
+    now takes the set-back stamps as a new start, and the watchdog stops the robot when no
+    estimate has been taken for --stale-after s of the host's monotonic clock."""
+    from vistrack.services.fuzzy_controller import service as controller
+
+    clock = _SteppedClock()
+    monkeypatch.setattr(controller, "time", clock)
+
+    def estimate(seq: int, xc: float) -> bytes:
+        return Estimate(seq=seq, stamp_ns=clock.time_ns(), npi=40, xc=xc, yc=128.0, xe=400.0,
+                        ye=400.0, dx=xc - 90.0, dy=0.0, scale=1.0, t_ms=1.0, first=seq == 0,
+                        features=[], params_id=0).encode()
+
+    with MemoryNode("fuzzy_controller") as node:
+        thread = threading.Thread(target=controller.loop,
+                                  args=(node, parse("fuzzy-controller")), daemon=True)
+        thread.start()
+        try:
+            wait_for(lambda: node.feed(node.keys.estimate, estimate(0, 90.0)),
+                     what="the controller's subscription")
+            for seq in range(1, 16):  # the target drifting: commands that move
+                time.sleep(1 / 30)
+                node.feed(node.keys.estimate, estimate(seq, 110.0))
+            wait_for(lambda: len(node.published_on(node.keys.cmd_vel)) >= 16, what="commands")
+            clock.offset_s = -20.0
+            for seq in range(16, 46):
+                time.sleep(1 / 30)
+                node.feed(node.keys.estimate, estimate(seq, 110.0 + seq - 16))
+            wait_for(lambda: len(node.published_on(node.keys.cmd_vel)) >= 46,
+                     what="a command for every estimate after the step")
+            moving = CmdVel.decode(node.published_on(node.keys.cmd_vel)[-1])
+            assert not moving.stale and moving.vy != 0.0
+            assert node.status.rejected == 0, node.status.last_error
+            assert node.status.extra["clock_steps"] == 1
+            stopped_at = time.monotonic()  # no estimate any more: the watchdog stops it
+            wait_for(lambda: CmdVel.decode(node.published_on(node.keys.cmd_vel)[-1]).stale,
+                     timeout=5.0, what="a stop")
+            assert time.monotonic() - stopped_at < 1.0
+        finally:
+            node.stop.set()
+            thread.join(5)
 
 
 def test_the_controller_refuses_an_estimate_from_the_future():

@@ -91,6 +91,7 @@ from .sensitivity import (
     STEP_RANGE,
     TABLE4_FIXED,
     TOLERANCE_RANGE,
+    frames_within,
 )
 from .worker import Worker
 
@@ -363,7 +364,12 @@ class AutoTuner:
             self.started, self.reason, self.id_at_start = now, reason, self.state.params_id
             self.stamp_ns = self.frames[-1][1]
             params = self.state.params
-            self.worker.submit({"frames": [f for f, _ in self.frames], "base": params,
+            # only the frames the cycle will run on (the latest within --max-megapixels): a
+            # buffer of 1000 frames of 1280x720 was 0.9 GB through the pipe, cut there
+            keep = frames_within(len(self.frames), self.frames[-1][0].shape[:2],
+                                 self.args.max_megapixels)
+            self.worker.submit({"frames": [f for f, _ in list(self.frames)[-keep:]],
+                                "offered": len(self.frames), "base": params,
                                 # the other factors as in force: the sweep's own default is
                                 # Table 4's, and its optimum put those back (a user's
                                 # max_features 150 became 100 at the next tuning)

@@ -7,6 +7,7 @@ optimum. Pure multiprocessing: no Zenoh here (the service loop owns the session)
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import multiprocessing
 import os
@@ -65,6 +66,8 @@ def _work(conn: Any, parent_pid: int) -> None:
                 result = tune(job["frames"], None, tolerance=job["tolerance"], step=job["step"],
                               base=job["base"], fixed=job.get("fixed"),
                               max_megapixels=job["max_megapixels"])
+                if "offered" in job:  # the buffer's frames, of which only these were sent
+                    result = dataclasses.replace(result, offered=job["offered"])
                 conn.send(("ok", result.to_report(), dict(result.optimum.params),
                            result.keeps(*job["windows"]) if "windows" in job else False))
             except TextureError as e:  # nothing to tune on: not a fault
@@ -118,7 +121,18 @@ class Worker:
         self._closing.wait()
 
     def submit(self, job: dict[str, Any]) -> None:
-        self._conn.send(job)
+        """Send ``job`` from a thread of its own: the pipe takes a cycle's frames (26 MiB at
+        1280x720) only as fast as the worker, at idle priority, reads them, and a busy machine
+        starves it (that is what idle priority is for). Sent from the loop, the loop waited
+        12 s and more, its inputs untaken, and the launcher killed the auto-tuner as hung
+        (helper review). One job at a time (the service waits for its result); a send that
+        fails (the worker died) shows at the next :meth:`poll`."""
+        def send() -> None:
+            try:
+                self._conn.send(job)
+            except (OSError, ValueError):  # closed or died meanwhile: poll() will say so
+                pass
+        threading.Thread(target=send, name="tuning-job", daemon=True).start()
 
     def poll(self) -> tuple | None:
         """The worker's next result, or None; raises EOFError when the worker died."""

@@ -477,9 +477,13 @@ class DeviceFrames:
                     with self._ready:
                         self._newest = (img, time.time_ns())
                         self._ready.notify()
-        except SourceError as e:
+        except Exception as e:  # noqa: BLE001 - said by next(), not lost with the thread
+            # any failure of the device or its driver (OpenCV raises cv2.error): next()
+            # waited for a frame for ever once this thread had died of one
+            error = e if isinstance(e, SourceError) else SourceError(
+                f"device:{index}: reading the camera failed: {type(e).__name__}: {e}")
             with self._ready:
-                self._error = e
+                self._error = error
                 self._ready.notify()
         finally:
             cap.release()

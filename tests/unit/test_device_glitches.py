@@ -202,6 +202,33 @@ def test_an_unplugged_camera_ends_with_a_clear_error(video, reopens):
     assert device.opened == 2
 
 
+def test_a_read_that_raises_is_an_error_of_next_not_a_wait_for_ever(video):
+    """A driver's exception (OpenCV's cv2.error) killed the reading thread, and next()
+    waited for a frame for ever; only the launcher's hang watch got the camera going."""
+    path, _ = video
+
+    def fails(n: int) -> bool:
+        if n == 3:
+            raise cv2.error("unsupported pixel format")
+        return False
+
+    source = open_device(3, retry_s=RETRY_S, capture=Device(path, 0.01, fails=fails))
+    got: list[object] = []
+
+    def take() -> None:
+        try:
+            while True:
+                next(source)
+        except Exception as e:  # noqa: BLE001 - what next() raised, checked below
+            got.append(e)
+    reader = threading.Thread(target=take, daemon=True)
+    reader.start()
+    reader.join(5)
+    source.close()
+    assert got and isinstance(got[0], SourceError), got
+    assert "device:3: reading the camera failed: error: unsupported pixel format" in str(got[0])
+
+
 def test_a_device_that_does_not_open_is_an_error_at_once(video):
     path, _ = video
     with pytest.raises(SourceError, match=r"^device:3: cannot open the camera device$"):

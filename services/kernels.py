@@ -510,7 +510,7 @@ class KernelsAhead:
                     continue
             t0 = time.monotonic()
             try:
-                subprocess.run([sys.executable, "-c", _AHEAD], input=json.dumps(
+                subprocess.run([sys.executable, "-c", _AHEAD, str(os.getpid())], input=json.dumps(
                     params.as_dict()).encode(), stdout=subprocess.DEVNULL,
                     stderr=subprocess.DEVNULL, timeout=HELPER_TIMEOUT_S, check=False)
                 warm_up(params=params)  # loads what the other process compiled
@@ -522,7 +522,11 @@ class KernelsAhead:
                            time.monotonic() - t0)
 
 
-_AHEAD = ("import json, sys; from vistrack.common.params import TrackerParams; "
+#: The helper that compiles a new parameter set's kernels beside the loop: it dies with the
+#: service (one that exited mid-compile left it compiling for nobody for up to ~30 s).
+_AHEAD = ("import json, sys; from vistrack.services.kernels import die_with_parent; "
+          "die_with_parent(int(sys.argv[1])); "
+          "from vistrack.common.params import TrackerParams; "
           "from vistrack.common.vision import warm_up; "
           "warm_up(params=TrackerParams.from_mapping(json.load(sys.stdin)))")
 

@@ -308,7 +308,6 @@ def test_the_auto_tuners_windows_sum_in_the_default_trackers_type():
 def test_the_compile_helper_dies_with_its_parent(tmp_path):
     """A service stopped while it starts ends at once (``os._exit``): its helper, compiling
     the search into an empty cache (half a minute), used to go on for nobody."""
-    import time
 
     parent = subprocess.run(
         [sys.executable, "-c", "import os; from vistrack.services import kernels; "
@@ -316,14 +315,38 @@ def test_the_compile_helper_dies_with_its_parent(tmp_path):
         env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}, capture_output=True, text=True,
         check=True, timeout=60)
     helper = int(parent.stdout)
+    _ends_within(helper, 15.0, "the helper outlived its parent")
+
+
+def test_the_helper_that_makes_new_parameters_ready_dies_with_its_service(tmp_path):
+    """motion-estimation compiles a new parameter set's kernels in a helper beside its loop;
+    a service that exited meanwhile left it compiling for nobody for up to ~30 s. Here the
+    helper compiles into an empty cache, and its service exits 2 s later."""
+
+    parent = subprocess.run(
+        [sys.executable, "-c", "import os, subprocess, sys; from vistrack.services import "
+         "kernels; p = subprocess.Popen([sys.executable, '-c', kernels._AHEAD, "
+         "str(os.getpid())], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, "
+         "stderr=subprocess.DEVNULL); p.stdin.write(b'{\"search_size\": 21}'); "
+         "p.stdin.close(); print(p.pid, flush=True); import time; time.sleep(2); os._exit(0)"],
+        env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}, capture_output=True, text=True,
+        check=True, timeout=60)
+    helper = int(parent.stdout)
+    _ends_within(helper, 15.0, "the helper outlived its service")
+
+
+def _ends_within(pid: int, seconds: float, what: str) -> None:
+    """Assert that ``pid`` ends within ``seconds`` (killed if it does not)."""
+    import time
+
     try:
-        deadline = time.monotonic() + 15
-        while time.monotonic() < deadline and _running(helper):
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline and _running(pid):
             time.sleep(0.1)
-        assert not _running(helper), "the helper outlived its parent"
+        assert not _running(pid), what
     finally:
-        if _running(helper):
-            os.kill(helper, 9)
+        if _running(pid):
+            os.kill(pid, 9)
 
 
 def _running(pid: int) -> bool:

@@ -150,6 +150,11 @@ class _Watch:
     since: float  # when it was first seen ready (monotonic)
     asked_at: float = 0.0
     answered_at: float = 0.0
+    # when the first status query since its last answer was sent: its silence is judged from
+    # there, not from the last answer (queried once a second, a service that answered every
+    # query at once looked a second silent just before each answer, and hang_timeout 1 killed
+    # a healthy motion-estimation 9 times a minute)
+    pending_since: float | None = None
     busy_s: float = 0.0
     killed: bool = False
 
@@ -521,14 +526,21 @@ class Launcher:
                 if watch is None or watch.pid != pid:
                     watch = self._watches[name] = _Watch(pid, since=now)
                 lost = self._tokens_lost.get(name)
-                answered, busy = max(watch.since, watch.answered_at), watch.busy_s
+                busy = watch.busy_s
+                if not watch.killed and now - watch.asked_at >= STATUS_PERIOD_S:
+                    watch.asked_at = now
+                    if watch.pending_since is None:
+                        watch.pending_since = now
+                    ask = True
+                else:
+                    ask = False
+                pending = watch.pending_since
             if watch.killed:
                 continue
-            if now - watch.asked_at >= STATUS_PERIOD_S:
-                watch.asked_at = now
+            if ask:
                 self._ask_status(name, pid)
-            if now - answered > timeout:
-                seen = f"no answer to its status query for {now - answered:.1f} s"
+            if pending is not None and now - pending > timeout:
+                seen = f"no answer to its status query for {now - pending:.1f} s"
             elif busy > timeout:
                 seen = f"its loop has been busy on one input for {busy:.1f} s"
             elif lost is not None and lost >= watch.since and now - lost > timeout:
@@ -591,6 +603,7 @@ class Launcher:
             with self._cond:
                 for watch in self._watches.values():
                     watch.since = watch.answered_at = now
+                    watch.pending_since = None  # asked through the router that went
                     watch.busy_s = 0.0
         return True
 
@@ -608,6 +621,7 @@ class Launcher:
                 watch = self._watches.get(service)
                 if watch is not None and status.get("pid") == pid == watch.pid:
                     watch.answered_at = time.monotonic()
+                    watch.pending_since = None
                     watch.busy_s = float(busy) if isinstance(busy, (int, float)) else 0.0
 
         if self._session is None:

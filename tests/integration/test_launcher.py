@@ -374,6 +374,21 @@ def test_a_stopped_service_is_killed_and_replaced_within_15_s(procs, tmp_path, f
     assert up.output.count("is hung") == 1 and up.output.count("restarting in") == 1
 
 
+def test_the_shortest_hang_timeout_kills_no_healthy_service(procs, tmp_path, free_port):
+    """hang_timeout 1 (its allowed minimum): queried once a second, a service that answered
+    every query at once looked a second silent just before each answer, and a healthy
+    motion-estimation was killed as hung 9 times a minute."""
+    text = FIVE.replace("restart: on-failure\n", "restart: on-failure\n        hang_timeout: 1\n")
+    launch = write_launch(tmp_path / "short.yaml", text)
+    assert all(s.hang_timeout == 1.0 for s in load_launch(launch.read_text()).services
+               if s.name != "camera")
+    up = Proc("up", str(launch), "-l", f"tcp/127.0.0.1:{free_port}", "--no-multicast-scouting",
+              "--robot", f"t{uuid.uuid4().hex[:8]}", "--duration", "15")
+    procs.append(up)
+    assert up.wait_exit(READY_S + 30) == 0, up.output
+    assert "is hung" not in up.output, up.output
+
+
 def test_sigint_stops_everything_within_5_s(procs, tmp_path, free_port):
     up = start_up(procs, tmp_path, free_port, f"t{uuid.uuid4().hex[:8]}")
     children = services_and_spare(up.proc.pid, 5)

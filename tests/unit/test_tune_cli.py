@@ -196,3 +196,26 @@ def test_a_video_cut_short_is_tuned_on_then_reported(real_image, cut_video_of, c
     assert captured.err.splitlines()[-1] == (
         f"vistrack tune: error: {cut}: the video ends after {len(held)} of the 16 frames its "
         "header announces (cut short or damaged)")
+
+
+def test_only_the_frames_within_the_work_budget_are_kept_as_they_are_read(tmp_path):
+    """The budget picks the latest frames that fit; all --max-frames were read and held
+    first (1000 frames of 4096x4096 passed 3 GB in 7 s before the cut)."""
+    import argparse
+
+    import cv2
+    import numpy as np
+
+    from vistrack.services.offline.tune import read_buffer
+
+    for k in range(10):  # 1 MP each, frame k's pixels all k
+        cv2.imwrite(str(tmp_path / f"f{k:02d}.png"), np.full((1000, 1000), k, np.uint8))
+    args = argparse.Namespace(frames=[str(tmp_path)], resize=None, max_frames=10, bounce=False,
+                              max_megapixels=4.0)
+    frames, _, cut, offered = read_buffer(args)
+    assert cut is None and offered == 10
+    assert [int(f[0, 0]) for f in frames] == [6, 7, 8, 9]
+    # played back and forth, the frames are all kept: the bounce needs every one of them
+    args.max_frames, args.bounce = 16, True
+    frames, _, _, offered = read_buffer(args)
+    assert len(frames) == 16 and offered == 16

@@ -262,10 +262,17 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         tracker.reset()
         demand.reset()
 
+    def tick() -> None:
+        # a pending set comes in force once its kernels are ready, frames or not: it waited
+        # for the next frame, and on a pipeline with no camera (--camera none) params set
+        # waited its 180 s and said the set may have been lost
+        if pending is not None:
+            put_in_force()
+
     ready(node)
     with late_compiles_logged(log):
         dispatch(node, {node.keys.params: on_params, node.keys.pre_frame: on_frame}, log,
-                 recover=recover,
+                 tick=tick, recover=recover,
                  rehearsal=None if args.no_rehearsal
                  else Rehearsal(node, node.keys.pre_frame, rehearse, log))
 

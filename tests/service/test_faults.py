@@ -242,6 +242,32 @@ def test_parameters_with_kernels_of_their_own_wait_for_them_beside_the_loop(monk
     assert node.status.failed == 0 and node.status.rejected == 0
 
 
+def test_parameters_whose_kernels_were_pending_come_in_force_without_a_frame(monkeypatch):
+    """A set pending its kernels came in force only with the next frame: on a pipeline with
+    no camera (vistrack up --camera none) params set waited its 180 s, then said the set may
+    have been lost; it came in force minutes later, with the first frame."""
+    from vistrack.common.messages import Params
+    from vistrack.common.vision import tracker as tracker_module
+    from vistrack.services.motion_estimation.service import loop
+
+    big = TrackerParams(corr_size=64)
+    monkeypatch.setattr(tracker_module, "_WARM",
+                        set(tracker_module._WARM) - {tracker_module._kernel_set(big)})
+    with MemoryNode("motion_estimation") as node:
+        thread = run_loop(loop, node, parse("motion-estimation"))
+        wait_for(lambda: node.feed(node.keys.params, Params.from_tracker_params(
+            big, seq=0, stamp_ns=time.time_ns(), params_id=7, source="user",
+            reason="test").encode()), timeout=60, what="the subscription")
+        wait_for(lambda: node.status.extra.get("params_pending") == 7, what="pending")
+        # on a cold cache the second process compiles the int64 set: ~30 s, 80 s when busy
+        wait_for(lambda: node.status.params["params_id"] == 7, timeout=300,
+                 what="the set in force, no frame fed")
+        node.stop.set()
+        thread.join(10)
+    assert thread.error is None and "params_pending" not in node.status.extra
+    assert node.published_on(node.keys.estimate) == []
+
+
 def test_parameters_whose_kernels_fail_are_dropped_and_the_old_ones_stay(monkeypatch):
     """Should their kernels fail to build (a compiler error), a pending update is dropped with
     an error in the status and the log, once: the parameters in force stay, and the loop does

@@ -82,7 +82,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 def echo(session: zenoh.Session, keys: Keys, args: argparse.Namespace) -> int:
-    key = resolve_key(keys, args.key)
+    key = resolve_key(keys, args.key, "echo")
     inbox = Inbox()
     deadline = None if args.timeout is None else time.monotonic() + args.timeout
     printed = 0

@@ -102,7 +102,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 def hz(session: zenoh.Session, keys: Keys, args: argparse.Namespace) -> int:
-    key = resolve_key(keys, args.key)
+    key = resolve_key(keys, args.key, "hz")
     inbox = Inbox()
     rates: dict[str, Rate] = {}
     start = time.monotonic()

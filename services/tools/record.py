@@ -307,7 +307,7 @@ def _recorded(key: str) -> bool:
 def main(args: argparse.Namespace) -> int:
     try:
         keys = Keys(args.robot)
-        exprs = sorted({resolve_key(keys, k) for k in args.keys}) or [f"{keys.root}/**"]
+        exprs = sorted({resolve_key(keys, k, "record") for k in args.keys}) or [f"{keys.root}/**"]
         writer = open_writer(args.file, args.format, robot=args.robot, keys=exprs)
     except ToolError as e:
         error("record", e)

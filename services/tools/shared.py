@@ -36,7 +36,13 @@ from ...common.bus import (
     query_status,
     source_of,
 )
-from ...common.keys import Keys
+from ...common.keys import (
+    CONTRACT_SUFFIXES,
+    OPTIONAL_SERVICES,
+    SERVICES,
+    Keys,
+    key_suffix,
+)
 from ..usage import print_error
 
 #: How long a tool given ``-e ENDPOINT`` tries to connect before it says nothing is there.
@@ -100,12 +106,28 @@ def warn(tool: str, message: object) -> None:
     print(f"vistrack {tool}: warning: {message}", file=sys.stderr, flush=True)
 
 
-def resolve_key(keys: Keys, key: str) -> str:
-    """``keys.resolve(key)`` with a bad key as a usage error."""
+def resolve_key(keys: Keys, key: str, tool: str | None = None) -> str:
+    """``keys.resolve(key)`` with a bad key as a usage error; with ``tool``, a warning when
+    the key, without wildcards, is none of vistrack's (``vistrack echo done`` listened on
+    ``vistrack/robot/done`` in silence for ever: the key is ``preprocessing/done``, its
+    name ``pre_done``)."""
     try:
-        return keys.resolve(key)
+        full = keys.resolve(key)
     except ValueError as e:
         raise ToolError(str(e), code=2) from None
+    suffix = key_suffix(full)
+    if tool is not None and "*" not in full and suffix not in _KNOWN_SUFFIXES:
+        names = ", ".join(f"{v} ({k})" for k, v in CONTRACT_SUFFIXES.items())
+        warn(tool, f"{key!r} is none of vistrack's keys: listening on {full} all the same. "
+                   f"The keys (and their short names): {names}; <service>/status; "
+                   "alive/<service>")
+    return full
+
+
+#: What follows ``vistrack/<robot>/`` in every key vistrack publishes or answers on.
+_KNOWN_SUFFIXES = frozenset((*CONTRACT_SUFFIXES.values(),
+                             *(f"{s}/status" for s in (*SERVICES, *OPTIONAL_SERVICES)),
+                             *(f"alive/{s}" for s in (*SERVICES, *OPTIONAL_SERVICES))))
 
 
 def run(tool: str, args: argparse.Namespace,

@@ -130,3 +130,20 @@ def test_key_suffix():
     assert key_suffix("vistrack/r1/motion/estimate") == "motion/estimate"
     assert key_suffix("motion/estimate") == "motion/estimate"
     assert key_suffix("other/r1/motion/estimate") == "other/r1/motion/estimate"
+
+
+@pytest.mark.parametrize(("given", "warned"), [
+    ("done", True), ("estimates", True), ("camera/frames", True),
+    ("pre_done", False), ("preprocessing/done", False), ("motion_estimation/status", False),
+    ("alive/camera", False), ("tuner/*", False), ("**", False),
+    ("vistrack/r2/motion/estimate", False), ("vistrack/r2/motion/estimat", True)])
+def test_a_tool_given_none_of_vistracks_keys_says_so(given, warned, capsys):
+    """vistrack echo done listened on vistrack/robot/done in silence for ever: the key is
+    preprocessing/done, its short name pre_done."""
+    from vistrack.services.tools.shared import resolve_key
+
+    assert resolve_key(Keys("robot"), given, "echo") == Keys("robot").resolve(given)
+    err = capsys.readouterr().err
+    assert ("none of vistrack's keys" in err) is warned, err
+    if warned:
+        assert "preprocessing/done (pre_done)" in err

@@ -72,6 +72,9 @@ PR_SET_PDEATHSIG = 1
 ALIVE_QUERY_S = 1.0
 #: How often each running service is asked for its status (hang detection), s.
 STATUS_PERIOD_S = 1.0
+#: A gap between two of the launcher's looks at its services longer than this, s, is the
+#: launcher's own stall (it looks every TICK_S): the services are judged again after it.
+STALLED_S = 2.0
 
 # -- child processes -----------------------------------------------------------------------
 
@@ -212,6 +215,7 @@ class Launcher:
         self._tokens_lost: dict[str, float] = {}  # service -> when its token went (monotonic)
         self._watches: dict[str, _Watch] = {}  # service -> its process's hang watch
         self._router_lost_at: float | None = None  # when the external router went (monotonic)
+        self._watched_at: float | None = None  # the last look at the services (monotonic)
         # a warmed-up process a restart becomes (see spare.py), once every service is ready
         self._use_spare = spare and any(s.restart != "never" for s in launch.services)
         self._spare: subprocess.Popen[bytes] | None = None
@@ -512,6 +516,14 @@ class Launcher:
         router gone for 3 s or more had every service of every robot on it killed as hung,
         and the runs ended (a camera is not restarted), where the pipelines had kept tracking;
         now the launcher says the router went and came back, and judges again from then."""
+        last, self._watched_at = self._watched_at, now
+        if last is not None and now - last > STALLED_S:
+            # the launcher itself did not run (stopped, starved on a loaded machine): the
+            # silence it would see is its own. 7 s of it had every healthy service of the
+            # run killed as hung, and the run ended (soak test)
+            self._log(f"the launcher did not run for {now - last:.1f} s (stopped, or starved "
+                      "of CPU): the services are judged again from now")
+            self._judge_from(now)
         if not self._router_reachable(now):
             return
         self._watch_restarts(now)
@@ -600,12 +612,17 @@ class Launcher:
         if self._router_lost_at is not None:
             self._log(f"the router is back after {now - self._router_lost_at:.1f} s")
             self._router_lost_at = None
-            with self._cond:
-                for watch in self._watches.values():
-                    watch.since = watch.answered_at = now
-                    watch.pending_since = None  # asked through the router that went
-                    watch.busy_s = 0.0
+            self._judge_from(now)
         return True
+
+    def _judge_from(self, now: float) -> None:
+        """Start every service's watch again at ``now``: what the launcher saw or missed
+        before (queries through a router that went, or while it did not run) says nothing."""
+        with self._cond:
+            for watch in self._watches.values():
+                watch.since = watch.answered_at = now
+                watch.pending_since = None
+                watch.busy_s = 0.0
 
     def _ask_status(self, service: str, pid: int) -> None:
         """Query ``service``'s status; the answer of process ``pid`` updates its watch."""

@@ -389,6 +389,22 @@ def test_the_shortest_hang_timeout_kills_no_healthy_service(procs, tmp_path, fre
     assert "is hung" not in up.output, up.output
 
 
+def test_a_launcher_that_did_not_run_for_a_while_kills_no_service(procs, tmp_path, free_port):
+    """A launcher stopped (or starved on a loaded machine) for 7 s found every service silent
+    for 7 s, killed all five as hung and ended the run with exit 1 (soak test)."""
+    up = start_up(procs, tmp_path, free_port, f"t{uuid.uuid4().hex[:8]}")
+    children = services_and_spare(up.proc.pid, 5)
+    os.kill(up.proc.pid, signal.SIGSTOP)
+    try:
+        time.sleep(7.0)
+    finally:
+        os.kill(up.proc.pid, signal.SIGCONT)
+    time.sleep(4.0)  # a watch judged on from before the stall kills within its 5 s
+    assert "is hung" not in up.output, up.output
+    assert all(alive(pid) for pid in children), up.output
+    up.wait_line(r"the launcher did not run for [0-9.]+ s .*judged again from now", 1)
+
+
 def test_sigint_stops_everything_within_5_s(procs, tmp_path, free_port):
     up = start_up(procs, tmp_path, free_port, f"t{uuid.uuid4().hex[:8]}")
     children = services_and_spare(up.proc.pid, 5)

@@ -211,3 +211,16 @@ def test_services_refuse_bad_parameter_flags_before_starting(service):
     lines = r.stderr.strip().splitlines()
     assert lines == [f"vistrack {service}: error: --search-size 500 is out of range: "
                      "allowed 2..128"]
+
+
+def test_features_left_unsearched_by_the_work_budget_are_said(rubberwhale):
+    """The largest windows and feature count in range, the paper's exhaustive search: most
+    features are not searched, the frame's work budget reached. The table's NPI and valid
+    do not show it; the service warns, and so does track now, once."""
+    files = [str(rubberwhale / f"frame{i:02d}.png") for i in (10, 11, 12)]
+    res = vistrack("track", *files, "--paper", "--search", "exhaustive", "--search-size",
+                   "128", "--corr-size", "64", "--max-features", "2000", "--ungroup-size", "0",
+                   "--thres-percent", "5", check=True)
+    warnings = [line for line in res.stderr.splitlines() if "warning" in line]
+    assert len(warnings) == 1 and "features not searched" in warnings[0], res.stderr
+    assert "budget" in res.stdout.splitlines()[-1]

@@ -24,6 +24,7 @@ import time
 
 from ...common.bus import Node
 from ...common.messages import MAX_SIDE, Estimate, encode_cmd_vel
+from ...common.params import BOUNDS
 from ..runtime import (
     NO_ESTIMATE,
     add_service_args,
@@ -125,8 +126,18 @@ def make_controller(args: argparse.Namespace) -> FuzzyController | ProportionalC
         vy_max=LIMITS.vy_max, vx_max=LIMITS.vx_max), config=config)
 
 
+#: Estimates in a row that came older than --stale-after before that is said (once).
+LATE_SAID_AFTER = 30
+
+
 def loop(node: Node, args: argparse.Namespace) -> None:
     ctrl = make_controller(args)
+    most = int(BOUNDS["max_features"][1])
+    if args.min_npi > most:
+        log.warning("--min-npi %d is more features than a tracker ever holds (max_features "
+                    "is at most %d): every estimate will be answered with a stop",
+                    args.min_npi, most)
+    late_in_a_row = 0
     node.subscribe(node.keys.estimate, latest=True)
     node.advertise(node.keys.cmd_vel, reliable=True)
     seq = 0
@@ -160,7 +171,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             last_stop = mono
 
     def on_estimate(payload: bytes) -> None:
-        nonlocal last_stop, last_taken, xc0, used, last
+        nonlocal last_stop, last_taken, xc0, used, last, late_in_a_row
         t0 = time.perf_counter()
         now = clock()
         est = decode_or_reject(Estimate, payload, node, log)
@@ -212,6 +223,15 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             # which it then stopped 0.1 s later, stop and go from data seconds old
             cmd = late
             node.status.extra["late"] = node.status.extra.get("late", 0) + 1
+            late_in_a_row += 1
+            if late_in_a_row == LATE_SAID_AFTER:
+                log.warning("the last %d estimates were all older than --stale-after (%g s) "
+                            "when they came (this one %.1f ms): each is answered with a stop. "
+                            "The pipeline's latency, or the camera's clock against this "
+                            "host's, exceeds it", LATE_SAID_AFTER, ctrl.config.stale_after_s,
+                            (now - est.stamp_ns * 1e-9) * 1e3)
+        else:
+            late_in_a_row = 0
         if cmd is STOP or cmd.stale:
             last_stop = time.monotonic()
         last_taken = time.monotonic()

@@ -595,6 +595,39 @@ def test_the_controller_refuses_an_estimate_from_the_future():
         assert not answered(future) and node.status.rejected == 1
 
 
+def test_a_controller_that_cannot_drive_says_why(caplog):
+    """Settings in range that make every command a stop, --min-npi above any feature count
+    and a --stale-after below the pipeline's latency, stopped the robot for ever in silence
+    (range-limits sweep): the first is said at the start, the second after 30 estimates."""
+    from vistrack.services.fuzzy_controller.service import LATE_SAID_AFTER, loop
+
+    caplog.set_level(logging.WARNING, logger="vistrack.fuzzy_controller")
+    for flags, estimates in ((["--min-npi", "10000"], 1),
+                             (["--stale-after", "0.000001"], LATE_SAID_AFTER + 5)):
+        with MemoryNode("fuzzy_controller") as node:
+            thread = threading.Thread(target=loop, daemon=True,
+                                      args=(node, parse("fuzzy-controller", *flags)))
+            thread.start()
+            try:
+                for seq in range(estimates):
+                    est = Estimate(seq=seq, stamp_ns=time.time_ns() - 10**6, npi=50,
+                                   xc=128.0, yc=128.0, xe=400.0, ye=400.0, dx=0.0, dy=0.0,
+                                   scale=1.0, t_ms=1.0, first=seq == 0, features=[],
+                                   params_id=0).encode()
+                    wait_for(lambda est=est: node.feed(node.keys.estimate, est),
+                             what="the controller's subscription")
+                    wait_for(lambda seq=seq: len(node.published_on(node.keys.cmd_vel)) > seq,
+                             what=f"command {seq}")
+            finally:
+                node.stop.set()
+                thread.join(5)
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("--min-npi 10000 is more features than a tracker ever holds" in m
+               for m in said) == 1, said
+    assert sum(f"the last {LATE_SAID_AFTER} estimates were all older than --stale-after" in m
+               for m in said) == 1, said
+
+
 def test_a_controller_that_stops_sends_a_stop_last():
     """Stopped (SIGTERM, Ctrl-C, the launcher's stop) after a moving command, its last
     command is a stale zero: a clean stop of vistrack up left the last move standing (the

@@ -88,7 +88,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replay a file source forever; with sim, start the scenario "
                              "again when it ends (else the camera exits 0 there)")
     parser.add_argument("--size", metavar="WxH", default=None,
-                        help="resize frames (default: native size)")
+                        help="resize frames, each side 8..4096 (16..4096 for sim), the largest "
+                             "camera/frame (default: native size)")
     add_number(parser, "--in-flight", lo=1, hi=16, integer=True, default=1, metavar="N",
                help="with --fps 0, most frames sent and not yet estimated, %(allowed)s "
                     "(default 1: no frame lost; 2: pre-processing and tracking overlap, "

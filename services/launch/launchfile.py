@@ -51,21 +51,23 @@ robot: robot
 router:
   listen: [tcp/127.0.0.1:7447]
 
-# longest wait, in seconds, for every service to be ready at start-up (its liveliness token:
-# kernels loaded, control surface built, inputs subscribed)
+# longest wait, in seconds (0.1..3600), for every service to be ready at start-up (its
+# liveliness token: kernels loaded, control surface built, inputs subscribed)
 ready_timeout: 60
 
 # one entry per service (camera, preprocessing, motion-estimation, auto-tuner,
 # fuzzy-controller), started downstream first and the camera last. Each has:
 #   flags:   the service's command-line flags, as a list of strings or a mapping
-#            flag -> value (true: the bare flag; false or null: left out)
+#            flag -> value (true: the bare flag; false or null: left out; a list: the flag
+#            once per value). A flag of two values (the auto-tuner's --scale-band LO HI)
+#            takes the list form: [--scale-band, '0.8', '1.25']
 #   restart: never | on-failure (non-zero exit or killed) | always (default on-failure)
 #   backoff: restart delays in seconds: the first is `initial`, each next one doubles up to
 #            `max`, and they start over once the service has run `reset_after` seconds
-#            (default {initial: 0.5, max: 10, reset_after: 10})
+#            (default {initial: 0.5, max: 10, reset_after: 10}; each 0..3600)
 #   hang_timeout: seconds a running service may go without answering its status query, with
 #            its loop stuck on one input, or without its liveliness token, before it is
-#            killed and restarted by its policy (default 5; 0: never)
+#            killed and restarted by its policy (default 5; 0: never, else 1..3600)
 services:
   camera:
     # the built-in generated sequence, replayed forever at 30 frames per second

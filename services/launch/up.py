@@ -89,7 +89,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "camera (frames come from elsewhere, e.g. vistrack replay)")
     add_number(parser, "--fps", lo=0, hi=1000, metavar="F",
                help="the camera's frames per second (its --fps), %(allowed)s")
-    parser.add_argument("--size", metavar="WxH", help="the camera's frame size (its --size)")
+    parser.add_argument("--size", metavar="WxH",
+                        help="the camera's frame size (its --size: each side 8..4096, "
+                             "16..4096 for sim)")
     parser.add_argument("--loop", action="store_true",
                         help="with --camera: replay a file source forever, start a sim "
                              "scenario again when it ends (else either ends the run)")

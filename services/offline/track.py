@@ -32,7 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "generated sequence")
     add_param_flags(parser)
     parser.add_argument("--resize", metavar="WxH", default=None,
-                        help="resize every frame (default: keep the input size)")
+                        help="resize every frame, each side 8..8192 (default: keep the input "
+                             "size)")
     parser.add_argument("--format", choices=("table", "jsonl", "csv"), default="table",
                         help="output: Table 1 columns, JSON lines, or CSV (default table)")
 

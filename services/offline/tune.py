@@ -81,7 +81,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                help="largest mean error ex, ey against the reference windows (50, 30) the "
                     f"optimum may have, %(allowed)s px (default {DEFAULT_TOLERANCE})")
     parser.add_argument("--resize", metavar="WxH", default=None,
-                        help="resize every frame (default: keep the input size)")
+                        help="resize every frame, each side 8..8192 (default: keep the input "
+                             "size)")
     add_number(parser, "--max-frames", lo=BUFFER_RANGE[0], hi=BUFFER_RANGE[1], integer=True,
                default=30, metavar="N",
                help="frames in the buffer, %(allowed)s (default 30, as the service keeps)")

@@ -766,7 +766,11 @@ class Launcher:
                 pass  # stdout closed (e.g. piped into head): keep draining the children
 
     def _log(self, message: str) -> None:
-        self.emit(f"[launcher] {message}")
+        # stamped as the services' lines are (runtime.LOG_FORMAT): when the launcher judged
+        # a service hung, its line could not be set beside theirs (soak test)
+        now = time.time()
+        self.emit(f"[launcher] {time.strftime('%H:%M:%S', time.localtime(now))}"
+                  f".{int(now % 1 * 1000):03d} {message}")
 
     # -- stopping ----------------------------------------------------------------------------
     def _signal_all(self, sig: int, children: list[_Child] | None = None) -> list[_Child]:

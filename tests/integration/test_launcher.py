@@ -43,6 +43,8 @@ from vistrack.services.launch.launchfile import (
 
 pytestmark = pytest.mark.integration
 
+#: The start of a launcher's line: its name and the time of day (as the services' lines)
+LAUNCHER = r"^\[launcher\] [0-9:.]+ "
 # Five Python processes importing numpy/numba/OpenCV on a small CI machine: be generous.
 READY_S = 60.0
 STOP_S = 5.0
@@ -258,11 +260,11 @@ def test_the_camera_starts_with_the_others_but_says_ready_after_them(procs, tmp_
     lines = out.splitlines()
     others = ("fuzzy-controller", "motion-estimation", "preprocessing", "auto-tuner")
     started = next(i for i, line in enumerate(lines) if re.match(
-        r"\[launcher\] started camera \(pid \d+, held until its consumers are ready\)", line))
+        LAUNCHER + r"started camera \(pid \d+, held until its consumers are ready\)", line))
     first_ready = min(i for i, line in enumerate(lines)
                       if re.match(rf"\[({'|'.join(others)})\] .* ready \(robot", line))
     assert started < first_ready, out  # started with them, not after them
-    assert "[launcher] released camera" in out, out
+    assert re.search(r"\[launcher\] [0-9:.]+ released camera", out), out
     camera = service_ready_at(out, "camera")
     for service in others:  # the services' own clocks: the pipes' line order is not theirs
         assert service_ready_at(out, service) < camera, (service, out)
@@ -293,9 +295,8 @@ def test_killed_service_is_restarted_alone_and_estimates_again(procs, tmp_path, 
         wait_for(lambda: estimates, 20, "an estimate before the kill")
 
         os.kill(before["motion_estimation"], signal.SIGKILL)
-        up.wait_line(r"^\[launcher\] motion-estimation exited with -9, restarting in 0\.2 s$",
-                     10)
-        up.wait_line(rf"^\[launcher\] started motion-estimation \(pid {spare.pop()}, from the "
+        up.wait_line(LAUNCHER + r"motion-estimation exited with -9, restarting in 0\.2 s$", 10)
+        up.wait_line(LAUNCHER + rf"started motion-estimation \(pid {spare.pop()}, from the "
                      r"spare\)$", 10)
 
         def restarted() -> bool:
@@ -349,11 +350,11 @@ def test_a_stopped_service_is_killed_and_replaced_within_15_s(procs, tmp_path, f
         os.kill(stopped, signal.SIGSTOP)
         t0 = time.monotonic()
         try:
-            hung = up.wait_line(rf"^\[launcher\] motion-estimation \(pid {stopped}\) is hung: no "
+            hung = up.wait_line(LAUNCHER + rf"motion-estimation \(pid {stopped}\) is hung: no "
                                 r"answer to its status query for (\d+\.\d) s; killing it$", 15)
             killed_at = time.monotonic()
             assert float(hung[1]) >= 5.0  # not before its hang_timeout
-            up.wait_line(r"^\[launcher\] motion-estimation exited with -9, restarting in "
+            up.wait_line(r"^\[launcher\] [0-9:.]+ motion-estimation exited with -9, restarting in "
                          r"0\.2 s$", 5)
             wait_for(lambda: any(t > killed_at for t in estimates), 15 - (killed_at - t0),
                      "an estimate from the new motion-estimation")
@@ -467,7 +468,7 @@ def test_a_clean_stop_leaves_a_ros2_base_with_the_controllers_stop(procs, tmp_pa
         assert commands[-1]["stale"] and (commands[-1]["vx"], commands[-1]["vy"]) == (0, 0)
         assert twists[-1] == (0.0, 0.0, 0.0), (twists[-3:], up.output)
     out = up.output
-    assert out.index("[launcher] stopping ros2") > out.index("fuzzy_controller: stopped"), out
+    assert out.index("stopping ros2") > out.index("fuzzy_controller: stopped"), out
 
 
 def test_children_exit_when_the_launcher_is_killed(procs, tmp_path, free_port):
@@ -527,7 +528,7 @@ def test_a_video_cut_short_ends_the_run_once_its_frames_are_out(procs, tmp_path,
     _, up, estimates = run_through_router(procs, free_port, launch, f"file:{video}", 1)
     assert [e.seq for e in estimates] == list(range(len(held)))
     assert f"the video ends after {len(held)} of the 12 frames" in up.output
-    assert ("[launcher] camera exited with 2, not restarted (restart: never): ending the run"
+    assert ("camera exited with 2, not restarted (restart: never): ending the run"
             in up.output)
 
 
@@ -550,7 +551,8 @@ def test_file_camera_ends_the_run_through_an_external_router(procs, tmp_path, fr
     # the camera started once its consumers had subscribed: not one frame was lost
     assert [e.seq for e in estimates] == list(range(6))
     assert estimates[0].first
-    assert "[launcher] camera finished (exit 0): ending the run" in up.output
+    assert re.search(r"\[launcher\] [0-9:.]+ camera finished \(exit 0\): ending the run",
+                     up.output), up.output
     assert "end of file:" in up.output  # the camera's own last line, prefixed
     assert router.proc.poll() is None, "vistrack up closed a router it did not start"
 
@@ -672,9 +674,9 @@ def test_a_restart_that_never_becomes_ready_is_killed_and_tried_again(procs, tmp
                 session, keys, timeout=1.0)}.get("motion_estimation"), 10,
                 "motion-estimation's status")
             os.kill(tracker, signal.SIGKILL)
-            up.wait_line(rf"^\[launcher\] started motion-estimation \(pid {stopped}, from the "
+            up.wait_line(LAUNCHER + rf"started motion-estimation \(pid {stopped}, from the "
                          r"spare\)", 10)
-            up.wait_line(rf"^\[launcher\] motion-estimation \(pid {stopped}\) is not ready 12 s "
+            up.wait_line(LAUNCHER + rf"motion-estimation \(pid {stopped}\) is not ready 12 s "
                          r"after its restart; killing it$", 30)
             estimates: list[float] = []
             session.declare_subscriber(keys.estimate,

@@ -70,8 +70,8 @@ def check_start_up_order(out: str) -> None:
         assert ready_at(out, service) < camera, service
     lines = out.splitlines()
     done = lines.index("vistrack up: ready (5 services)")
-    started = next(i for i, line in enumerate(lines) if line.startswith("[launcher] started "
-                                                                        "camera"))
+    started = next(i for i, line in enumerate(lines)
+                   if re.match(r"\[launcher\] [0-9:.]+ started camera", line))
     assert started < done
     for service in others:  # a camera start apart, at least
         assert any(re.match(rf"\[{service}\] .* ready \(robot", line)

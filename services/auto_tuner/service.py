@@ -228,7 +228,21 @@ class AutoTuner:
         self.node.publish(self.node.keys.params, msg.encode(), reliable=True)
         return True
 
-    def _take_on_in_force(self) -> bool:
+    def start_up(self) -> None:
+        """Announce the flags' set as params_id 1, unless motion-estimation already runs a
+        set (this tuner was restarted): that one is taken on and reminded of. A restarted
+        tuner announced its flags as params_id 1 all the same, which every service refused
+        as stale (a warning each, and counted as rejected) before the take-on."""
+        got = self.ask_in_force()
+        given = got.get("params_id") if got else None
+        if isinstance(given, int) and not isinstance(given, bool) and given >= 1:
+            self.seen_id = max(self.seen_id, given)
+            if self._take_on_in_force(got):
+                self.announce()
+                return
+        self.announce("start-up (flags)")
+
+    def _take_on_in_force(self, got: dict[str, Any] | None = None) -> bool:
         """Take on the set motion-estimation runs where it is the newest seen in the
         estimates (its values, ``params_id``, source and reason): a tuner restarted after a
         user's set knew only its flags' values. It reminded no one, so a service restarted
@@ -236,10 +250,11 @@ class AutoTuner:
         thres_percent and ungroup_size with the windows it chose: the user's set was gone,
         with no line saying so. Reminding of the set taken on puts a restarted service back
         on it. False where it cannot be asked, or runs another set."""
-        if self._asked_for == self.seen_id:  # once a set: the query waits up to 0.5 s
-            return False
+        if got is None:
+            if self._asked_for == self.seen_id:  # once a set: the query waits up to 0.5 s
+                return False
+            got = self.ask_in_force()
         self._asked_for = self.seen_id
-        got = self.ask_in_force()
         if not got or got.get("params_id") != self.seen_id:
             return False
         st = self.state
@@ -499,7 +514,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         node.advertise(node.keys.params, reliable=True)
         node.advertise(node.keys.report, reliable=True)
         ready(node)
-        tuner.announce("start-up (flags)")
+        tuner.start_up()
         last_announce = time.monotonic()
         dispatch(node, handlers, log, tick=tick)
     finally:

@@ -163,6 +163,26 @@ def test_a_restarted_tuner_takes_on_the_set_motion_estimation_runs(caplog):
                 p.corr_size, tuner.state.params_id) == (50, 3.0, 8, 21, 11, 6)
 
 
+@pytest.mark.parametrize(("runs", "announced"), [(None, (1, "tuner")), (0, (1, "tuner")),
+                                                 (4, (4, "user"))])
+def test_a_restarted_tuner_announces_no_stale_start_up_set(runs, announced):
+    """A tuner restarted while motion-estimation runs params_id 4 announced its flags as
+    params_id 1, refused as stale by every service (a warning and a rejection each); it now
+    takes on the set in force at its start. A first start (no set yet, or no answer)
+    announces the flags' set as 1."""
+    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
+
+    in_force = None if runs is None else {
+        "max_features": 60, "thres_percent": 2.0, "search_size": 15, "corr_size": 9,
+        "ungroup_size": 5, "params_id": runs, "source": "user", "reason": "by hand"}
+    args = parse("auto-tuner", "--no-tune")
+    with MemoryNode("auto_tuner") as node:
+        tuner = AutoTuner(node, args, check_flags(args), ask_in_force=lambda: in_force)
+        tuner.start_up()
+        sent = [Params.decode(p) for p in node.published_on(node.keys.params)]
+    assert [(m.params_id, m.source) for m in sent] == [announced]
+
+
 def test_a_tuner_behind_the_estimates_holds_its_reminders_back(caplog):
     """The estimates run a params_id newer than the tuner's (a recording's set, replayed
     while the tuner started, which it never received): its reminders of its older set were

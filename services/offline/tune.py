@@ -111,7 +111,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     "randomised order; N >= 2 tests the effects against that pure error "
                     "(default 1: the paper's unreplicated design)")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                        help="progress line on stderr (default: when stderr is a terminal)")
+                        help="progress line on stderr (default: when stderr is a terminal; "
+                             "else a plain line every 30 s of a long run)")
 
 
 def check_args(args: argparse.Namespace) -> None:
@@ -184,6 +185,38 @@ class ProgressLine:
         if self.phase:
             self.stream.write("\n")
             self.stream.flush()
+
+
+class ProgressNotes:
+    """Where no line can be rewritten (a log, a pipe): a plain line every ``every`` s of a
+    long cycle, ``vistrack tune: design 984/6408 after 60 s, about 6 min to go``. Nothing
+    for a cycle shorter than that: a 10-minute tune (the largest windows, 20 replicates)
+    printed nothing at all on a non-terminal (range-limits sweep)."""
+
+    def __init__(self, stream: TextIO, every: float = 30.0) -> None:
+        self.stream = stream
+        self.every = every
+        self.start = self.last = time.monotonic()
+        self.phase, self.phase_start = "", self.start
+
+    def __call__(self, phase: str, done: int, total: int) -> None:
+        now = time.monotonic()
+        if phase != self.phase:
+            self.phase, self.phase_start = phase, now
+        if now - self.last < self.every or done <= 0:
+            return
+        self.last = now
+        left = (now - self.phase_start) / done * (total - done)
+        self.stream.write(f"vistrack tune: {phase} {done}/{total} after {now - self.start:.0f}"
+                          f" s, about {_duration(left)} to go in {phase}\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        pass
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
 
 
 def _fmt(v: float) -> str:
@@ -301,7 +334,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
     # a first run compiles: said, not silent
     warm_up_kernels(say_on_stderr("tune", err), params=base)
     show = rewrites_lines(err) if args.progress is None else args.progress
-    progress = ProgressLine(err) if show else None
+    progress: ProgressLine | ProgressNotes | None = ProgressLine(err) if show else \
+        ProgressNotes(err) if args.progress is None else None
     start = time.perf_counter()
     try:
         result = tune(frames, seed, tolerance=args.tolerance, step=args.step,

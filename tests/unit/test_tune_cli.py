@@ -219,3 +219,24 @@ def test_only_the_frames_within_the_work_budget_are_kept_as_they_are_read(tmp_pa
     args.max_frames, args.bounce = 16, True
     frames, _, _, offered = read_buffer(args)
     assert len(frames) == 16 and offered == 16
+
+
+def test_a_long_tune_says_how_far_it_is_where_no_line_can_be_rewritten():
+    """On a log or a pipe a 10-minute tune printed nothing at all; now a plain line every
+    30 s (here 0.05) says the phase, how far, and about how long is left; a short run says
+    nothing (the JSON test above: stderr empty)."""
+    import io
+    import time
+
+    from vistrack.services.offline.tune import ProgressNotes
+
+    stream = io.StringIO()
+    notes = ProgressNotes(stream, every=0.05)
+    for done in range(1, 4):  # faster than every: nothing
+        notes("design", done, 100)
+    assert stream.getvalue() == ""
+    time.sleep(0.06)
+    notes("design", 10, 100)
+    line = stream.getvalue()
+    assert line.startswith("vistrack tune: design 10/100 after 0 s, about ") and \
+        line.endswith(" to go in design\n") and line.count("\n") == 1, line

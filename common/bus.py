@@ -499,21 +499,22 @@ def source_of(sample: zenoh.Sample) -> str | None:
 
 
 #: Publisher ids as text (``str`` of a zenoh EntityGlobalId costs 3 us, a lookup 0.3 us).
-_SOURCE_NAMES: dict[Any, str] = {}
+_SOURCE_NAMES: dict[Any, tuple[str, str]] = {}
 
 
-def _source_name(sample: zenoh.Sample) -> str | None:
-    """:func:`source_of`, the text made once per publisher: it is read for every message."""
+def _source_name(sample: zenoh.Sample) -> tuple[str | None, str | None]:
+    """:func:`source_of` and the id of the publisher's session (its process), the texts made
+    once per publisher: they are read for every message."""
     info = sample.source_info
     if info is None:
-        return None
+        return None, None
     sid = info.source_id
-    name = _SOURCE_NAMES.get(sid)
-    if name is None:
+    names = _SOURCE_NAMES.get(sid)
+    if names is None:
         if len(_SOURCE_NAMES) >= 4096:  # publishers come and go: forget them all at times
             _SOURCE_NAMES.clear()
-        name = _SOURCE_NAMES[sid] = str(sid)
-    return name
+        names = _SOURCE_NAMES[sid] = (str(sid), str(sid.zid))
+    return names
 
 
 class SourcedPublisher:
@@ -553,10 +554,11 @@ class _Route:
     given one robot id) interleaved their frames: every frame's ``seq`` went back or jumped
     by thousands, motion-estimation started a new track on every one, and each service
     downstream counted 186,721 drops in 3 s (the README said such a publisher was "never
-    counted as drops"). So a latest-only route follows one publisher (by its Zenoh source
-    id): another one's samples are not taken, but counted (:meth:`Status.count_other`),
-    while it goes on; once it has been silent :data:`SOURCE_SILENT_S` (or three of its
-    periods), the next publisher's samples are (a camera restarted is a new publisher)."""
+    counted as drops"). So a latest-only route follows one publisher (by its Zenoh session,
+    one process, whichever of its publishers puts the key): another one's samples are not
+    taken, but counted (:meth:`Status.count_other`), while it goes on; once it has been
+    silent :data:`SOURCE_SILENT_S` (or three of its periods), the next publisher's samples
+    are (a camera restarted is a new publisher)."""
 
     __slots__ = ("latest", "gaps", "source", "seen", "period", "others")
 
@@ -579,7 +581,8 @@ class _Route:
                     now - self.seen <= max(SOURCE_SILENT_S, 3.0 * self.period):
                 if source not in self.others and len(self.others) < MAX_PUBLISHERS:
                     self.others.add(source)
-                    log.warning("%s: samples from a second publisher (%s) while %s goes on: "
+                    log.warning("%s: samples from a second publisher (session %s) while %s "
+                                "goes on: "
                                 "not taken (one publisher per stream: frames and estimates "
                                 "are a sequence); taken once it has been silent for %g s. "
                                 "Counted in status extra.other_publishers", key, source,
@@ -701,8 +704,9 @@ class _Inbox:
             if not route.latest:
                 self._release_room()
             return
-        self._arrive(key, sample.payload.to_bytes(), _source_name(sample), route,
-                     sample.congestion_control == _BLOCK)
+        source, session = _source_name(sample)
+        self._arrive(key, sample.payload.to_bytes(), source, route,
+                     sample.congestion_control == _BLOCK, session)
 
     def _route(self, key: str) -> _Route | None:
         # a key two subscriptions match (a wildcard and an exact one) arrives once for each:
@@ -729,10 +733,13 @@ class _Inbox:
             self._arrive(key, payload, source, route, block)
 
     def _arrive(self, key: str, payload: bytes, source: str | None, route: _Route,
-                block: bool) -> None:
+                block: bool, session: str | None = None) -> None:
         if self._closed:
             return
-        if route.latest and not route.follows(key, source):
+        # a stream is followed by the publishing process (its session): one process may put
+        # a key through two publishers (motion-estimation answers a frame that came BLOCK
+        # with its BLOCK publisher, one that came latest-only with the other)
+        if route.latest and not route.follows(key, source if session is None else session):
             self._status.count_other()
             return
         missing = route.gaps.update(key, payload, source)

@@ -516,6 +516,14 @@ class _ImageServo:
         self._restart_rates = True
         self._command = STOP
 
+    def restart_timing(self) -> None:
+        """Forget the time of the last trusted estimate (and so the rates measured over it),
+        keeping the set point: the next estimate starts the timing again, whatever its time
+        (the camera's clock was set back)."""
+        self._t = None
+        self._dex = self._dez = 0.0
+        self._restart_rates = True
+
     def set_point(self, x_ref: float | None = None, scale_ref: float | None = None) -> None:
         """Set the reference centroid x (px) and/or scale explicitly; None leaves it as is."""
         if x_ref is not None:

@@ -183,18 +183,19 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         # The old track's set point and time go with it: a lockstep simulator's clock, ahead
         # of the host's, starts again from the host's time, below the old track's stamps.
         new_track = starts_track(est, last)
-        if not new_track and est.seq > last[0] and est.stamp_ns <= last[1]:
+        stepped = not new_track and est.seq > last[0] and est.stamp_ns <= last[1]
+        if stepped:
             # a later frame stamped before the one before it: the camera's clock was set
             # back (a step of its wall clock). Every estimate was refused as out of order
             # until the clock had caught up (20 s for a 20 s step), the robot not stopped.
-            # The controller's timing starts again from this one, as for a new track.
+            # The controller's timing starts again from this one; the set point stays.
             log.warning("estimate seq %d is stamped %.3g s before seq %d: the camera's clock "
                         "was set back; the controller's timing starts again from it",
                         est.seq, (last[1] - est.stamp_ns) * 1e-9, last[0])
             node.status.extra["clock_steps"] = node.status.extra.get("clock_steps", 0) + 1
-            new_track = True
+            ctrl.restart_timing()
         if camera_clock is not None:
-            camera_clock.arrived(est.stamp_ns * 1e-9, restart=new_track)
+            camera_clock.arrived(est.stamp_ns * 1e-9, restart=new_track or stepped)
             now = camera_clock.now()
         ahead = est.stamp_ns * 1e-9 - now
         if ahead > MAX_AHEAD_S:

@@ -130,7 +130,10 @@ class Worker:
         def send() -> None:
             try:
                 self._conn.send(job)
-            except (OSError, ValueError):  # closed or died meanwhile: poll() will say so
+            except (OSError, ValueError, TypeError):
+                # closed or died meanwhile (a closed connection's handle is None: TypeError
+                # from deep in its send, at a stop with the worker starved mid-job): poll()
+                # says so, or the service is stopping anyway
                 pass
         threading.Thread(target=send, name="tuning-job", daemon=True).start()
 

@@ -116,18 +116,26 @@ def resolve_key(keys: Keys, key: str, tool: str | None = None) -> str:
     except ValueError as e:
         raise ToolError(str(e), code=2) from None
     suffix = key_suffix(full)
-    if tool is not None and "*" not in full and suffix not in _KNOWN_SUFFIXES:
+    if tool is not None and "*" not in full and suffix not in CONTRACT_SUFFIXES.values():
         names = ", ".join(f"{v} ({k})" for k, v in CONTRACT_SUFFIXES.items())
-        warn(tool, f"{key!r} is none of vistrack's keys: listening on {full} all the same. "
-                   f"The keys (and their short names): {names}; <service>/status; "
-                   "alive/<service>")
+        if suffix in _QUERYABLES:
+            what = ("is a queryable, answered when asked, never published: `vistrack status` "
+                    "asks it")
+        elif suffix in _TOKENS:
+            what = ("is a liveliness token, never published: `vistrack status` lists the "
+                    "live services")
+        else:
+            what = "is none of vistrack's keys"
+        warn(tool, f"{key!r} {what}; listening on {full} all the same. The keys published "
+                   f"(and their short names): {names}")
     return full
 
 
-#: What follows ``vistrack/<robot>/`` in every key vistrack publishes or answers on.
-_KNOWN_SUFFIXES = frozenset((*CONTRACT_SUFFIXES.values(),
-                             *(f"{s}/status" for s in (*SERVICES, *OPTIONAL_SERVICES)),
-                             *(f"alive/{s}" for s in (*SERVICES, *OPTIONAL_SERVICES))))
+_ALL_SERVICES = (*SERVICES, *OPTIONAL_SERVICES)
+#: The keys after ``vistrack/<robot>/`` that are answered (status) or declared (liveliness),
+#: not published: nothing comes to a subscriber there.
+_QUERYABLES = frozenset(f"{s}/status" for s in _ALL_SERVICES)
+_TOKENS = frozenset(f"alive/{s}" for s in _ALL_SERVICES)
 
 
 def run(tool: str, args: argparse.Namespace,

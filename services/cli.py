@@ -14,7 +14,7 @@ import os
 import re
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import NoReturn
 
 from . import kernels, threads, usage
@@ -84,15 +84,25 @@ def _version() -> str:
 #: literal (````--json````). A terminal shows them as typed; the help shows their text alone.
 _ROLE = re.compile(r":(mod|func|meth|class|data|attr|exc|obj):`~?\.?([^`]*)`")
 _LITERAL = re.compile(r"``([^`]+)``")
+_CONSTANT = re.compile(r"[A-Z][A-Z0-9_]*_[A-Z0-9_]+|[A-Z]{4,}")
 
 
-def plain(doc: str) -> str:
+def plain(doc: str, names: Mapping[str, object] | None = None) -> str:
     """A docstring's reStructuredText made plain text for ``--help``: a role by its target's
-    last name (a function's and a method's with ``()``), an inline literal by its text."""
+    last name (a function's and a method's with ``()``), an inline literal by its text; a
+    module constant that ``names`` (the module's namespace) holds as a number, by its value
+    (the help said ``up to RESENDS times``, which no user can look up)."""
+    def value(name: str) -> str:
+        v = (names or {}).get(name)
+        if _CONSTANT.fullmatch(name) and isinstance(v, (int, float)) and \
+                not isinstance(v, bool):
+            return f"{v:g}"
+        return name
+
     def target(m: re.Match[str]) -> str:
         name = m.group(2).rsplit(".", 1)[-1]
-        return name + "()" if m.group(1) in ("func", "meth") else name
-    return _LITERAL.sub(r"\1", _ROLE.sub(target, doc))
+        return name + "()" if m.group(1) in ("func", "meth") else value(name)
+    return _LITERAL.sub(lambda m: value(m.group(1)), _ROLE.sub(target, doc))
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -109,7 +119,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
             sub.add_parser(name, help=text, add_help=False)
             continue
         mod = importlib.import_module(f"vistrack.services.{module}")
-        p = sub.add_parser(name, help=text, description=plain(mod.__doc__ or text).strip(),
+        p = sub.add_parser(name, help=text,
+                           description=plain(mod.__doc__ or text, vars(mod)).strip(),
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         mod.add_arguments(p)
         p.set_defaults(_module=mod)

@@ -1,10 +1,10 @@
 """auto-tuner: tune the tracker on a rolling buffer of recent frames, off the hot path.
 
 Reads   ``vistrack/<robot>/camera/frame``     (latest only, into the rolling buffer while a
-        tuning waits for it, else one every SCENE_SAMPLE_S s for the scene signal; a frame
-        sent again, the ``stamp_ns`` of the newest one buffered, is not buffered twice)
+        tuning waits for it, else one every :data:`SCENE_SAMPLE_S` s for the scene signal; a
+        frame sent again, the ``stamp_ns`` of the newest one buffered, is not buffered twice)
         ``vistrack/<robot>/motion/estimate``  (latest only, at most one every
-        ESTIMATE_PERIOD_S between tunings: scene and distance watch)
+        1/60 s between tunings: scene and distance watch)
         ``vistrack/<robot>/tuner/params``     (reliable: what users set, to keep params_id rising)
 Writes  ``vistrack/<robot>/tuner/params``     (reliable)
         ``vistrack/<robot>/tuner/report``     (reliable)
@@ -26,7 +26,8 @@ Frames are taken only as the triggers need them (:meth:`Triggers.collecting
 <.triggers.Triggers.collecting>`): every frame from the moment a tuning waits only for its
 buffer (at start, after a change once the interval has passed) until it starts, so the buffer
 holds consecutive frames (taking every frame resumes on an empty buffer); otherwise the
-subscription is undeclared after each frame and declared again SCENE_SAMPLE_S later, so that
+subscription is undeclared after each frame and declared again :data:`SCENE_SAMPLE_S` s
+later, so that
 the router forwards, and this process receives, five frames a second for the scene signal
 instead of the camera's rate (unpaced, the tuner taking every frame cost the pipeline a fifth
 to a quarter of its CPU; at camera resolutions each frame is a megabyte or more).

@@ -17,7 +17,7 @@ search_size, corr_size, ungroup_size):
    is repeated every second meanwhile: a duplicate is ignored by the services), else exit 1.
    While its status says the set is accepted but pending (``extra.params_pending``: windows
    whose kernels are being made ready, up to half a minute on their first use on a machine),
-   the tool says so on stderr and waits up to :data:`PENDING_WAIT_S` more.
+   the tool says so on stderr and waits up to :data:`PENDING_WAIT_S` s more.
 """
 
 from __future__ import annotations

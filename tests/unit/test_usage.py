@@ -192,3 +192,8 @@ def test_help_is_plain_text_without_the_docstrings_markup():
     assert "(vistrack/<robot>/<service>/status)" in text["status"]
     assert cli.plain(":func:`~vistrack.common.vision.warm_up` and :class:`.Tracker`") == \
         "warm_up() and Tracker"
+    # a module constant by its value: "up to RESENDS times" named nothing a user can read
+    assert "up to 2 times" in text["camera"] and "RESENDS" not in text["camera"]
+    assert cli.plain("every :data:`SCENE_SAMPLE_S` s, ``MAX_GAP`` frames, ``THRES_PERCENT``",
+                     {"SCENE_SAMPLE_S": 0.2, "MAX_GAP": 8, "THRES_PERCENT": "x"}) == \
+        "every 0.2 s, 8 frames, THRES_PERCENT"

@@ -536,7 +536,8 @@ def check_service_flags(service: str, argv: list[str]) -> str | None:
     from ..cli import COMMANDS  # here, not at the top: cli imports this module
 
     module = importlib.import_module(f"vistrack.services.{COMMANDS[service.replace('_', '-')][0]}")
-    parser = _CheckingParser(prog=f"vistrack {service}", add_help=False)
+    parser = _CheckingParser(prog=f"vistrack {service}", add_help=False,
+                             allow_abbrev=False)
     module.add_arguments(parser)
     try:
         args = parser.parse_args([*argv, "-e", DEFAULT_LISTEN[0], "--no-multicast-scouting"])
@@ -554,7 +555,7 @@ def camera_source(launch: LaunchSpec) -> str | None:
         return None
     from ..camera.service import add_arguments  # here: the camera imports OpenCV
 
-    parser = _CheckingParser(prog="vistrack camera", add_help=False)
+    parser = _CheckingParser(prog="vistrack camera", add_help=False, allow_abbrev=False)
     add_arguments(parser)
     args = parser.parse_args([*camera.flags, "-e", DEFAULT_LISTEN[0], "--no-multicast-scouting"])
     return str(args.source)

@@ -719,6 +719,9 @@ BAD_LAUNCH_FILES = {
                               r"keys robot, router, ready_timeout, services$"),
     "unknown flag": ("services:\n  camera:\n    flags: [--fps, '10', --sorce, x]\n",
                      r"line 3: services\.camera\.flags: unrecognized arguments: --sorce x"),
+    # spelled out: vistrack up --fps then replaced --fps, and --fp stayed beside it
+    "abbreviated flag": ("services:\n  camera:\n    flags: {--fp: 30}\n",
+                         r"line 3: services\.camera\.flags: unrecognized arguments: --fp 30"),
     "reserved flag": ("services:\n  preprocessing:\n    flags: {--robot: r2}\n",
                       r"line 3: services\.preprocessing\.flags: --robot is set by the launcher"),
     "bad backoff": ("services:\n  camera:\n    backoff: {initial: -1}\n",

@@ -738,6 +738,14 @@ def track_frames(frames: Iterable[np.ndarray], params: TrackerParams | None = No
     return [tracker.process(f) for f in frames]
 
 
+def over_budget_said(seq: int, unsearched: int) -> str:
+    """What a frame whose searches reached :data:`FRAME_WORK` is said with, by the service
+    and by ``vistrack track`` (each adds when it says it once)."""
+    return (f"frame {seq}: {unsearched} features not searched, the frame's searches had "
+            f"reached their budget ({FRAME_WORK:.3g} window pixels x displacements); smaller "
+            "search_size, corr_size or max_features keep within it")
+
+
 def timing(estimates: list[Estimate]) -> tuple[float, float]:
     """The paper's t1 (first frame) and tf (mean of the following frames), in ms; NaN where
     there is no such frame (no frames, or only one)."""

@@ -210,11 +210,9 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             est = tracker.update(pre, seq=msg.seq, t_start=t0)
         if tracker.over_budget > over and warned_budget != state.params_id:
             warned_budget = state.params_id
-            log.warning("frame %d: %d features not searched, the frame's searches had reached "
-                        "their budget (%.3g window pixels x displacements) at params_id %d "
-                        "(%s); smaller search_size, corr_size or max_features keep within it "
-                        "(said once per params_id)", msg.seq, tracker.over_budget - over,
-                        vision_tracker.FRAME_WORK, state.params_id, state.params.factors())
+            log.warning("%s (params_id %d, %s; said once per params_id)",
+                        vision_tracker.over_budget_said(msg.seq, tracker.over_budget - over),
+                        state.params_id, state.params.factors())
         out = estimate_payload(est, seq=msg.seq, stamp_ns=msg.stamp_ns,
                                params_id=state.params_id)
         last_est = est

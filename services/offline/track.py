@@ -18,7 +18,7 @@ from typing import TextIO
 from ...common.params import ParamError
 from ...common.sources import SourceError, open_files, parse_size
 from ...common.vision import Estimate, Tracker, timing
-from ...common.vision.tracker import FRAME_WORK
+from ...common.vision.tracker import over_budget_said
 from ..kernels import warm_up_kernels
 from ..usage import add_param_flags, params_from_args, print_error, say_on_stderr
 
@@ -80,11 +80,8 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         if tracker.over_budget and not warned:
             # said as the service says it: the table's NPI and valid do not show it
             warned = True
-            print(f"vistrack track: warning: frame {e.seq}: {tracker.over_budget} features "
-                  f"not searched, the frame's searches had reached their budget "
-                  f"({FRAME_WORK:.3g} window pixels x displacements); smaller search_size, "
-                  "corr_size or max_features keep within it (said once; the summary counts "
-                  "them as budget)", file=sys.stderr, flush=True)
+            print(f"vistrack track: warning: {over_budget_said(e.seq, tracker.over_budget)} "
+                  "(said once; the summary counts them as budget)", file=sys.stderr, flush=True)
         if args.format == "table":
             print(_table_row(e), file=out)
         elif args.format == "jsonl":

@@ -365,7 +365,6 @@ def test_a_tuning_keeps_windows_about_as_fast_as_its_optimum(slower, err, kept):
     fastest point of a flat sweep is the noise's pick, and each retune published another
     (10/5, 12/5, 18/5, 10/5, ...). 25 % slower, or off the tolerance, the optimum is taken.
     The worker judges on its sweep (TuneResult.keeps) and the service acts on the verdict."""
-    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
 
     searches, corrs = GRID
     tf = np.array([[1.0 + 0.01 * (i + j) for j in range(6)] for i in range(6)])
@@ -378,17 +377,28 @@ def test_a_tuning_keeps_windows_about_as_fast_as_its_optimum(slower, err, kept):
     assert about_as_good is kept
     assert not result.keeps(31, 15)  # not on the grid
     report = _report({"search_size": 10, "corr_size": 5}, searches, corrs, tf, ex)
+    before, p, published, reports = _cycle_ends(report, {"search_size": 10, "corr_size": 5},
+                                                about_as_good)
+    assert (before.search_size, before.corr_size) == (15, 9)
+    assert ((p.search_size, p.corr_size) == (15, 9)) is kept
+    assert (published == []) is kept
+    assert msgpack.unpackb(reports[-1])["changed"] is not kept
+
+
+def _cycle_ends(report: dict, optimum: dict, keeps: bool):
+    """An auto-tuner (--no-tune) whose scene-change cycle ends with ``report``, ``optimum``
+    and the worker's verdict ``keeps``: (its params before, after, the params it published,
+    the reports it published)."""
+    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
+
     args = parse("auto-tuner", "--no-tune")
     with MemoryNode("auto_tuner") as node:
         tuner = AutoTuner(node, args, check_flags(args))
-        assert (tuner.state.params.search_size, tuner.state.params.corr_size) == (15, 9)
+        before = tuner.state.params
         tuner.reason = "scene change"
-        tuner._finish(("ok", report, {"search_size": 10, "corr_size": 5}, about_as_good),
-                      time.monotonic())
-        p = tuner.state.params
-        assert ((p.search_size, p.corr_size) == (15, 9)) is kept
-        assert (node.published_on(node.keys.params) == []) is kept
-        assert msgpack.unpackb(node.published_on(node.keys.report)[-1])["changed"] is not kept
+        tuner._finish(("ok", report, optimum, keeps), time.monotonic())
+        return (before, tuner.state.params, node.published_on(node.keys.params),
+                node.published_on(node.keys.report))
 
 
 @pytest.mark.parametrize(("err", "kept"), [(4.3, True), (4.6, True), (6.0, False)])
@@ -401,7 +411,6 @@ def test_where_no_window_meets_the_tolerance_the_windows_in_force_stay_unless_fa
     scene of walkers and put slower windows as far off in force on large motion."""
     import logging
 
-    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
 
     searches, corrs = GRID
     tf = np.full((6, 6), 1.0)
@@ -414,18 +423,13 @@ def test_where_no_window_meets_the_tolerance_the_windows_in_force_stay_unless_fa
     assert not result.keeps(31, 15)  # not on the grid
     report = _report({"search_size": 12, "corr_size": 13}, searches, corrs, tf, ex,
                      within_tolerance=False)
-    args = parse("auto-tuner", "--no-tune")
-    with MemoryNode("auto_tuner") as node, caplog.at_level(logging.INFO):
-        tuner = AutoTuner(node, args, check_flags(args))
-        tuner.reason = "scene change"
-        tuner._finish(("ok", report, {"search_size": 12, "corr_size": 13}, kept),
-                      time.monotonic())
-        p = tuner.state.params
-        assert ((p.search_size, p.corr_size) == (15, 9)) is kept
-        assert (node.published_on(node.keys.params) == []) is kept
-        said = " ".join(r.getMessage() for r in caplog.records)
-        assert ("no swept window within the tolerance; the windows in force, 15/9, are within "
-                "it of the closest: kept" in said) is kept
+    with caplog.at_level(logging.INFO):
+        _, p, published, _ = _cycle_ends(report, {"search_size": 12, "corr_size": 13}, kept)
+    assert ((p.search_size, p.corr_size) == (15, 9)) is kept
+    assert (published == []) is kept
+    said = " ".join(r.getMessage() for r in caplog.records)
+    assert ("no swept window within the tolerance; the windows in force, 15/9, are within "
+            "it of the closest: kept" in said) is kept
 
 
 def test_the_camera_takes_no_acknowledgement_of_a_frame_it_has_not_sent():

@@ -152,7 +152,6 @@ class _Watch:
     pid: int
     since: float  # when it was first seen ready (monotonic)
     asked_at: float = 0.0
-    answered_at: float = 0.0
     # when the first status query since its last answer was sent: its silence is judged from
     # there, not from the last answer (queried once a second, a service that answered every
     # query at once looked a second silent just before each answer, and hang_timeout 1 killed
@@ -620,7 +619,7 @@ class Launcher:
         before (queries through a router that went, or while it did not run) says nothing."""
         with self._cond:
             for watch in self._watches.values():
-                watch.since = watch.answered_at = now
+                watch.since = now
                 watch.pending_since = None
                 watch.busy_s = 0.0
 
@@ -637,7 +636,6 @@ class Launcher:
             with self._cond:
                 watch = self._watches.get(service)
                 if watch is not None and status.get("pid") == pid == watch.pid:
-                    watch.answered_at = time.monotonic()
                     watch.pending_since = None
                     watch.busy_s = float(busy) if isinstance(busy, (int, float)) else 0.0
 

@@ -331,6 +331,12 @@ def anova(
         pooled = _pooled_indices(eff, ss, pool)
         error_ss = unexplained_ss + float(ss[pooled].sum())
         error_df = unexplained_df + len(pooled)
+    if error_df == 0 and pool == "auto":
+        raise ValueError(
+            "pool='auto' found no inactive effects to pool: half or more of the "
+            f"{len(labels)} effects are exactly 0, so Lenth's scale is 0 and there is no error "
+            "to test against; replicate runs, or pool=K to pool the K smallest"
+        )
     if error_df == 0:
         raise ValueError(
             f"no degrees of freedom left for error: {n_runs} runs, {len(labels)} terms; "

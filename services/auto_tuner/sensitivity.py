@@ -270,11 +270,14 @@ def optimum(result: Sweep, tolerance: float = DEFAULT_TOLERANCE) -> Optimum:
     if not np.isfinite(tolerance) or tolerance < 0:
         raise ValueError(f"tolerance={tolerance!r} must be a number >= 0 (px)")
     err = np.maximum(result.ex, result.ey)
-    ok = err <= tolerance
+    # a point with a NaN response is never chosen (np.argmin would pick the first NaN)
+    ok = (err <= tolerance) & np.isfinite(result.tf)
     if ok.any():
         flat = int(np.argmin(np.where(ok, result.tf, np.inf)))
+    elif np.isfinite(err).any():
+        flat = int(np.argmin(np.where(np.isfinite(err), err, np.inf)))
     else:
-        flat = int(np.argmin(err))
+        raise ValueError("no swept window has finite errors ex and ey: nothing to choose")
     i, j = (int(v) for v in np.unravel_index(flat, result.tf.shape))
     p = result.params(i, j)
     tf = float(result.tf[i, j])

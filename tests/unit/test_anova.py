@@ -525,3 +525,15 @@ def test_all_terms_are_estimable_in_every_two_level_full_factorial():
     words = ["".join(w) for r in range(1, 5) for w in itertools.combinations("ABCD", r)]
     y = np.random.default_rng(18).normal(0, 1, 16)
     assert len(effects(design, y, words)) == 15
+
+
+def test_auto_pooling_says_why_it_found_nothing_to_pool(paper):
+    # one exact effect (CORR_SIZE low -> 1) and fourteen exactly 0: Lenth's scale is 0, so
+    # pool='auto' pools nothing; the error must say so, not advise pool='auto' again
+    y = np.where(paper.matrix[:, 3] < 0, 1.0, 0.0)
+    with pytest.raises(ValueError, match="pool='auto' found no inactive effects") as err:
+        anova(paper, y, pool="auto")
+    assert "(pool=K or 'auto')" not in str(err.value)
+    # pooling the 14 zeros by count still tests the one effect, exactly
+    table = anova(paper, y, pool=14)
+    assert [r.term for r in table.rows] == ["D"] and table.rows[0].effect == -1.0

@@ -888,3 +888,16 @@ def test_real_frames_optimum_is_inside_the_sweep_and_within_tolerance(rubberwhal
     assert opt.speedup > 1.5
     assert sw.reference.ex == 0.0 and sw.reference.ey == 0.0
     check_report(r.to_report())
+
+
+def test_optimum_never_chooses_a_nan_response():
+    nan = float("nan")
+    # (10, 5) is the fastest within tolerance but its tf is NaN: (12, 7) is the answer
+    best = optimum(_sweep([[nan, 3.0], [2.5, 2.0]], [[0.1, 0.1], [0.9, 0.1]],
+                          [[0.1, 0.1], [0.1, 0.1]]), tolerance=0.5)
+    assert best.index == (1, 1) and best.within_tolerance
+    # none within tolerance: the closest with finite errors, not the NaN one first in order
+    best = optimum(_sweep([[1.0, 2.0]], [[nan, 0.8]], [[0.1, 0.9]]), tolerance=0.5)
+    assert best.index == (0, 1) and not best.within_tolerance
+    with pytest.raises(ValueError, match="finite errors"):
+        optimum(_sweep([[1.0]], [[nan]], [[nan]]), tolerance=0.5)

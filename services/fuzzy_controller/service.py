@@ -146,6 +146,10 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     # with its last move for 18 s after the estimates stopped
     last_stop = -math.inf  # when the last stop was sent
     last_taken = math.inf  # when the last estimate was turned into a command (none yet)
+    # the last estimate's command was a move: the watchdog owes a stop once the estimates go
+    # stale, set point or not (a failed estimate's recover() clears the set point, and the
+    # last move then stood for good when the estimates stopped: fuzzy-controller review)
+    moving = False
     camera_clock = CameraClock() if args.clock == "camera" else None
     clock = time.time if camera_clock is None else camera_clock.now
     xc0: float | None = None  # xc of the track's first estimate
@@ -162,16 +166,17 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         """Repeat the stop while the estimates are stale (none for a while, or too old)."""
         nonlocal last_stop
         mono = time.monotonic()
-        if mono - last_stop >= STALE_REPEAT_S and ctrl.x_ref is not None and (
-                ctrl.command_at(clock()).stale
-                or mono - last_taken > ctrl.config.stale_after_s):
+        silent = mono - last_taken > ctrl.config.stale_after_s
+        if mono - last_stop >= STALE_REPEAT_S and (
+                (ctrl.x_ref is not None and (ctrl.command_at(clock()).stale or silent))
+                or (moving and silent)):
             # stamped on the host's clock whatever --clock says: on the camera's, a stop
             # stamped after a lockstep simulator's next frame would pass for that frame's answer
             send(time.time_ns(), 0.0, 0.0, 0.0, True)
             last_stop = mono
 
     def on_estimate(payload: bytes) -> None:
-        nonlocal last_stop, last_taken, xc0, used, last, late_in_a_row
+        nonlocal last_stop, last_taken, xc0, used, last, late_in_a_row, moving
         t0 = time.perf_counter()
         now = clock()
         est = decode_or_reject(Estimate, payload, node, log)
@@ -238,6 +243,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         last_taken = time.monotonic()
         used = (est.seq, est.stamp_ns)
         send(est.stamp_ns, cmd.vx, cmd.vy, cmd.wz, cmd.stale)
+        moving = not cmd.stale and (cmd.vx, cmd.vy, cmd.wz) != (0.0, 0.0, 0.0)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
 
     def recover() -> None:

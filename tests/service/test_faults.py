@@ -314,3 +314,49 @@ def test_parameters_whose_kernels_fail_are_dropped_and_the_old_ones_stay(monkeyp
     assert {Estimate.decode(p).params_id for p in node.published_on(node.keys.estimate)} == {0}
     assert node.status.params["params_id"] == 0 and "params_pending" not in node.status.extra
     assert tries == [big]  # tried once, not again on every frame
+
+
+def test_the_controller_stops_the_robot_after_a_failed_estimate_when_the_estimates_stop():
+    """An estimate whose handling fails (here its command's publish) resets the controller's
+    set point (recover). The robot's last command was a move: once the estimates stop, the
+    watchdog must still send its stale stops, as it does without the fault (it sent nothing,
+    and the move stood)."""
+    from vistrack.common.messages import CmdVel
+    from vistrack.services.fuzzy_controller.service import loop
+
+    def estimate(seq: int, xc: float) -> bytes:
+        return Estimate(seq=seq, stamp_ns=time.time_ns(), npi=40, xc=xc, yc=128.0, xe=400.0,
+                        ye=400.0, dx=xc - 128.0, dy=0.0, scale=1.0, t_ms=1.0, first=seq == 0,
+                        valid=True, features=[], params_id=0).encode()
+
+    node = MemoryNode("fuzzy_controller")
+    publish, sends = node.publish, []
+
+    def flaky(key, payload, **kw):  # the transport refuses the answer to estimate 2
+        sends.append(key)
+        if key == node.keys.cmd_vel and len(sends) == 3:
+            raise RuntimeError("publish failed")
+        return publish(key, payload, **kw)
+
+    node.publish = flaky  # type: ignore[method-assign]
+    thread = run_loop(loop, node, cli.build_parser("fuzzy-controller").parse_args(
+        ["fuzzy-controller"]))
+    try:
+        for seq, xc in ((0, 128.0), (1, 150.0), (2, 150.0)):
+            while not node.feed(node.keys.estimate, estimate(seq, xc)):
+                time.sleep(0.01)
+            assert node.wait_idle(10)
+        time.sleep(1.2)  # no estimates for 4 times --stale-after (0.3 s)
+    finally:
+        node.stop.set()
+        thread.join(10)
+        node.close()
+    assert thread.error is None
+    cmds = [CmdVel.decode(p) for p in node.published_on(node.keys.cmd_vel)]
+    assert node.status.failed == 1
+    # estimate 1 moved the robot (the target 22 px right of the set point)
+    assert not cmds[1].stale and cmds[1].vy < -0.1
+    # then, after the failed answer to estimate 2, the watchdog's stops (not the final stop
+    # of the loop's end only: several, 0.1 s apart, before it)
+    stops = [c for c in cmds[2:] if c.stale and (c.vx, c.vy, c.wz) == (0.0, 0.0, 0.0)]
+    assert len(stops) >= 4, cmds

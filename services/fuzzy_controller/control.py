@@ -598,22 +598,33 @@ class _ImageServo:
             self._command = STOP
             return STOP
 
-        if self._x_ref is None:
-            self._x_ref = xc
-        if self._scale_ref is None:
-            self._scale_ref = scale
-        ex = (xc - self._x_ref) / (0.5 * width)
-        ez = math.log(scale / self._scale_ref)
+        # everything computed before anything is kept: a finite but extreme input (a scale of
+        # 5e-324 as a track's first, two stamps 1e-300 s apart) made an infinite error or
+        # rate, then NaN, and jammed the track: every later estimate refused
+        x_ref = xc if self._x_ref is None else self._x_ref
+        scale_ref = scale if self._scale_ref is None else self._scale_ref
+        ex = (xc - x_ref) / (0.5 * width)
+        ratio = scale / scale_ref
+        if not (math.isfinite(ex) and 0.0 < ratio < math.inf):
+            raise ValueError(f"xc={xc!r}, scale={scale!r} give no finite error against the "
+                             f"track's set point (xc {x_ref!r}, scale {scale_ref!r}): the "
+                             "ratio of the scales must be finite and > 0")
+        ez = math.log(ratio)
 
         cfg = self.config
         if self._restart_rates or self._t is None or t - self._t > cfg.stale_after_s:
             # after a gap the finite difference would span stale data: start from rest
-            self._dex = self._dez = 0.0
+            dex = dez = 0.0
         else:
             dt = t - self._t
             alpha = 1.0 if cfg.rate_tau_s == 0.0 else -math.expm1(-dt / cfg.rate_tau_s)
-            self._dex += alpha * ((ex - self._ex) / dt - self._dex)
-            self._dez += alpha * ((ez - self._ez) / dt - self._dez)
+            dex = self._dex + alpha * ((ex - self._ex) / dt - self._dex)
+            dez = self._dez + alpha * ((ez - self._ez) / dt - self._dez)
+            if not (math.isfinite(dex) and math.isfinite(dez)):
+                raise ValueError(f"t={t!r} is {dt!r} s after the previous estimate's: the "
+                                 "error's rate over it is not finite")
+        self._x_ref, self._scale_ref = x_ref, scale_ref
+        self._dex, self._dez = dex, dez
         self._ex, self._ez, self._t = ex, ez, t
         self._restart_rates = False
         self._collapsed = False

@@ -411,6 +411,22 @@ def test_bad_estimates_rejected(surface):
     assert not cmd.stale and c.errors[1] > 0.0
 
 
+def test_an_extreme_scale_is_refused_without_touching_the_state(surface):
+    """Finite, positive, but 1 / 5e-324 overflows: the scale error would be infinite and the
+    rate NaN, which jammed the track (every later estimate refused as NaN)."""
+    c = _fuzzy(surface)
+    c.update(128.0, 5e-324, 1.0, WIDTH, npi=50)
+    before = c.errors
+    with pytest.raises(ValueError, match="no finite error"):
+        c.update(128.0, 1.0, 1.1, WIDTH, npi=50)
+    assert c.errors == before and all(math.isfinite(v) for v in c.errors)
+    # the stamp it carried was not taken: one between the two is still in order
+    c.update(128.0, 5e-324, 1.05, WIDTH, npi=50)
+    c.reset()  # a new track starts from a sane set point
+    cmd = c.update(128.0 + 12.8, 1.0, 2.0, WIDTH, npi=50)
+    assert not cmd.stale and all(math.isfinite(v) for v in (cmd.vx, cmd.vy))
+
+
 @pytest.mark.parametrize(("xc", "scale", "vy", "vx"), [
     (160.0, 1.1, -0.8 * 0.25, -1.5 * math.log(1.1)),   # linear range
     (96.0, 0.95, 0.8 * 0.25, 1.5 * math.log(1 / 0.95)),

@@ -276,6 +276,7 @@ from .ssd import (
     DISAGREES,
     FB,
     LEFT,
+    MAX_COORD,
     NO_BUDGET,
     NO_NRT,
     NO_THIRD,
@@ -303,9 +304,6 @@ MIN_GUIDES = 3
 #: At the parameters' limits (2000 features, search 128, correlation 64) a frame of searches
 #: otherwise took up to 45 s, which a watchdog takes for a hang; this bounds one at ~1 s
 FRAME_WORK = 10**10
-#: the largest |x| or |y| of a point or prediction :func:`track_pyramid` takes, px: far beyond
-#: any frame (a point outside the frame is simply not found), and within the kernels' integers
-MAX_COORD = 2.0 ** 30
 #: Pixels the way back (step 4) searches beyond the way there's SEARCH_SIZE // 2 where its
 #: minimum fell on that border: each way's window is centred on a whole pixel, so a right
 #: match's minimum one way within the reach lies up to a pixel further the other way (on a

@@ -1193,8 +1193,14 @@ def _track(prev, curr, anchors, centers, n, s, wts, subpixel, exhaustive, acc, w
            out_pos, out_ssd, out_ok, why):  # pragma: no cover - numba
     """The searches of :func:`track_ssd` (:func:`_search_level` over every feature, no
     uniqueness test, ``work`` their budget), results into ``out_pos``, ``out_ssd``,
-    ``out_ok`` and (unless it is empty) ``why``, the status."""
+    ``out_ok`` and (unless it is empty) ``why``, the status. Returns -1, having done nothing,
+    where a coordinate lies beyond +-MAX_COORD, else 0."""
     n_feat = anchors.shape[0]
+    for f in range(n_feat):
+        for c in range(2):
+            if not (-MAX_COORD <= anchors[f, c] <= MAX_COORD
+                    and -MAX_COORD <= centers[f, c] <= MAX_COORD):
+                return -1
     q = np.zeros((n_feat, 2), np.int64)
     active = np.ones(n_feat, np.bool_)
     status = why if why.shape[0] == n_feat else np.empty(n_feat, np.int8)
@@ -1212,6 +1218,7 @@ def _track(prev, curr, anchors, centers, n, s, wts, subpixel, exhaustive, acc, w
         # (caches and branch predictors shared with the search code)
         uniform, _, _ = _weights_info(wts)
         _subpixel(prev, curr, anchors, n, wts, uniform, acc, out_pos, out_ssd, out_ok)
+    return 0
 
 
 #: the sub-pixel estimate of the wide window is taken where it agrees with the correlation
@@ -1624,6 +1631,11 @@ def _subpixel(prev, curr, anchors, n, wts, uniform, acc, out_pos, out_ssd,
         out_pos[f, 1] = y
 
 
+#: the largest |x| or |y| of a point or prediction the searches take, px
+#: (:func:`track_ssd`, :func:`.pyramid.track_pyramid`): far beyond any frame (a point outside
+#: the frame is simply not found), and within the kernels' integers: an index near the int64
+#: limit overflowed the bounds checks' sums and read memory at random (SIGSEGV)
+MAX_COORD = 2.0 ** 30
 #: the sub-pixel sums' type given to :func:`_track` without sub-pixel refinement (unused): one
 #: array for every call, not a new one (~0.2 us of the ~4 us a call costs around the search)
 _NO_REFINE = np.empty(0, np.int32)
@@ -1631,13 +1643,28 @@ _NO_REFINE = np.empty(0, np.int32)
 _NO_STATUS = np.empty(0, np.int8)
 
 
-def _points(points: np.ndarray) -> np.ndarray:
+def _points(points: np.ndarray, name: str) -> np.ndarray:
     """``points`` as an (N, 2) C-contiguous int64 array: the array itself when it is one
-    already (the tracker's), without the reshape's new view (~0.2 us)."""
+    already (the tracker's), without the reshape's new view (~0.2 us). Floats must be finite
+    within +-MAX_COORD (NaN became the int64 minimum); integers are checked in the kernel."""
+    points = np.asarray(points)
+    if points.dtype.kind not in "iub":
+        if points.dtype.kind != "f":
+            raise ValueError(f"{name} must be numbers (x, y px): got dtype {points.dtype}")
+        _within(points.reshape(-1, 2), name)
     points = np.ascontiguousarray(points, np.int64)
     if points.ndim == 2 and points.shape[1] == 2:
         return points
     return points.reshape(-1, 2)
+
+
+def _within(xy: np.ndarray, name: str) -> None:
+    """Raise the error that names the first point of ``xy`` not finite within +-MAX_COORD."""
+    out = ~((xy >= -MAX_COORD) & (xy <= MAX_COORD)).all(axis=1)  # NaN fails both
+    if out.any():
+        bad = xy[out][0]
+        raise ValueError(f"{name} must be finite x, y px within +-{MAX_COORD:g}: got "
+                         f"({bad[0]:g}, {bad[1]:g})")
 
 
 def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: np.ndarray, *,
@@ -1687,8 +1714,10 @@ def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: 
     if weights.shape != (m, m):
         raise ValueError(f"weights of shape {weights.shape} do not match corr_half={corr_half}")
     wts = np.ascontiguousarray(weights, np.int32)
-    anchors = _points(anchors)
-    centers = _points(centers)
+    anchors = _points(anchors, "anchors")
+    centers = _points(centers, "centers")
+    if centers.shape != anchors.shape:
+        raise ValueError(f"anchors {anchors.shape} and centers {centers.shape} differ in shape")
     n_feat = anchors.shape[0]
     pos = np.empty((n_feat, 2), np.float64)
     ssd = np.empty(n_feat, np.float64)
@@ -1699,9 +1728,11 @@ def track_ssd(prev: np.ndarray, curr: np.ndarray, anchors: np.ndarray, centers: 
         status = _NO_STATUS
     elif status.shape != (n_feat,) or status.dtype != np.int8:
         raise ValueError(f"status must be a ({n_feat},) int8 array")
-    _track(prev, curr, anchors, centers, int(corr_half), int(search_half), wts, bool(subpixel),
-           search == "exhaustive", refine_acc(wts) if subpixel else _NO_REFINE, int(work),
-           pos, ssd, ok, status)
+    if _track(prev, curr, anchors, centers, int(corr_half), int(search_half), wts,
+              bool(subpixel), search == "exhaustive",
+              refine_acc(wts) if subpixel else _NO_REFINE, int(work), pos, ssd, ok, status) < 0:
+        _within(anchors, "anchors")  # the kernel refused one beyond +-MAX_COORD
+        _within(centers, "centers")
     return pos, ssd, ok
 
 

@@ -493,3 +493,38 @@ def test_pixel_dots_are_the_plain_sums(dtype):
         assert all(abs(v) < 2**31 for v in want + want_scaled)
     assert [int(v) for v in plain] == want
     assert [int(v) for v in scaled] == want_scaled
+
+
+def test_track_ssd_refuses_coordinates_the_search_cannot_index():
+    """A NaN, an infinity or an integer near the int64 limit as an anchor or a centre
+    overflowed the search's bounds checks and read memory at random (SIGSEGV, found by a
+    fuzzer); a NaN anchor came back ok with a made-up match. Refused, naming the point and the
+    range, as track_pyramid does."""
+    rng = np.random.default_rng(0)
+    a = rng.integers(0, 256, (100, 120), dtype=np.uint8)
+    w = window_weights("uniform", 4)
+    good = np.array([[50.0, 50.0]])
+    cases = [("centers", good, np.array([[np.nan, 50.0]])),
+             ("anchors", np.array([[50.0, np.nan]]), good),
+             ("centers", good, np.array([[50.0, -np.inf]])),
+             ("anchors", np.array([[1e300, 50.0]]), good),
+             ("centers", np.array([[50, 50]]), np.array([[np.iinfo(np.int64).max, 50]])),
+             ("anchors", np.array([[np.iinfo(np.int64).min, 50]]), np.array([[50, 50]])),
+             ("anchors", np.array([[2**31, 50]]), np.array([[50, 50]]))]
+    for name, anchors, centers in cases:
+        for search in ("pruned", "exhaustive"):
+            with pytest.raises(ValueError, match=rf"{name} must be finite x, y px within "
+                                                 r"\+-1\.07374e\+09: got \("):
+                track_ssd(a, a, anchors, centers, corr_half=4, search_half=7, weights=w,
+                          search=search, subpixel=True)
+    with pytest.raises(ValueError, match="differ in shape"):
+        track_ssd(a, a, np.array([[50, 50], [60, 60]]), np.array([[50, 50]]), corr_half=4,
+                  search_half=7, weights=w)
+    with pytest.raises(ValueError, match="must be numbers"):
+        track_ssd(a, a, np.array([["50", "50"]]), np.array([["50", "50"]]), corr_half=4,
+                  search_half=7, weights=w)
+    # far outside the frame but within the range: simply not found, the other one tracked
+    pos, _, ok = track_ssd(a, a, np.array([[50, 50], [-10**8, 50]]),
+                           np.array([[50, 50], [-10**8, 50]]), corr_half=4, search_half=7,
+                           weights=w)
+    assert ok.tolist() == [True, False] and pos[0].tolist() == [50.0, 50.0]

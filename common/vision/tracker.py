@@ -149,11 +149,25 @@ class Tracker:
     def __init__(self, params: TrackerParams | None = None) -> None:
         self._all_held = np.ones(0, np.bool_)
         self.set_params(params if params is not None else TrackerParams())
+        # the counters run from here, across reset(): a service resets the track on a camera
+        # restart, a frame-size change or a failed frame, and its status (lost, redetections,
+        # ...) read 0 again each time, just when an operator looked (service review)
+        #: frames whose frame t was scaled (and turned) by the zoom (and turn) of the frame
+        #: before (:func:`_zoomed`), or (a track's first pair in an approach) by the zoom of its
+        #: own matches (:func:`_zoom_retry`)
+        self.zoom_warps = 0
+        self._lost = np.zeros(len(STATUS_NAMES), np.int64)
+        self.redetections = 0
+        # matches that followed their prediction (step 0 of .pyramid) rather than a search
+        self.followed = 0
+        # frames whose frame before was mapped onto their exposure (see .exposure)
+        self.exposure_steps = 0
         self.reset()
 
     # -- state ---------------------------------------------------------------------------
     def reset(self) -> None:
-        """Forget every feature; the next frame is a first frame."""
+        """Forget every feature; the next frame is a first frame. The counters (lost,
+        redetections, ...) go on."""
         self._prev: np.ndarray | None = None
         self._prev_pyr: Pyramid | None = None
         self._pos = np.empty((0, 2), np.float64)
@@ -170,17 +184,7 @@ class Tracker:
         # and its turn, radians (clockwise on the screen: x right, y down), and the turn of the
         # frame before it; NaN: not measured (no frame pair yet)
         self._turn = self._turn_before = np.nan
-        #: frames whose frame t was scaled (and turned) by the zoom (and turn) of the frame
-        #: before (:func:`_zoomed`), or (a track's first pair in an approach) by the zoom of its
-        #: own matches (:func:`_zoom_retry`)
-        self.zoom_warps = 0
         self._frame = 0
-        self._lost = np.zeros(len(STATUS_NAMES), np.int64)
-        self.redetections = 0
-        # matches that followed their prediction (step 0 of .pyramid) rather than a search
-        self.followed = 0
-        # frames whose frame before was mapped onto their exposure (see .exposure)
-        self.exposure_steps = 0
         # the camera's noise, grey levels, estimated from the frames (see .noise), and the
         # frame it was estimated on: the wide sub-pixel window's agreement bound scales with it
         self.noise = 0.0
@@ -190,8 +194,8 @@ class Tracker:
 
     @property
     def lost_total(self) -> int:
-        """Features lost since the start: their window left the image, or their match was
-        rejected."""
+        """Features lost since the tracker was made: their window left the image, or their
+        match was rejected."""
         return int(self._lost.sum())
 
     @property
@@ -202,18 +206,24 @@ class Tracker:
 
     @property
     def over_budget(self) -> int:
-        """Features lost since the start because their frame's searches had reached
-        :data:`.pyramid.FRAME_WORK` (not searched)."""
+        """Features lost since the tracker was made because their frame's searches had
+        reached :data:`.pyramid.FRAME_WORK` (not searched)."""
         return int(self._lost[OVER])
 
     @property
     def lost_by(self) -> dict[str, int]:
-        """Features lost since the start, by reason: ``left`` (the window left the image),
-        ``cut`` (the minimum on an image edge: leaving it), ``border``, ``ambiguous``,
+        """Features lost since the tracker was made, by reason: ``left`` (the window left the
+        image), ``cut`` (the minimum on an image edge: leaving it), ``border``, ``ambiguous``,
         ``runaway``, ``fb``, ``disagrees``, ``residual`` (rejected, see the module notes),
         ``budget`` (not searched: the frame's searches had reached
         :data:`.pyramid.FRAME_WORK`)."""
         return {name: int(v) for name, v in zip(STATUS_NAMES[1:], self._lost[1:], strict=True)}
+
+    @property
+    def frame_shape(self) -> tuple[int, int] | None:
+        """(height, width) of the track's last frame; None before its first."""
+        return None if self._prev is None else (int(self._prev.shape[0]),
+                                                int(self._prev.shape[1]))
 
     @property
     def params(self) -> TrackerParams:

@@ -145,13 +145,27 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     ahead = KernelsAhead(log)
     pending: ParamsUpdate | None = None  # accepted, waiting for kernels of its own
 
+    # params_id of the sets dropped because their kernels could not be made ready: their
+    # reminders (params set repeats a set every second, the auto-tuner for good) are refused
+    # in silence, not accepted, dropped and logged again each time (service review)
+    dropped: set[int] = set()
+
     def on_params(payload: bytes) -> None:
         nonlocal pending
         update = state.accept(payload, node, log, pending)
         if update is None:
             return
+        failed = ahead.failure(update.params)
+        if failed is not None:
+            if update.params_id not in dropped:
+                dropped.add(update.params_id)
+                node.status.reject(f"params_id {update.params_id}: its kernels could not be "
+                                   f"made ready ({failed})")
+                log.error("params_id %d refused: its kernels could not be made ready (%s); "
+                          "keeping params_id %d", update.params_id, failed, state.params_id)
+            return
         pending = update
-        if not put_in_force():
+        if not put_in_force() and pending is not None:  # waiting, not dropped
             log.info("params_id %d needs kernels of its own: making them ready beside the "
                      "loop (on a cold cache up to half a minute); params_id %d stays in "
                      "force until then", update.params_id, state.params_id)
@@ -170,6 +184,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                                   f"made ready ({failed}); keeping params_id {state.params_id}")
                 log.error("params_id %d dropped: its kernels could not be made ready (%s); "
                           "keeping params_id %d", pending.params_id, failed, state.params_id)
+                dropped.add(pending.params_id)
                 pending = None
                 node.status.extra.pop("params_pending", None)
             return False
@@ -194,20 +209,27 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         # decoded arrays are read-only views of the payload; numba would compile (and cache)
         # a second specialisation of every kernel for read-only inputs, 40 ms on frame one
         filtered = np.array(msg.data)
-        pre = DeferredPreprocessed(filtered, state.params) if msg.deferred else \
+        # candidates pre-processed under another set (pre-processing puts a set in force at
+        # once, this service once its kernels are ready, or never if they fail) are not this
+        # set's: computed here from the filtered frame, as a deferred frame's are, so that the
+        # estimate is the one its params_id names (a dropped set had 17 of 40 estimates differ
+        # from vistrack track's: service review)
+        pre = DeferredPreprocessed(filtered, state.params) \
+            if msg.deferred or msg.params_id != state.params_id else \
             Preprocessed(filtered, msg.candidates, msg.strength)
         if msg.seq <= last_seq:
             log.info("camera restarted (seq %d after %d): new track", msg.seq, last_seq)
             tracker.reset()
+        elif tracker.frame_shape not in (None, filtered.shape):
+            # another camera, or the camera's size changed: checked here, not caught as the
+            # tracker's ValueError, which hid a fault of ours as a size change
+            log.warning("frame size %dx%d differs from the track's %dx%d: restarting the "
+                        "track", filtered.shape[1], filtered.shape[0],
+                        *tracker.frame_shape[::-1])
+            tracker.reset()
         last_seq = msg.seq
         redetections, over = tracker.redetections, tracker.over_budget
-        try:
-            est = tracker.update(pre, seq=msg.seq, t_start=t0)
-        except ValueError as e:  # the only one: the frame size changed (another camera)
-            log.warning("%s: restarting the track", e)
-            tracker.reset()
-            redetections, over = 0, tracker.over_budget
-            est = tracker.update(pre, seq=msg.seq, t_start=t0)
+        est = tracker.update(pre, seq=msg.seq, t_start=t0)
         if tracker.over_budget > over and warned_budget != state.params_id:
             warned_budget = state.params_id
             log.warning("%s (params_id %d, %s; said once per params_id)",

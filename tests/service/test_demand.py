@@ -117,3 +117,92 @@ def test_deferred_frames_alone_give_the_offline_estimates():
         computed_here = me.node.status.extra.get("candidates_here", 0)
     assert_same(got, expected)
     assert computed_here == 1 + tracker.redetections  # the first frame and each re-detection
+
+
+def test_candidates_of_another_parameter_set_are_not_taken():
+    """Pre-processing puts a set in force at once; motion-estimation only once its kernels are
+    ready, or never if they fail. Candidates selected under the other set (here THRES_PERCENT
+    0.1 against the 2 in force) were taken as they came, and the estimates stamped params_id 0
+    were not those of vistrack track with params_id 0's values (17 of 40 differed in a
+    reviewer's run). A frame whose params_id is not the set in force has its candidates
+    computed here, as a deferred frame's are."""
+    from vistrack.common.messages import encode_pre_frame
+    from vistrack.common.vision import preprocess
+
+    expected, _ = offline()
+    other = TrackerParams(max_features=30, thres_percent=0.1)
+    with Running("motion-estimation", *FLAGS) as me:
+        for seq, image in enumerate(frames()):
+            pre = preprocess(image, other)  # the same filter: only the candidates differ
+            me.feed(me.node.keys.pre_frame, encode_pre_frame(
+                seq=seq, stamp_ns=1000 + seq, data=pre.filtered, candidates=pre.candidates,
+                strength=pre.strength, params_id=5))
+        got = [Estimate.decode(p) for p in me.node.published_on(me.node.keys.estimate)]
+        computed_here = me.node.status.extra.get("candidates_here", 0)
+    assert {m.params_id for m in got} == {0}
+    assert_same(got, expected)
+    assert computed_here >= 2  # the selections' candidates computed here
+
+
+def test_status_counters_run_across_new_tracks():
+    """lost, redetections and the rejections are counted since the service started (README):
+    they went back to 0 whenever the track restarted (a camera restart, a frame of another
+    size, a failed frame), just when an operator would look."""
+    from vistrack.common.messages import encode_pre_frame
+    from vistrack.common.vision import preprocess
+
+    p = TrackerParams(max_features=30)
+
+    def payload(seq: int, image: np.ndarray, stamp_ns: int) -> bytes:
+        pre = preprocess(image, p)
+        return encode_pre_frame(seq=seq, stamp_ns=stamp_ns, data=pre.filtered,
+                                candidates=pre.candidates, strength=pre.strength, params_id=0)
+
+    images = frames()
+    with Running("motion-estimation", *FLAGS) as me:
+        for seq, image in enumerate(images[:30]):
+            me.feed(me.node.keys.pre_frame, payload(seq, image, 1000 + seq))
+        before = dict(me.node.status.as_dict()["extra"])
+        assert before["lost"] > 0 and before["redetections"] >= 1
+        me.feed(me.node.keys.pre_frame, payload(0, images[0], 10**9))  # the camera restarts
+        smaller = images[1][:64, :96].copy()  # then another camera, of another size
+        me.feed(me.node.keys.pre_frame, payload(1, smaller, 10**9 + 1))
+        after = me.node.status.as_dict()["extra"]
+        got = [Estimate.decode(m) for m in me.node.published_on(me.node.keys.estimate)]
+    assert got[-2].first and got[-1].first  # each a new track
+    for key in ("lost", "redetections", "rejected_features"):
+        assert after[key] >= before[key], key
+    assert me.node.status.failed == 0
+
+
+def test_a_fault_in_the_tracker_is_counted_not_taken_for_a_size_change(monkeypatch, caplog):
+    """Every ValueError from the tracker was taken for 'the frame size changed': the track
+    restarted in silence, failed stayed 0, no traceback. A fault is the dispatcher's to count
+    and log; a real size change still starts a new track, said as such."""
+    from vistrack.common.messages import encode_pre_frame
+    from vistrack.common.vision import preprocess
+    from vistrack.common.vision import tracker as tracker_module
+
+    real = tracker_module.Tracker._track
+    calls = {"n": 0}
+
+    def broken(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:  # the tracking of frame 3
+            raise ValueError("operands could not be broadcast together")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(tracker_module.Tracker, "_track", broken)
+    p = TrackerParams(max_features=30)
+    images = frames()
+    with Running("motion-estimation", *FLAGS) as me:
+        for seq, image in enumerate(images[:6]):
+            pre = preprocess(image, p)
+            me.feed(me.node.keys.pre_frame, encode_pre_frame(
+                seq=seq, stamp_ns=1000 + seq, data=pre.filtered, candidates=pre.candidates,
+                strength=pre.strength, params_id=0))
+        got = [Estimate.decode(m) for m in me.node.published_on(me.node.keys.estimate)]
+        failed, last_error = me.node.status.failed, me.node.status.last_error
+    assert failed == 1 and "operands could not be broadcast" in last_error
+    assert [m.seq for m in got] == [0, 1, 2, 4, 5]  # frame 3 lost, no estimate for it
+    assert not any("restarting the track" in r.getMessage() for r in caplog.records)

@@ -268,7 +268,7 @@ def test_parameters_whose_kernels_were_pending_come_in_force_without_a_frame(mon
     assert node.published_on(node.keys.estimate) == []
 
 
-def test_parameters_whose_kernels_fail_are_dropped_and_the_old_ones_stay(monkeypatch):
+def test_parameters_whose_kernels_fail_are_dropped_and_the_old_ones_stay(monkeypatch, caplog):
     """Should their kernels fail to build (a compiler error), a pending update is dropped with
     an error in the status and the log, once: the parameters in force stay, and the loop does
     not retry a compile of half a minute on every frame."""
@@ -307,6 +307,15 @@ def test_parameters_whose_kernels_fail_are_dropped_and_the_old_ones_stay(monkeyp
             node.feed(node.keys.pre_frame, pre_frame(frames[more % 10], more))
         wait_for(lambda: Estimate.decode(node.published_on(node.keys.estimate)[-1]).seq
                  == seq + 4, what="the frames after")
+        # the set again, as params set repeats it every second and the auto-tuner reminds it:
+        # it was accepted, dropped and logged again each time, and left params_pending stuck
+        # at 7 with nothing pending (params set then waited its 180 s)
+        for reminder in range(3):
+            node.feed(node.keys.params, Params.from_tracker_params(
+                big, seq=1 + reminder, stamp_ns=time.time_ns(), params_id=7, source="user",
+                reason="test").encode())
+            assert node.wait_idle(10)
+            time.sleep(0.15)  # a tick or more
         node.stop.set()
         thread.join(10)
     assert thread.error is None
@@ -314,6 +323,10 @@ def test_parameters_whose_kernels_fail_are_dropped_and_the_old_ones_stay(monkeyp
     assert {Estimate.decode(p).params_id for p in node.published_on(node.keys.estimate)} == {0}
     assert node.status.params["params_id"] == 0 and "params_pending" not in node.status.extra
     assert tries == [big]  # tried once, not again on every frame
+    # said once, not again with each reminder (an error and a "making them ready" each)
+    said = [r.getMessage() for r in caplog.records if "params_id 7" in r.getMessage()
+            and r.name == "vistrack.motion_estimation" and r.levelname == "ERROR"]
+    assert len(said) == 1, said
 
 
 def test_the_controller_stops_the_robot_after_a_failed_estimate_when_the_estimates_stop():

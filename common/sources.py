@@ -123,7 +123,7 @@ def read_image(path: str, grey: Grey | None = None) -> np.ndarray:
 def utf8_name(path: str) -> bool:
     """Whether OpenCV can be given ``path``: its bindings pass a name on as UTF-8, and a name
     that is not (a file named in another encoding, which Python holds as surrogate escapes,
-    e.g. ``frame\udce9.png`` for Latin-1's ``frame\xe9.png``) crashed the process in
+    e.g. ``frame\\udce9.png`` for Latin-1's ``frame\\xe9.png``) crashed the process in
     ``cv2.imread``, ``cv2.haveImageReader`` and ``cv2.VideoCapture`` (SIGSEGV, no message).
     Such an image is read by Python and decoded from memory; such a video cannot be opened
     (an error says so)."""

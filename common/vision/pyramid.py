@@ -302,7 +302,11 @@ MIN_GUIDES = 3
 #: x displacements (the default tracker's ~100 features spend about 10^7): a feature whose
 #: search would exceed what is left is not searched (OVER, lost: re-detection refills it).
 #: At the parameters' limits (2000 features, search 128, correlation 64) a frame of searches
-#: otherwise took up to 45 s, which a watchdog takes for a hang; this bounds one at ~1 s
+#: otherwise took up to 45 s, which a watchdog takes for a hang; this bounds one at ~1 s where
+#: the pruned search prunes. Where it cannot (periodic texture: a frame of stripes, search 128,
+#: a 38 px Gaussian window, 500 features) a unit costs ~4 times an exhaustive one: 2.3 s of
+#: searches, 2.8 to 3.2 s for the frame (a fuzzer's worst case, 2026-12-06). The tracker's
+#: calls for one frame (its zoom retry) draw on one budget.
 FRAME_WORK = 10**10
 #: Pixels the way back (step 4) searches beyond the way there's SEARCH_SIZE // 2 where its
 #: minimum fell on that border: each way's window is centred on a whole pixel, so a right
@@ -2498,9 +2502,13 @@ class TrackPlan:
 
     def track(self, prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions: np.ndarray,
               *, held: np.ndarray | None = None, followed: np.ndarray | None = None,
-              work: int = FRAME_WORK) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              work: int = FRAME_WORK, budget: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Track ``points`` of frame t (``prev``) into frame t+1 (``curr``) from
-        ``predictions``: :func:`track_pyramid` with these settings."""
+        ``predictions``: :func:`track_pyramid` with these settings. ``budget``: a (1,) int64
+        array of what is left of the searches' work, drawn on in place, for a frame whose
+        searches take several calls (the tracker's zoom retry); default a new one of
+        ``work``."""
         if prev.shapes != curr.shapes:
             raise ValueError(f"pyramids of different shapes: {prev.shapes} and {curr.shapes}")
         pts = np.ascontiguousarray(points, np.float64).reshape(-1, 2)
@@ -2508,9 +2516,12 @@ class TrackPlan:
         if pts.shape != preds.shape:
             raise ValueError(f"points {pts.shape} and predictions {preds.shape} differ in "
                              "shape")
-        if not 0 <= work <= NO_BUDGET:
-            raise ValueError(f"work must be 0 to {NO_BUDGET}: got {work}")
-        budget = np.array((work,), np.int64)  # one C call (np.full is two, in Python)
+        if budget is None:
+            if not 0 <= work <= NO_BUDGET:
+                raise ValueError(f"work must be 0 to {NO_BUDGET}: got {work}")
+            budget = np.array((work,), np.int64)  # one C call (np.full is two, in Python)
+        elif budget.shape != (1,) or budget.dtype != np.int64 or not 0 <= budget[0] <= NO_BUDGET:
+            raise ValueError(f"budget must be a (1,) int64 array of 0 to {NO_BUDGET}")
         n_feat = len(pts)
         pos = np.empty((n_feat, 2), np.float64)
         ssd = np.empty(n_feat, np.float64)

@@ -379,7 +379,12 @@ class Tracker:
             mapped = self._exposed(prev, pyr)
             self.exposure_steps += mapped is not prev
             prev = mapped
-            found, ssd, status, taken = self._search(prev, pyr, pts, self._pos + vel)
+            # the frame's searches, the zoom retry's included, draw on one FRAME_WORK: each
+            # had one of its own, and a frame of stripes at search 128 and a Gaussian 38 px
+            # window took 4.7 s, two budgets of 2.3 s (a fuzzer's case; the launcher's hang
+            # timeout is 5 s)
+            budget = np.array((FRAME_WORK,), np.int64)
+            found, ssd, status, taken = self._search(prev, pyr, pts, self._pos + vel, budget)
             retry = None if zoomed else _zoom_retry(self._pos, found, status)
             if retry is not None:
                 # a zoom or a turn no frame before measured (a track's first pair taken in an
@@ -387,7 +392,7 @@ class Tracker:
                 # of the matches found, each feature predicted by them; kept if it finds more
                 zoom, turn, preds = retry
                 again, pts = _zoomed(self._prev, self._pos, zoom, p.levels, turn)
-                second = self._search(self._exposed(again, pyr), pyr, pts, preds)
+                second = self._search(self._exposed(again, pyr), pyr, pts, preds, budget)
                 if np.count_nonzero(second[2] == OK) > np.count_nonzero(status == OK):
                     found, ssd, status, taken = second
                     self.zoom_warps += 1
@@ -434,7 +439,7 @@ class Tracker:
         if pyr is None or len(self._pos) == 0:
             return False
         pts = self._pos[:2].copy()
-        self._search(pyr, pyr, pts, pts)
+        self._search(pyr, pyr, pts, pts, np.array((FRAME_WORK,), np.int64))
         return True
 
     def _exposed(self, prev: Pyramid, pyr: Pyramid) -> Pyramid:
@@ -442,17 +447,18 @@ class Tracker:
         p = self._params
         return compensate(prev, pyr, self._motion, p.noise_sigma) if p.exposure else prev
 
-    def _search(self, prev: Pyramid, pyr: Pyramid, pts: np.ndarray, preds: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _search(self, prev: Pyramid, pyr: Pyramid, pts: np.ndarray, preds: np.ndarray,
+                budget: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The features at ``pts`` of frame t (``prev``) tracked into frame t+1 (``pyr``) from
-        ``preds``: positions, S, status, and which step 0 took (:func:`.track_pyramid`)."""
+        ``preds``: positions, S, status, and which step 0 took (:func:`.track_pyramid`);
+        ``budget``: what is left of the frame's FRAME_WORK, drawn on."""
         noise = max(self._params.noise_sigma, self.noise)
         if self._plan is None or self._plan[0] != noise:  # new parameters, a new noise
             self._plan = noise, track_plan(self._params, noise, self._weights)
         taken = np.zeros(len(pts), np.bool_)
         found, ssd, status = self._plan[1].track(prev, pyr, pts, preds,
                                                  held=self._held(len(pts)), followed=taken,
-                                                 work=FRAME_WORK)
+                                                 budget=budget)
         return found, ssd, status, taken
 
     def _add_features(self, pre: Preprocessed, shape: tuple[int, int]) -> None:

@@ -794,3 +794,31 @@ def test_the_self_match_is_the_minimum_of_every_displacement(real_image, weights
     best, vx, vy = _self_match(periodic.ravel(), 130, 120, 60, 60, n, wts, uniform,
                                PERIOD_REACH, BIG, *scratch)
     assert best == 0 and vx % 7 == 0 and vy % 7 == 0 and (vx, vy) != (0, 0)
+
+
+def test_calls_given_one_budget_draw_on_it_together(real_image):
+    """A frame's searches may take two calls (the tracker's zoom retry); each drew on a budget
+    of its own, so a frame could spend FRAME_WORK twice (a frame of stripes at search 128 and a
+    38 px Gaussian window: 4.7 s, two budgets of 2.3 s). Given one budget, the second call
+    searches only with what the first left."""
+    from vistrack.common.vision.tracker import track_plan
+
+    n, s = 4, 7
+    cost = (2 * s + 1) ** 2 * (2 * n + 1) ** 2
+    plan = track_plan(TrackerParams(levels=1, corr_size=9, search_size=15, follow=False,
+                                    guided_retry=False, max_fb_error=0.0, consensus=0.0,
+                                    uniqueness=0.0, refine_size=0), 2.0)
+    one = build_pyramid(real_image, 1)
+    two = build_pyramid(shifted(real_image, 2.4, -1.7), 1)
+    pts = np.random.default_rng(3).integers(40, 216, (10, 2)).astype(float)
+    budget = np.array((15 * cost,), np.int64)
+    _, _, first = plan.track(one, two, pts, pts, budget=budget)
+    assert (first != OVER).all() and budget[0] == 5 * cost  # ten searches drawn
+    _, _, second = plan.track(one, two, pts, pts, budget=budget)
+    assert (second[:5] != OVER).all() and (second[5:] == OVER).all() and budget[0] == 0
+    # without one, each call has its own
+    _, _, alone = plan.track(one, two, pts, pts, work=5 * cost)
+    assert (alone[5:] == OVER).all() and (alone[:5] != OVER).all()
+    for bad in (np.array((1,), np.int32), np.array((-1,), np.int64), np.zeros(2, np.int64)):
+        with pytest.raises(ValueError, match="budget must be a"):
+            plan.track(one, two, pts, pts, budget=bad)

@@ -111,15 +111,23 @@ def test_two_in_flight_loses_nothing_uncounted(rubberwhale, free_port):
     assert len(seqs) >= 4
 
 
+#: black frames in the middle of the featureless run
+BLACK = 30
+
+
 def test_black_frames_give_invalid_estimates_no_motion_and_tracking_resumes(tmp_path,
                                                                             free_port):
-    """Featureless frames end to end (issue 13): ten textured frames, ten black ones, ten
+    """Featureless frames end to end (issue 13): ten textured frames, thirty black ones, ten
     textured again, from a file camera through the live services. The black frames give
     estimates with NPI 0 and valid false, the controller answers those it takes (latest-only)
     with a stop and sends nothing else meanwhile, no service fails or restarts, and tracking
     resumes when the texture returns."""
     textured = synthetic.builtin_sequence(20)
-    frames = [*textured[:10], *([np.zeros((256, 256), np.uint8)] * 10), *textured[10:]]
+    # thirty: the controller takes the latest estimate only, and with ten a starved controller
+    # (a machine loaded by three test suites at once) had every black one overwritten in 4 of
+    # 20 runs, leaving nothing to check
+    frames = [*textured[:10], *([np.zeros((256, 256), np.uint8)] * BLACK), *textured[10:]]
+    total = len(frames)
     folder = tmp_path / "frames"
     folder.mkdir()
     for i, image in enumerate(frames):
@@ -135,7 +143,7 @@ def test_black_frames_give_invalid_estimates_no_motion_and_tracking_resumes(tmp_
             assert cam.p.wait(60) == 0  # every frame estimated (one in flight: none lost)
         finally:
             cam.stop()
-        got = [msgpack.unpackb(p) for _, p in est.wait(lambda items: len(items) >= 30)]
+        got = [msgpack.unpackb(p) for _, p in est.wait(lambda items: len(items) >= total)]
         # the controller takes the latest estimate only: one that a newer one overwrote before
         # the controller was free is counted as dropped, never answered late. Commands go out in
         # order on a reliable key, so once the last estimate is answered every answer is here.
@@ -149,23 +157,24 @@ def test_black_frames_give_invalid_estimates_no_motion_and_tracking_resumes(tmp_
                     for r in session.get(f"vistrack/robot/{name}/status", timeout=2.0)
                     if r.ok is not None}
         assert {n: p.p.pid for n, p in procs.items() if p.p.poll() is None} == pids
-    assert [m["seq"] for m in got] == list(range(30))
+    assert [m["seq"] for m in got] == list(range(total))
     answered = [m for m in got if m["stamp_ns"] in commands]
     # every estimate answered or counted as overwritten: none lost unaccounted
-    assert len(answered) + statuses["fuzzy_controller"]["dropped"] == 30
+    assert len(answered) + statuses["fuzzy_controller"]["dropped"] == total
     assert all(m["valid"] and m["npi"] > 10 for m in got[:10])
-    for m in got[10:20]:
+    for m in got[10:10 + BLACK]:
         assert m["npi"] == 0 and m["valid"] is False and m["features"] == [], m["seq"]
         assert all(math.isfinite(m[k]) for k in ("xc", "yc", "xe", "ye", "dx", "dy", "scale"))
-    black = [m for m in got[10:20] if m["stamp_ns"] in commands]
+    black = [m for m in got[10:10 + BLACK] if m["stamp_ns"] in commands]
     assert black, "no estimate of a black frame was answered"
     # no command while the lens saw nothing moves the robot: the answers to the black frames'
     # estimates and the watchdog's repeats between them are all stops
-    during = [c for c in sent if got[10]["stamp_ns"] <= c["stamp_ns"] < got[20]["stamp_ns"]]
+    during = [c for c in sent
+              if got[10]["stamp_ns"] <= c["stamp_ns"] < got[10 + BLACK]["stamp_ns"]]
     assert len(during) >= len(black)
     for c in during:
         assert c["stale"] and (c["vx"], c["vy"], c["wz"]) == (0.0, 0.0, 0.0), c
-    back = got[20:]
+    back = got[10 + BLACK:]
     assert all(m["valid"] and m["npi"] > 10 for m in back[1:]), [m["npi"] for m in back]
     assert any(not commands[m["stamp_ns"]]["stale"]  # the robot follows again
                for m in back if m["stamp_ns"] in commands)

@@ -2554,11 +2554,16 @@ class TrackPlan:
             # around the frame-wide shift, where it differs from the predictions, and keep the
             # second run where it found clearly more (RETRY_MARGIN)
             shift = frame_shift(prev, curr)
-            if shift is not None and np.abs(np.median(preds - pts, axis=0) - shift).max() >= 2.0:
+            guided = None if shift is None else pts + shift
+            # (the retry's own predictions, not the caller's: a point at the edge of
+            # +-MAX_COORD moved by the shift is not retried, rather than refused as if the
+            # caller had given it)
+            if guided is not None and bool((np.abs(guided) <= MAX_COORD).all()) and \
+                    np.abs(np.median(preds - pts, axis=0) - shift).max() >= 2.0:
                 pos2, ssd2 = np.empty_like(pos), np.empty_like(ssd)
                 status2 = np.empty_like(status)
                 none = np.zeros(n_feat, np.bool_)
-                if run(pts + shift, none, False, pos2, ssd2, status2,
+                if run(guided, none, False, pos2, ssd2, status2,
                        np.zeros(n_feat, np.bool_)) > found + RETRY_MARGIN * n_feat:
                     pos, ssd, status = pos2, ssd2, status2
                     taken[:] = False

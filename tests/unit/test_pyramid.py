@@ -19,7 +19,17 @@ from vistrack.common.vision.pyramid import (
     build_pyramid,
     track_pyramid,
 )
-from vistrack.common.vision.ssd import AMBIGUOUS, BORDER, DISAGREES, FB, OK, OVER, STATUS_NAMES
+from vistrack.common.vision.ssd import (
+    AMBIGUOUS,
+    BORDER,
+    DISAGREES,
+    FB,
+    LEFT,
+    MAX_COORD,
+    OK,
+    OVER,
+    STATUS_NAMES,
+)
 
 from conftest import load_pair, source_image
 
@@ -822,3 +832,17 @@ def test_calls_given_one_budget_draw_on_it_together(real_image):
     for bad in (np.array((1,), np.int32), np.array((-1,), np.int64), np.zeros(2, np.int64)):
         with pytest.raises(ValueError, match="budget must be a"):
             plan.track(one, two, pts, pts, budget=bad)
+
+
+def test_the_guided_retry_never_blames_the_caller_for_its_own_predictions(real_image):
+    """Points at +-MAX_COORD are accepted (not found); the guided retry moved them by the
+    frame's shift past the bound, and the kernel's refusal came back as 'predictions must be
+    finite ...', naming predictions the caller never gave (a fuzzer's case)."""
+    moved = cv2.warpAffine(real_image, np.float32([[1, 0, 20], [0, 1, 15]]),
+                           real_image.shape[::-1], borderMode=cv2.BORDER_REFLECT)
+    one, two = build_pyramid(real_image, 4), build_pyramid(moved, 4)
+    plan = TrackPlan(corr_half=2, search_half=2, weights=window_weights("uniform", 2),
+                     guided_retry=True)
+    pts = np.array([[MAX_COORD, 211.0]] * 3)
+    pos, ssd, status = plan.track(one, two, pts, pts - 2.0)
+    assert (status == LEFT).all() and np.isnan(pos).all() and np.isinf(ssd).all()

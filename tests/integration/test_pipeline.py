@@ -123,9 +123,9 @@ def test_black_frames_give_invalid_estimates_no_motion_and_tracking_resumes(tmp_
     with a stop and sends nothing else meanwhile, no service fails or restarts, and tracking
     resumes when the texture returns."""
     textured = synthetic.builtin_sequence(20)
-    # thirty: the controller takes the latest estimate only, and with ten a starved controller
-    # (a machine loaded by three test suites at once) had every black one overwritten in 4 of
-    # 20 runs, leaving nothing to check
+    # thirty (and the camera paced, below): the controller takes the latest estimate only,
+    # and with ten unpaced a starved controller had every black one overwritten in 4 of 20
+    # runs on a loaded machine, leaving nothing to check
     frames = [*textured[:10], *([np.zeros((256, 256), np.uint8)] * BLACK), *textured[10:]]
     total = len(frames)
     folder = tmp_path / "frames"
@@ -138,7 +138,10 @@ def test_black_frames_give_invalid_estimates_no_motion_and_tracking_resumes(tmp_
         pids = {n: p.p.pid for n, p in procs.items()}
         est = Collector(session, "vistrack/robot/motion/estimate")
         cmd = Collector(session, "vistrack/robot/control/cmd_vel")
-        cam = service("camera", ep, "--source", f"file:{folder}")
+        # paced: unpaced, the black stretch lasted 10 to 16 ms, and a controller not scheduled
+        # for that long (a busy core) had every black estimate overwritten (3 to 11 of 35
+        # runs on Python 3.10 beside a busy loop; none of 20 paced)
+        cam = service("camera", ep, "--source", f"file:{folder}", "--fps", "30")
         try:
             assert cam.p.wait(60) == 0  # every frame estimated (one in flight: none lost)
         finally:

@@ -232,6 +232,12 @@ def _publish_until_confirmed(session: zenoh.Session, keys: Keys, publisher: Sour
                 f"params_id {params_id} accepted by {CONFIRMING_SERVICE}, not yet in force: "
                 "the kernels of these windows are being made ready (on their first use on "
                 "this machine, up to half a minute); waiting")
+        error = status.get("last_error") if status is not None else None
+        if isinstance(error, str) and error.startswith(
+                f"params_id {params_id}: its kernels could not be made ready"):
+            # dropped for good, and its repeats refused in silence: waiting cannot confirm it
+            # (the timeout used to say only that the set "may have been lost")
+            raise ToolError(f"{CONFIRMING_SERVICE} dropped the set: {error}")
         found = seen.get("params_id")
         # ours, not a tuning that happened to take the same params_id (the service then keeps
         # the tuner's and refuses ours as stale: not confirmed)

@@ -375,6 +375,33 @@ def test_params_set_waits_for_a_set_accepted_pending_its_kernels(endpoint, sessi
     assert "corr_size=64" in run.stdout
 
 
+def test_params_set_says_at_once_that_a_set_was_dropped(endpoint, session):
+    """A set whose kernels cannot be made ready is dropped, and its repeats are refused in
+    silence: the tool waited for its timeout and said the set "may have been lost". It now
+    says at once that motion-estimation dropped it, and why. A stand-in motion-estimation
+    (robot "broken") answers its status, once the set arrives, with the service's error."""
+    keys = Keys("broken")
+    before = {"params_id": 4, "source": "flags", "reason": "start-up",
+              **TrackerParams().factors()}
+    state: dict = {"params": before, "extra": {}, "last_error": ""}
+
+    def on_params(sample: zenoh.Sample) -> None:
+        msg = Params.decode(sample.payload.to_bytes())
+        state["last_error"] = (f"params_id {msg.params_id}: its kernels could not be made "
+                               "ready (RuntimeError: the compiler failed); keeping params_id 4")
+
+    with stand_in_motion_estimation(session, keys, state, on_params):
+        t0 = time.monotonic()
+        run = tool(endpoint, "params", "set", "corr_size=64", "--timeout", "20",
+                   "--robot", "broken")
+        took = time.monotonic() - t0
+    assert run.returncode == 1, run.stdout + run.stderr
+    assert run.stderr.count("\n") == 1
+    assert "motion_estimation dropped the set: params_id 5: its kernels could not be made " \
+        "ready (RuntimeError: the compiler failed)" in run.stderr
+    assert took < 15  # said when seen, not after the 20 s timeout
+
+
 def _params_set_and_get(endpoint: str, est: Collector) -> None:
     run = tool(endpoint, "params", "set", "search_size=21", "corr_size=11", "--json")
     assert run.returncode == 0, run.stderr

@@ -74,7 +74,8 @@ def to_gray(image: np.ndarray, *, bits: int = 16, unit: bool | None = None) -> n
     when ``unit`` (OpenCV's convention for float images: grey = 255 value), else 0 to 255;
     ``None`` takes it as 0 to 1 when none of its values is above 1 (:func:`unit_range`).
     Rounded to the nearest level and capped to 0..255; NaN is black. Other integer images
-    (8-bit signed, 32-bit) are capped to 0..255."""
+    (8-bit signed, 32-bit) are capped to 0..255. A boolean image (a mask) is black and white:
+    False 0, True 255 (it read as grey levels 0 and 1, a frame without texture)."""
     gray = _one_channel(image)
     if gray.dtype != np.uint8:
         if np.issubdtype(gray.dtype, np.integer) and gray.dtype.itemsize == 2:
@@ -87,7 +88,9 @@ def to_gray(image: np.ndarray, *, bits: int = 16, unit: bool | None = None) -> n
             scaled = gray * np.float32(255.0) if unit else gray
             # NaN compares false both ways: the clip leaves it, nan_to_num makes it black
             gray = np.nan_to_num(np.rint(np.clip(scaled, 0, 255)), nan=0.0).astype(np.uint8)
-        elif np.issubdtype(gray.dtype, np.integer) or gray.dtype == np.bool_:
+        elif gray.dtype == np.bool_:
+            gray = gray.astype(np.uint8) * np.uint8(255)
+        elif np.issubdtype(gray.dtype, np.integer):
             gray = np.clip(gray, 0, 255).astype(np.uint8)
         else:
             raise ValueError(f"image of dtype {gray.dtype} is not a grey or colour image: "

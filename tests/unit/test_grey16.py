@@ -156,6 +156,17 @@ def test_the_float_range_only_grows_so_a_0_to_255_stream_is_read_as_such(picture
     assert grey.unit is False
 
 
+def test_a_boolean_mask_is_black_and_white_and_tracked(picture):
+    """A bool frame (a mask a user's code made) read as grey levels 0 and 1: no texture above
+    the floor, no feature (a fuzzer's note). It is black and white, and has features."""
+    from vistrack.common.vision import Tracker
+
+    mask = picture > 128
+    assert to_gray(mask).tolist()[:1] == [[255 if v else 0 for v in mask[0]]]
+    assert to_gray(np.dstack([mask, mask, mask])).max() == 255
+    assert Tracker().process(to_gray(mask)).npi > 10
+
+
 def test_a_dtype_that_is_not_a_number_is_a_clear_error():
     with pytest.raises(ValueError, match=r"dtype <U1 is not a grey or colour image"):
         to_gray(np.array([["a"]]))

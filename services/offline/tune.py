@@ -275,6 +275,11 @@ def print_text(result: TuneResult, what: str, out: TextIO) -> None:
     width = max(24, 2 + max(map(len, at99.values())))  # a replicated tf can list all 15
     print(f"{'output':8s}{'99 %':{width}s}{'95 %'}", file=out)
     for n in RESPONSES:
+        if result.analysis.results.get(n) is None:
+            # no scale to test against: said, not shown as a response with no effect
+            print(f"{n:8s}not testable: half or more of its effects are exactly 0, no scale "
+                  "to test them against", file=out)
+            continue
         print(f"{n:8s}{at99[n]:{width}s}{', '.join(rep['significant'][n]['95']) or '-'}",
               file=out)
     if replicates > 1:

@@ -61,6 +61,25 @@ def test_text_sections_progress_and_plots(tmp_path):
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 5000
 
 
+def test_a_response_that_cannot_be_tested_says_so_in_table_3(tmp_path):
+    """A still scene: every run measures no motion, as the reference does, so ex and ey are
+    exactly 0 and Lenth's method has no scale (a statistics review). Table 3 showed '-' as for
+    a response with no significant effect; it says the response could not be tested."""
+    import cv2
+
+    from conftest import source_image
+
+    for i in range(6):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), source_image("RubberWhale"))
+    res = vistrack("tune", str(tmp_path), *FAST, "--seed", "3", check=True)
+    table3 = res.stdout.split("## Table 3")[1].split("##")[0].splitlines()
+    rows = {line.split()[0]: line for line in table3[2:6]}
+    for n in ("ex", "ey"):
+        assert "not testable: half or more of its effects are exactly 0" in rows[n], rows[n]
+    for n in ("t1", "tf"):  # timed: never all equal
+        assert "not testable" not in rows[n]
+
+
 def test_a_choice_that_misses_the_tolerance_says_so_in_its_heading():
     # "## Optimum" with a speed-up, and the caveat only on the line below it
     res = vistrack("tune", *FAST, "--seed", "3", "--tolerance", "0", check=True)

@@ -453,6 +453,14 @@ def compile_search(parent: int | None = None) -> None:
                   max_fb_error=p.max_fb_error, consensus=p.consensus, wide_half=p.refine_half)
 
 
+def kernels_failed(params_id: int, why: str | None = None) -> str:
+    """What motion-estimation says (status ``last_error``, its log) of the parameter set
+    ``params_id`` whose kernels could not be made ready; without ``why``, the beginning of
+    it, which ``vistrack params set`` looks for in the status."""
+    said = f"params_id {params_id}: its kernels could not be made ready"
+    return said if why is None else f"{said} ({why})"
+
+
 class KernelsAhead:
     """Kernels of new tracker parameters, made ready beside a service's loop.
 

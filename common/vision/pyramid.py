@@ -290,6 +290,7 @@ from .ssd import (
     _search_level,
     _ssd_at,
     _weights_info,
+    _within,
     refine_acc,
 )
 
@@ -2558,7 +2559,8 @@ class TrackPlan:
             # (the retry's own predictions, not the caller's: a point at the edge of
             # +-MAX_COORD moved by the shift is not retried, rather than refused as if the
             # caller had given it)
-            if guided is not None and bool((np.abs(guided) <= MAX_COORD).all()) and \
+            if shift is not None and guided is not None and \
+                    bool((np.abs(guided) <= MAX_COORD).all()) and \
                     np.abs(np.median(preds - pts, axis=0) - shift).max() >= 2.0:
                 pos2, ssd2 = np.empty_like(pos), np.empty_like(ssd)
                 status2 = np.empty_like(status)
@@ -2574,13 +2576,8 @@ def _bad_coordinates(pts: np.ndarray, preds: np.ndarray) -> None:
     """Raise the error that names the first of ``pts`` or ``preds`` not finite within
     +-MAX_COORD (:func:`_track_frame` refused them: the check costs nothing in the kernel,
     where four numpy calls a frame cost ~40 us in a service, each from cold caches)."""
-    for name, xy in (("points", pts), ("predictions", preds)):
-        # NaN fails the comparison too
-        out = ~(np.abs(xy) <= MAX_COORD).all(axis=1)
-        if out.any():
-            bad = xy[out][0]
-            raise ValueError(f"{name} must be finite x, y px within +-{MAX_COORD:g}: got "
-                             f"({bad[0]:g}, {bad[1]:g})")
+    _within(pts, "points")
+    _within(preds, "predictions")
     raise AssertionError("_track_frame refused coordinates that are all within bounds")
 
 

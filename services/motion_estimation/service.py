@@ -42,7 +42,7 @@ from ...common.params import TrackerParams
 from ...common.vision import Preprocessed, Tracker
 from ...common.vision import tracker as vision_tracker
 from ...common.vision.preprocess import DeferredPreprocessed
-from ..kernels import KernelsAhead, late_compiles_logged, warm_up_kernels
+from ..kernels import KernelsAhead, kernels_failed, late_compiles_logged, warm_up_kernels
 from ..runtime import (
     ParamsInForce,
     ParamsUpdate,
@@ -159,10 +159,9 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         if failed is not None:
             if update.params_id not in dropped:
                 dropped.add(update.params_id)
-                node.status.reject(f"params_id {update.params_id}: its kernels could not be "
-                                   f"made ready ({failed})")
-                log.error("params_id %d refused: its kernels could not be made ready (%s); "
-                          "keeping params_id %d", update.params_id, failed, state.params_id)
+                node.status.reject(kernels_failed(update.params_id, failed))
+                log.error("%s: refused; keeping params_id %d",
+                          kernels_failed(update.params_id, failed), state.params_id)
             return
         pending = update
         if not put_in_force() and pending is not None:  # waiting, not dropped
@@ -180,10 +179,9 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         if not ahead.ready(pending.params):
             failed = ahead.failure(pending.params)
             if failed is not None:  # never comes in force: said, and the set in force stays
-                node.status.error(f"params_id {pending.params_id}: its kernels could not be "
-                                  f"made ready ({failed}); keeping params_id {state.params_id}")
-                log.error("params_id %d dropped: its kernels could not be made ready (%s); "
-                          "keeping params_id %d", pending.params_id, failed, state.params_id)
+                said = kernels_failed(pending.params_id, failed)
+                node.status.error(f"{said}; keeping params_id {state.params_id}")
+                log.error("%s: dropped; keeping params_id %d", said, state.params_id)
                 dropped.add(pending.params_id)
                 pending = None
                 node.status.extra.pop("params_pending", None)

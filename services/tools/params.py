@@ -32,6 +32,7 @@ from ...common.bus import SourcedPublisher, service_status
 from ...common.keys import Keys
 from ...common.messages import MessageError, Params, next_params_id
 from ...common.params import BOUNDS, FACTORS, ParamError, TrackerParams
+from ..kernels import kernels_failed
 from ..usage import add_number, say_on_stderr
 from .shared import (
     ServiceState,
@@ -233,8 +234,7 @@ def _publish_until_confirmed(session: zenoh.Session, keys: Keys, publisher: Sour
                 "the kernels of these windows are being made ready (on their first use on "
                 "this machine, up to half a minute); waiting")
         error = status.get("last_error") if status is not None else None
-        if isinstance(error, str) and error.startswith(
-                f"params_id {params_id}: its kernels could not be made ready"):
+        if isinstance(error, str) and error.startswith(kernels_failed(params_id)):
             # dropped for good, and its repeats refused in silence: waiting cannot confirm it
             # (the timeout used to say only that the set "may have been lost")
             raise ToolError(f"{CONFIRMING_SERVICE} dropped the set: {error}")

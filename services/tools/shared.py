@@ -71,16 +71,25 @@ def add_tool_args(parser: argparse.ArgumentParser) -> None:
     add_zenoh_args(parser)
 
 
+#: Where a tool's gossip goes, by the tool's mode (:func:`as_a_tool`): a peer's to routers.
+TOOL_GOSSIP_TARGET = '{"router": [], "peer": ["router"]}'
+
+
 def as_a_tool(conf: zenoh.Config, args: argparse.Namespace) -> zenoh.Config:
     """``conf`` (from the Zenoh flags) for a tool, which looks at a system and never joins two.
 
-    * It sends no gossip. A peer passes on to its neighbours the locators of the nodes it
-      reaches, and the services (peers, which connect to every peer gossip names) took those
-      of another system: one ``vistrack status`` that reached two ``vistrack up`` on one
-      machine (multicast scouting finds every router; two ``-e`` name two) joined their
-      services for good, every frame of each then reaching both (two demos read 67 and 74
-      fps and centring errors of 263 and 415 px, and said nothing). It still takes gossip in,
-      to reach the services it looks at.
+    * It gossips to routers only, never to peers. A peer passes on to its neighbours the
+      locators of the nodes it reaches, and the services (peers, which connect to every peer
+      gossip names) took those of another system: one ``vistrack status`` that reached two
+      ``vistrack up`` on one machine (multicast scouting finds every router; two ``-e`` name
+      two) joined their services for good, every frame of each then reaching both (two demos
+      read 67 and 74 fps and centring errors of 263 and 415 px, and said nothing). Its
+      gossip to a router tells that router where the tool listens, and the router tells its
+      own peers, so the tools of one system reach each other: a router does not relay
+      between peers, and with no gossip at all ``vistrack record`` (or ``echo``, ``hz``,
+      ``foxglove``) never received what ``vistrack replay`` or ``params set`` published
+      beside it (0 samples, exit 0). It still takes gossip in, to reach the services it
+      looks at.
     * With ``-e`` it scouts no multicast: the endpoints name the system it looks at, and
       ``-e`` at a port where nothing answers said nothing of it while another system on the
       machine answered the scouting.
@@ -89,7 +98,7 @@ def as_a_tool(conf: zenoh.Config, args: argparse.Namespace) -> zenoh.Config:
     is what the flag says)."""
     unset = zenoh.Config()
     for key, value, when in (
-            ("scouting/gossip/target", '{"router": [], "peer": []}', True),
+            ("scouting/gossip/target", TOOL_GOSSIP_TARGET, True),
             ("scouting/multicast/enabled", "false", bool(args.connect))):
         if when and conf.get_json(key) == unset.get_json(key):
             conf.insert_json5(key, value)

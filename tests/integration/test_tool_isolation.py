@@ -11,12 +11,16 @@ reached the other, for good. Found with two ``vistrack demo`` and one ``vistrack
 from __future__ import annotations
 
 import argparse
+import json
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 
+import msgpack
 import pytest
 import zenoh
 from forkcli import vistrack
@@ -94,7 +98,8 @@ def test_a_tool_that_reaches_two_systems_leaves_them_apart():
     (["-e", "tcp/127.0.0.1:7447"], "false"),
     (["-e", "tcp/127.0.0.1:7447", "--no-multicast-scouting"], "false"),
 ])
-def test_a_tool_given_endpoints_scouts_no_multicast_and_sends_no_gossip(flags, multicast):
+def test_a_tool_given_endpoints_scouts_no_multicast_and_gossips_to_routers_only(flags,
+                                                                                multicast):
     from vistrack.common.bus import add_zenoh_args, config_from_args
 
     parser = argparse.ArgumentParser()
@@ -103,4 +108,40 @@ def test_a_tool_given_endpoints_scouts_no_multicast_and_sends_no_gossip(flags, m
     conf = as_a_tool(config_from_args(args), args)
     assert conf.get_json("scouting/multicast/enabled") == multicast
     assert conf.get_json("scouting/gossip/target").replace(" ", "") == \
-        '{"router":[],"peer":[]}'
+        '{"router":[],"peer":["router"]}'
+
+
+def test_the_tools_of_one_system_reach_each_other(tmp_path):
+    """A tool's gossip goes to routers: ``vistrack echo`` (or ``record``, ``hz``) receives
+    what ``vistrack replay`` publishes beside it. A router does not relay between peers, and
+    with no gossip at all neither tool learned where the other listens: the replay waited its
+    ``--wait`` for a subscriber, published to nobody, and the echo got nothing."""
+    recording = tmp_path / "tool.vtr"
+    start = time.time_ns()
+    with recording.open("wb") as f:  # the documented .vtr format, written with plain msgpack
+        f.write(msgpack.packb({"format": "vistrack-record", "version": 1, "robot": "robot",
+                               "keys": [KEY], "start_ns": start}))
+        for n in range(5):
+            f.write(msgpack.packb({"t_ns": start + n * 10_000_000, "key": KEY,
+                                   "payload": b"x" * (n + 1)}))
+    with ExitStack() as stack:
+        endpoint = stack.enter_context(router(_free_port()))
+        # a service of the system, as under vistrack up
+        stack.enter_context(zenoh.open(zenoh_config(endpoint)))
+        zflags = ["-e", endpoint, "--no-multicast-scouting"]
+        echo = stack.enter_context(subprocess.Popen(
+            [sys.executable, "-m", "vistrack.services.cli", "echo", "isolation", "--count", "3",
+             "--timeout", "30", *zflags], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            text=True))
+        try:
+            # the replay waits for the echo's subscription before its first sample
+            replay = vistrack("replay", str(recording), "--wait", "30", *zflags, timeout=60)
+            out, err = echo.communicate(timeout=30)
+        finally:
+            if echo.poll() is None:
+                echo.kill()
+    assert replay.returncode == 0, replay.stderr
+    assert "no subscriber" not in replay.stderr, replay.stderr
+    assert echo.returncode == 0, err
+    lines = [json.loads(line) for line in out.splitlines()]  # not messages: said so, sized
+    assert [(d["key"], d["nbytes"]) for d in lines] == [(KEY, 1), (KEY, 2), (KEY, 3)], out

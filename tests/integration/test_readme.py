@@ -14,9 +14,14 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
+import msgpack
 import pytest
+import zenoh
+
+from procs import zenoh_config
 
 pytestmark = pytest.mark.integration
 
@@ -126,3 +131,55 @@ def test_the_record_replay_example_runs_as_written(tmp_path, free_port):
         assert row["STATE"] == "ok", row
         assert int(row["DROPPED"]) < int(recorded[1]) // 2, row
         assert int(row["REJECTED"]) == 0, row
+
+
+def test_the_subscriber_example_reads_its_system_and_joins_no_other(free_port):
+    """The README's Python subscriber, run as written (only its port changed), prints the
+    estimates of the system whose router it names, and nothing of another system beside it.
+
+    Run as a peer (Zenoh's default, as the example first was), it found a second system on
+    the machine by multicast scouting, printed both systems' estimates mixed, and its gossip
+    joined the two systems' services for good (found by a user walking the README while
+    another pipeline ran)."""
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+    script = next(b for b in blocks if "vistrack/robot/motion/estimate" in b)
+    assert "tcp/127.0.0.1:7447" in script
+    script = script.replace(":7447", f":{free_port}")
+    endpoint = f"tcp/127.0.0.1:{free_port}"
+    # the other system: a peer that answers multicast scouts, as a service under `vistrack
+    # up` without --no-multicast-scouting does (it connects to nothing it finds itself; its
+    # estimates lack most fields, so a service that found it would refuse them)
+    other = zenoh.Config()
+    other.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+    other.insert_json5("scouting/multicast/autoconnect", '{"router": [], "peer": []}')
+    other.insert_json5("scouting/gossip/enabled", "false")
+
+    def estimate(seq: int) -> bytes:
+        return msgpack.packb({"v": 1, "seq": seq, "npi": 50, "xc": 1.0, "yc": 2.0,
+                              "dx": 0.5, "scale": 1.0})
+
+    with zenoh.open(zenoh_config(endpoint, router=True)), \
+            zenoh.open(zenoh_config(endpoint)) as ours, zenoh.open(other) as theirs, \
+            subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as sub:
+        try:
+            assert sub.stdout is not None and sub.stdin is not None
+            assert sub.stdout.readline().startswith("press Enter")
+            key = "vistrack/robot/motion/estimate"
+            mine = ours.declare_publisher(key)
+            deadline = time.monotonic() + 20
+            while not mine.matching_status.matching:  # the example has subscribed
+                assert time.monotonic() < deadline, "the example never subscribed"
+                time.sleep(0.05)
+            for n in range(20):  # a second of each system's estimates
+                mine.put(estimate(1000 + n))
+                theirs.put(key, estimate(5000 + n))
+                time.sleep(0.05)
+            time.sleep(0.5)
+            out, err = sub.communicate("\n", timeout=20)
+        finally:
+            if sub.poll() is None:
+                sub.kill()
+    assert sub.returncode == 0, err
+    seqs = [int(line.split()[0]) for line in out.splitlines() if line.strip()]
+    assert seqs == list(range(1000, 1020)), out  # ours, each once, and none of theirs

@@ -134,8 +134,9 @@ def test_the_record_replay_example_runs_as_written(tmp_path, free_port):
 
 
 def test_the_subscriber_example_reads_its_system_and_joins_no_other(free_port):
-    """The README's Python subscriber, run as written (only its port changed), prints the
-    estimates of the system whose router it names, and nothing of another system beside it.
+    """The README's Python subscriber, run as written (only its port and robot id changed),
+    prints the estimates of the system whose router it names, and nothing of another system
+    beside it.
 
     Run as a peer (Zenoh's default, as the example first was), it found a second system on
     the machine by multicast scouting, printed both systems' estimates mixed, and its gossip
@@ -143,12 +144,15 @@ def test_the_subscriber_example_reads_its_system_and_joins_no_other(free_port):
     another pipeline ran)."""
     blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
     script = next(b for b in blocks if "vistrack/robot/motion/estimate" in b)
+    key = "vistrack/robot/motion/estimate"
     assert "tcp/127.0.0.1:7447" in script
-    script = script.replace(":7447", f":{free_port}")
+    # a robot id of the test's own: the other system below answers multicast scouts, and a
+    # pipeline running on the machine (multicast scouting on) finds it too
+    mine_key = f"vistrack/readme{free_port}/motion/estimate"
+    script = script.replace(":7447", f":{free_port}").replace(key, mine_key)
     endpoint = f"tcp/127.0.0.1:{free_port}"
     # the other system: a peer that answers multicast scouts, as a service under `vistrack
-    # up` without --no-multicast-scouting does (it connects to nothing it finds itself; its
-    # estimates lack most fields, so a service that found it would refuse them)
+    # up` without --no-multicast-scouting does (it connects to nothing it finds itself)
     other = zenoh.Config()
     other.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
     other.insert_json5("scouting/multicast/autoconnect", '{"router": [], "peer": []}')
@@ -165,15 +169,14 @@ def test_the_subscriber_example_reads_its_system_and_joins_no_other(free_port):
         try:
             assert sub.stdout is not None and sub.stdin is not None
             assert sub.stdout.readline().startswith("press Enter")
-            key = "vistrack/robot/motion/estimate"
-            mine = ours.declare_publisher(key)
+            mine = ours.declare_publisher(mine_key)
             deadline = time.monotonic() + 20
             while not mine.matching_status.matching:  # the example has subscribed
                 assert time.monotonic() < deadline, "the example never subscribed"
                 time.sleep(0.05)
             for n in range(20):  # a second of each system's estimates
                 mine.put(estimate(1000 + n))
-                theirs.put(key, estimate(5000 + n))
+                theirs.put(mine_key, estimate(5000 + n))
                 time.sleep(0.05)
             time.sleep(0.5)
             out, err = sub.communicate("\n", timeout=20)

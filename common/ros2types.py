@@ -31,6 +31,7 @@ import dataclasses
 import functools
 import importlib.util
 import json
+import struct
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -99,8 +100,19 @@ def typestore() -> Typestore:
 
 
 def serialize(obj: Any) -> bytes:
-    """CDR bytes (little endian, with the 4-byte encapsulation header) of a rosbags message."""
-    return bytes(typestore().serialize_cdr(obj, obj.__msgtype__))
+    """CDR bytes (little endian, with the 4-byte encapsulation header) of a rosbags message.
+
+    Raises
+    ------
+    ValueError
+        When a value does not fit its field's type (a contract message may hold what a ROS 2
+        type cannot: an ``npi`` of 2^32, a stamp past 2038), naming the type; rosbags' own
+        ``struct.error`` named neither the field nor the type.
+    """
+    try:
+        return bytes(typestore().serialize_cdr(obj, obj.__msgtype__))
+    except (struct.error, OverflowError) as e:
+        raise ValueError(f"a value does not fit ROS 2 {obj.__msgtype__}: {e}") from None
 
 
 def deserialize(data: bytes | bytearray | memoryview, typename: str) -> Any:
@@ -138,9 +150,24 @@ def _type(typename: str) -> Any:
     return typestore().types[typename]
 
 
+#: The seconds ``builtin_interfaces/msg/Time`` holds (int32): 1901-12-13 to 2038-01-19 UTC.
+STAMP_SEC_RANGE = (-(2 ** 31), 2 ** 31 - 1)
+
+
 def stamp(stamp_ns: int) -> Any:
-    """``builtin_interfaces/msg/Time`` of ns since the Unix epoch."""
+    """``builtin_interfaces/msg/Time`` of ns since the Unix epoch.
+
+    Raises
+    ------
+    ValueError
+        When the time lies outside what the type's int32 seconds hold (:data:`STAMP_SEC_RANGE`).
+    """
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    lo, hi = STAMP_SEC_RANGE
+    if not lo <= sec <= hi:
+        raise ValueError(f"stamp_ns {int(stamp_ns)} lies outside what a ROS 2 "
+                         f"builtin_interfaces/msg/Time holds (int32 seconds, {lo} to {hi} s "
+                         "since the Unix epoch: 1901-12-13 to 2038-01-19 UTC)")
     return _type("builtin_interfaces/msg/Time")(sec=sec, nanosec=nanosec)
 
 

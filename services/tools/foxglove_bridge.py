@@ -29,6 +29,7 @@ import collections
 import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import foxglove
@@ -70,17 +71,16 @@ def _channel(ctx: foxglove.Context, key: str, typename: str) -> foxglove.Channel
 
 class _Latest:
     """Zenoh callback keeping the newest frame of each key (no queue: older ones are skipped
-    unread), and only while a client watches its channel."""
+    unread), and only while a client watches what is made of it (``watched(key)``)."""
 
-    def __init__(self, channels: dict[str, foxglove.Channel]) -> None:
-        self._channels = channels
+    def __init__(self, watched: Callable[[str], bool]) -> None:
+        self._watched = watched
         self._lock = threading.Lock()
         self.frames: dict[str, tuple[bytes, int]] = {}
 
     def __call__(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        channel = self._channels.get(key)
-        if channel is None or not channel.has_sinks():
+        if not self._watched(key):
             return
         item = (sample.payload.to_bytes(), time.time_ns())
         with self._lock:
@@ -108,18 +108,30 @@ class Bridge:
         self._recent: collections.deque[Estimate] = collections.deque(maxlen=_RECENT)
         self._frames_sent: collections.deque[int] = collections.deque(maxlen=_RECENT)
 
-    def _log(self, channel: foxglove.Channel, obj: Any, t_ns: int) -> None:
-        channel.log(r2.serialize(obj), log_time=t_ns)
+    def _log(self, key: str, channel: foxglove.Channel, make: Callable[[], Any],
+             t_ns: int) -> None:
+        """Send the ROS 2 message ``make()`` on ``channel``; one that cannot be made (a valid
+        message holding what its ROS 2 type cannot: a stamp past 2038) is counted and
+        skipped, as an invalid payload is, and the bridge goes on."""
+        try:
+            data = r2.serialize(make())
+        except ValueError as e:
+            self._refuse(key, f"skipping messages whose values no ROS 2 "
+                              f"{channel.schema_name()} holds (first: {e})")
+            return
+        channel.log(data, log_time=t_ns)
         self.sent[channel.topic()] += 1
+
+    def _refuse(self, key: str, why: str) -> None:
+        if not self.rejected[key]:
+            warn("foxglove", f"{key}: {why}")
+        self.rejected[key] += 1
 
     def _decode(self, key: str, payload: bytes) -> Any:
         try:
             return decode_any(key, payload)
         except MessageError as e:
-            if not self.rejected[key]:
-                warn("foxglove", f"{key}: skipping payloads that are not valid messages "
-                                 f"(first: {e})")
-            self.rejected[key] += 1
+            self._refuse(key, f"skipping payloads that are not valid messages (first: {e})")
             return None
 
     def frame(self, key: str, payload: bytes, t_ns: int) -> None:
@@ -127,7 +139,8 @@ class Bridge:
         msg = self._decode(key, payload)
         if msg is None:
             return
-        self._log(self.channels[key], r2.image(msg), t_ns)
+        if self.channels[key].has_sinks():
+            self._log(key, self.channels[key], lambda: r2.image(msg), t_ns)
         if key == self.frame_key:
             self._frames_sent.append(msg.stamp_ns)
             for est in self._recent:
@@ -147,7 +160,7 @@ class Bridge:
         if msg is None:
             return
         if watched:
-            self._log(channel, r2.to_ros(msg), t_ns)
+            self._log(key, channel, lambda: r2.to_ros(msg), t_ns)
         if isinstance(msg, Estimate):
             self._recent.append(msg)
             if msg.stamp_ns in self._frames_sent:
@@ -156,10 +169,20 @@ class Bridge:
     def _overlays_watched(self) -> bool:
         return any(c.has_sinks() for c in self.overlays.values())
 
+    def frame_watched(self, key: str) -> bool:
+        """Whether a client watches what is made of the frames of ``key``: their channel, or
+        for the camera's the overlays drawn at them (sent at the frames' rate, a client
+        watching only the features and centroid got nothing)."""
+        channel = self.channels.get(key)
+        if channel is None:
+            return False
+        return channel.has_sinks() or (key == self.frame_key and self._overlays_watched())
+
     def _overlays(self, est: Estimate, t_ns: int) -> None:
         for key, channel in self.overlays.items():
             if channel.has_sinks():
-                self._log(channel, r2.OVERLAYS[key_suffix(key)](est), t_ns)
+                draw = r2.OVERLAYS[key_suffix(key)]
+                self._log(key, channel, lambda draw=draw: draw(est), t_ns)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -174,8 +197,7 @@ def serve(session: zenoh.Session, keys: Keys, args: argparse.Namespace) -> int:
                                        port=args.port, context=ctx)
     except RuntimeError as e:  # FoxgloveError: the port is taken, the address is not ours
         raise ToolError(f"cannot serve on {args.host}:{args.port}: {e}") from None
-    latest = _Latest({k: bridge.channels[k] for k in bridge.channels
-                      if key_suffix(k) in FRAME_KEYS})
+    latest = _Latest(bridge.frame_watched)
     inbox = Inbox(capacity=10_000)
     period = 1.0 / args.frame_rate
     start = time.monotonic()

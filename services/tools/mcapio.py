@@ -32,7 +32,7 @@ import json
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import BinaryIO
 
 import mcap.writer
 import zstandard
@@ -106,7 +106,8 @@ class McapWriter:
     count : samples written (overlays not counted).
     keys_seen : keys of the samples written.
     skipped : key -> samples not written because the key has no ROS 2 type.
-    rejected : key -> samples not written because the payload is not a valid message.
+    rejected : key -> samples not written because the payload is not a valid message, or
+        holds a value its ROS 2 type cannot (a stamp past 2038: int32 seconds).
     last_error : key -> why the last rejected sample of that key was rejected.
 
     Raises
@@ -156,29 +157,31 @@ class McapWriter:
             return False
         try:
             msg = decode_any(key, payload)
-        except MessageError as e:
+            # every message of the sample made before any is written: all or none
+            parts = [(key, typename, r2.serialize(r2.to_ros(msg)))]
+            if isinstance(msg, Estimate):
+                root = key[:-len(suffix)]
+                parts += [(root + overlay, r2.IMAGE_MARKER, r2.serialize(draw(msg)))
+                          for overlay, draw in r2.OVERLAYS.items()]
+        except (MessageError, ValueError) as e:  # ValueError: valid, but no ROS 2 message
             self.rejected[key] += 1
             self.last_error[key] = str(e)
             return False
         t_ns = max(int(t_ns), self._last_t)
         self._last_t = t_ns
-        self._add(key, typename, r2.to_ros(msg), t_ns, msg.stamp_ns, msg.seq)
-        if isinstance(msg, Estimate):
-            root = key[:-len(suffix)]
-            for overlay, draw in r2.OVERLAYS.items():
-                self._add(root + overlay, r2.IMAGE_MARKER, draw(msg), t_ns, msg.stamp_ns,
-                          msg.seq)
+        for part_key, part_type, data in parts:
+            self._add(part_key, part_type, data, t_ns, msg.stamp_ns, msg.seq)
         self.count += 1
         self.keys_seen.add(key)
         return True
 
-    def _add(self, key: str, typename: str, obj: Any, t_ns: int, stamp_ns: int,
+    def _add(self, key: str, typename: str, data: bytes, t_ns: int, stamp_ns: int,
              seq: int) -> None:
         channel = self._channels.get(key)
         if channel is None:
             channel = self._channels[key] = self._mcap.register_channel(
                 topic=topic_of(key), message_encoding="cdr", schema_id=self._schema(typename))
-        self._mcap.add_message(channel_id=channel, log_time=t_ns, data=r2.serialize(obj),
+        self._mcap.add_message(channel_id=channel, log_time=t_ns, data=data,
                                publish_time=stamp_ns, sequence=seq % _SEQ_MOD)
 
     def _schema(self, typename: str) -> int:

@@ -318,3 +318,64 @@ def test_a_truncated_mcap_replays_up_to_the_damage_then_exits_2(run, tmp_path):
     assert len(error) == 1 and error[0].startswith("vistrack replay: error: ")
     assert str(cut) in error[0] and "truncated" in error[0] and "byte offset" in error[0]
     assert any("valid samples before byte offset" in line for line in lines)
+
+
+def test_the_bridge_sends_overlays_alone_and_skips_what_ros_2_cannot_hold(free_port):
+    """A client watching only the overlays (features, centroid) gets them at the frames'
+    rate: the bridge took the camera's frames only while their own channel was watched, and
+    sent such a client nothing. And a valid estimate that no ROS 2 message holds (a stamp
+    past 2038: int32 seconds) is counted and skipped, not the end of the bridge (it died on
+    rosbags' struct.error), and the overlays go on."""
+    import numpy as np
+
+    from vistrack.common.messages import encode_estimate, encode_frame
+
+    with router(free_port) as ep, zenoh.open(zenoh_config(ep)) as session:
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            ws_port = sock.getsockname()[1]
+        bridge = Proc(["foxglove", "--port", str(ws_port), "--frame-rate", "20", "-e", ep, NS])
+        try:
+            bridge.wait_for("serving")
+            with connect(f"ws://127.0.0.1:{ws_port}", max_size=None,
+                         subprotocols=["foxglove.sdk.v1"]) as ws:
+                client = FoxgloveClient(ws)
+                overlays = {f"/{ROOT}/{s}" for s in r2.OVERLAYS}
+                client.advertised(overlays | {f"/{ROOT}/camera/frame"})
+                client.channels = {cid: c for cid, c in client.channels.items()
+                                   if c["topic"] in overlays}
+                client.subscribe_all()
+                image = np.zeros((48, 64), np.uint8)
+                image[10:20, 10:20] = 255
+                seq = 0
+
+                def frame_and_estimate(stamp_ns: int) -> None:
+                    nonlocal seq
+                    session.put(f"{ROOT}/camera/frame",
+                                encode_frame(image, seq=seq, stamp_ns=stamp_ns))
+                    session.put(f"{ROOT}/motion/estimate", encode_estimate(
+                        seq=seq, stamp_ns=stamp_ns, npi=3, xc=20.0, yc=15.0, xe=2.0, ye=1.0,
+                        dx=0.0, dy=0.0, scale=1.0, t_ms=0.1, first=seq == 0,
+                        ids=np.arange(3), points=np.array([[10.0, 10], [20, 15], [30, 20]]),
+                        params_id=0))
+                    seq += 1
+                    time.sleep(0.06)  # beyond the bridge's frame period
+
+                features = f"/{ROOT}/camera/features"
+                for _ in range(10):
+                    frame_and_estimate(time.time_ns())
+                client.receive(lambda c: c.received[features] >= 3, 10)
+                assert client.received[features] >= 3, client.received
+                assert client.received[f"/{ROOT}/camera/frame"] == 0  # not subscribed
+                # valid for the contract, past what ROS 2 time holds
+                frame_and_estimate(2 ** 31 * 1_000_000_000 + 5)
+                bridge.wait_for("no ROS 2", timeout=10)
+                before = client.received[features]
+                for _ in range(10):
+                    frame_and_estimate(time.time_ns())
+                client.receive(lambda c: c.received[features] >= before + 3, 10)
+                assert client.received[features] >= before + 3, client.received
+            assert bridge.p.poll() is None, "\n".join(bridge.lines)
+        finally:
+            code = _stop(bridge)
+    assert code == 0, "\n".join(bridge.lines)

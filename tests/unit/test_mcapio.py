@@ -286,3 +286,29 @@ def test_a_vtr_cut_inside_a_record_names_where_that_record_starts(tmp_path, cut_
     assert got == [1000, 1001, 1002, 1003, 1004]
     assert str(e.value) == (f"{tmp_path / 'cut.vtr'} at byte offset {starts[-1]}: truncated "
                             f"record: the file ends inside it ({cut_into} bytes of it present)")
+
+
+def test_a_valid_message_no_ros_2_type_holds_is_rejected_and_the_file_goes_on(tmp_path):
+    """An estimate stamped past 2038 is valid for the contract, but ROS 2 time holds int32
+    seconds: the writer counts it rejected, names why, writes none of its messages (nor its
+    overlays), and writes what comes after (``record`` died on rosbags' struct.error, and
+    ``export`` left a file of the samples before it)."""
+    samples = [(k, p, t) for k, p, t in _samples(4) if k.endswith("motion/estimate")]
+    key, payload, t_ns = samples[1]
+    late = msgpack.unpackb(payload)
+    late["stamp_ns"] = 2 ** 31 * 1_000_000_000  # 2038-01-19T03:14:08Z
+    path = tmp_path / "late.mcap"
+    with McapWriter(path, robot="robot", keys=[f"{ROOT}/**"]) as writer:
+        assert writer.write_at(*samples[0])
+        assert not writer.write_at(key, msgpack.packb(late), t_ns)
+        assert writer.write_at(*samples[2])
+    assert writer.rejected[key] == 1 and writer.count == 2
+    assert "2038-01-19" in writer.last_error[key] and "int32" in writer.last_error[key]
+    _, _, rows = _read(path)
+    stamps = {(dec.header.stamp.sec, dec.header.stamp.nanosec) for *_, dec in rows}
+    written = {divmod(msgpack.unpackb(p)["stamp_ns"], 1_000_000_000) for _, p, _ in
+               (samples[0], samples[2])}
+    assert stamps == written
+    per_topic = {topic for topic, *_ in rows}
+    assert {f"/{ROOT}/motion/estimate", *(f"/{ROOT}/{s}" for s in r2.OVERLAYS)} <= per_topic
+    assert len(rows) == 2 * (1 + len(r2.OVERLAYS))  # two samples, each with its overlays

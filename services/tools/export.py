@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -63,9 +64,21 @@ def _origin(recording: Recording | McapRecording) -> tuple[str, list[str], int |
     return robot, keys, start if isinstance(start, int) else None
 
 
+def _same_file(a: str, b: str) -> bool:
+    """Whether ``a`` and ``b`` name one file: one path, a symbolic link, or a hard link
+    (which ``Path.resolve`` does not see: an export onto a hard link of its input emptied
+    the input, 16 MB to 108 bytes, before it read a record)."""
+    if Path(a).resolve() == Path(b).resolve():
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # either does not exist (yet): not one file
+        return False
+
+
 def main(args: argparse.Namespace) -> int:
     try:
-        if Path(args.input).resolve() == Path(args.output).resolve():
+        if _same_file(args.input, args.output):
             raise ToolError(f"{args.output}: OUT is IN: write the export to another file",
                             code=2)
         recording = open_recording(args.input)

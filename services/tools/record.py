@@ -304,16 +304,37 @@ def _recorded(key: str) -> bool:
     return not (suffix.startswith("alive/") or suffix.endswith("/status"))
 
 
+def check_writable(path: str | Path) -> None:
+    """ToolError (code 2) where ``path`` cannot be written, an existing file left untouched
+    (nothing truncated) and none left behind."""
+    p = Path(path)
+    existed = p.exists()
+    try:
+        with open(p, "ab"):
+            pass
+    except OSError as e:
+        raise ToolError(f"cannot write {str(path) or repr(str(path))}: {e.strerror}",
+                        code=2) from None
+    if not existed:
+        p.unlink(missing_ok=True)
+
+
 def main(args: argparse.Namespace) -> int:
     try:
         keys = Keys(args.robot)
         exprs = sorted({resolve_key(keys, k, "record") for k in args.keys}) or [f"{keys.root}/**"]
-        writer = open_writer(args.file, args.format, robot=args.robot, keys=exprs)
+        check_writable(args.file)
     except ToolError as e:
         error("record", e)
         return e.code
-    with writer:
-        return run("record", args, lambda session, _keys: record(session, writer, exprs, args))
+
+    def connected(session: zenoh.Session, _keys: Keys) -> int:
+        # the file is created (an existing one emptied) once the router answered: a
+        # recorder that cannot connect leaves it as it was (it cut a 16 MB recording to
+        # its 108-byte header, then said "cannot connect")
+        with open_writer(args.file, args.format, robot=args.robot, keys=exprs) as writer:
+            return record(session, writer, exprs, args)
+    return run("record", args, connected)
 
 
 def record(session: zenoh.Session, writer: Writer, exprs: list[str],

@@ -53,11 +53,15 @@ def taken_port() -> Iterator[int]:
         yield sock.getsockname()[1]
 
 
-def test_no_router_at_the_endpoint_is_one_line_and_exit_1(free_port):
+def test_no_router_at_the_endpoint_is_one_line_and_exit_1(free_port, tmp_path):
     # in peer mode Zenoh opens a session anyway and retries in silence: the tool waited
     # forever with no output
     endpoint = f"tcp/127.0.0.1:{free_port}"
+    # a recording of the day before: the recorder emptied it to its header, then failed
+    kept = tmp_path / "yesterday.vtr"
+    kept.write_bytes(b"a recording of the day before")
     results = finish({
+        "record": start("record", str(kept), "-e", endpoint, NS),
         "echo": start("echo", "motion/estimate", "--count", "5", "-e", endpoint, NS),
         "status": start("status", "-e", endpoint, NS),
         "preprocessing": start("preprocessing", "-e", endpoint, NS),
@@ -67,6 +71,7 @@ def test_no_router_at_the_endpoint_is_one_line_and_exit_1(free_port):
         assert (code, out, err) == (1, "", f"vistrack {name}: error: cannot connect to "
                                     f"{endpoint}: nothing answers there (is vistrack up or "
                                     "vistrack router running, on that port?)\n"), name
+    assert kept.read_bytes() == b"a recording of the day before"
 
 
 def test_a_taken_port_is_one_line_and_exit_1(taken_port, tmp_path):

@@ -9,6 +9,7 @@ Frames are the built-in sequence, estimates the real tracker's over them.
 from __future__ import annotations
 
 import json
+import os
 
 import msgpack
 import numpy as np
@@ -176,6 +177,28 @@ def test_export_vtr_to_mcap_and_back_keeps_every_sample(samples, tmp_path):
     records = list(Recording(back).records())
     assert [(r.key, r.t_ns) for r in records] == [(k, t) for k, _, t in samples
                                                   if "sim/pose" not in k]
+
+
+@pytest.mark.parametrize("link", ["hard", "symbolic"])
+def test_export_onto_a_link_to_its_input_is_refused_and_the_input_kept(samples, tmp_path,
+                                                                       link):
+    """OUT a hard link of IN is IN: the export emptied it (16 MB to 108 bytes) before it read
+    a record, as ``Path.resolve`` does not see hard links."""
+    vtr = tmp_path / "run.vtr"
+    with RecordWriter(vtr, robot="robot", keys=[f"{ROOT}/**"]) as writer:
+        for key, payload, t_ns in samples:
+            writer.write_at(key, payload, t_ns)
+    before = vtr.read_bytes()
+    other = tmp_path / "other.vtr"
+    if link == "hard":
+        os.link(vtr, other)
+    else:
+        other.symlink_to(vtr)
+    run = vistrack("export", vtr, other)
+    assert run.returncode == 2
+    assert run.stderr == f"vistrack export: error: {other}: OUT is IN: write the export to " \
+                         "another file\n"
+    assert vtr.read_bytes() == before
 
 
 def test_a_truncated_file_replays_up_to_the_damage(recording, tmp_path):

@@ -279,7 +279,7 @@ class McapRecording:
         """
         schemas: dict[int, Schema] = {}
         channels: dict[int, tuple[str, str, str] | None] = {}  # id -> (key, suffix, type)
-        last_seq: dict[int, int] = {}
+        last_seq: dict[int, tuple[int, int]] = {}  # channel -> (sequence, seq) of its last
         with open(self.path, "rb") as f:
             reader = iter(StreamReader(f, validate_crcs=True).records)
             start = 0  # where the record being taken apart (a chunk) starts
@@ -327,13 +327,22 @@ class McapRecording:
             return key, suffix, expected
         return None
 
-    def _sample(self, msg: Message, target: tuple[str, str, str], last_seq: dict[int, int],
+    def _sample(self, msg: Message, target: tuple[str, str, str],
+                last_seq: dict[int, tuple[int, int]],
                 offset: int) -> Record:
         key, suffix, typename = target
-        # the 32-bit sequence, unwrapped: it counts on from the last one of the channel
+        # the 32-bit sequence, unwrapped: it counts on from the last one of the channel. A
+        # sequence that does not move is not one: counted here (vistrack writes a sample
+        # once, so its channels' sequences always move; rosbag2 and other writers leave it
+        # 0, and every frame of such a file was seq 0, a camera restart each, no frame
+        # tracked)
         last = last_seq.get(msg.channel_id)
-        seq = msg.sequence if last is None else last + (msg.sequence - last) % _SEQ_MOD
-        last_seq[msg.channel_id] = seq
+        if last is None:
+            seq = msg.sequence
+        else:
+            raw, counted = last
+            seq = counted + ((msg.sequence - raw) % _SEQ_MOD or 1)
+        last_seq[msg.channel_id] = (msg.sequence, seq)
         try:
             obj = r2.deserialize(msg.data, typename)
             payload = r2.of_ros(suffix, obj, seq=seq, stamp_ns_=msg.publish_time).encode()

@@ -223,14 +223,34 @@ def test_a_truncated_file_replays_up_to_the_damage(recording, tmp_path):
         McapRecording(cut)
 
 
-def _foreign(path, topic: str, typename: str, msgdef: str, message: dict) -> None:
-    """An MCAP file from another program: mcap-ros2-support's writer and CDR encoder."""
+def _foreign(path, topic: str, typename: str, msgdef: str, message: dict,
+             more: int = 0) -> None:
+    """An MCAP file from another program: mcap-ros2-support's writer and CDR encoder; with
+    ``more``, that many more messages after the first, 33 ms apart, with the sequence such
+    writers leave (0, its default, as rosbag2 writes it)."""
     with open(path, "wb") as f:
         writer = Ros2Writer(f)
         schema = writer.register_msgdef(typename, msgdef)
         writer.write_message(topic=topic, schema=schema, message=message, log_time=T0,
-                             publish_time=T0, sequence=5)
+                             publish_time=T0, sequence=0 if more else 5)
+        for k in range(1, more + 1):
+            t = T0 + k * 33_000_000
+            writer.write_message(topic=topic, schema=schema, message=message, log_time=t,
+                                 publish_time=t)
         writer.finish()
+
+
+def test_frames_of_a_writer_that_leaves_the_sequence_0_are_numbered_in_order(tmp_path):
+    """rosbag2 (and mcap-ros2-support's writer by default) leave every message's sequence 0:
+    replayed, every frame was seq 0, which motion-estimation takes for a camera restarted,
+    so each estimate was a first one and nothing was tracked."""
+    path = tmp_path / "bag.mcap"
+    image = {"header": {"stamp": {"sec": 1700000000, "nanosec": 0}, "frame_id": "cam"},
+             "height": 2, "width": 3, "encoding": "mono8", "is_bigendian": 0, "step": 3,
+             "data": bytes(range(6))}
+    _foreign(path, f"/{ROOT}/camera/frame", r2.IMAGE, r2.msgdef(r2.IMAGE), image, more=4)
+    seqs = [decode_any(r.key, r.payload).seq for r in McapRecording(path).records()]
+    assert seqs == [0, 1, 2, 3, 4]
 
 
 def test_an_estimate_written_by_another_encoder_is_read_back(tmp_path):

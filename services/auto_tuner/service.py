@@ -35,7 +35,8 @@ to a quarter of its CPU; at camera resolutions each frame is a megabyte or more)
 The parameters in force are published again every second (same ``params_id``) for late
 joiners. ``--no-tune`` keeps only that reminder (no frame is taken). Status ``extra``:
 buffered, tunings, last_reason, tuning, last_cycle_s, pending, scene_distance, scale_ratio,
-skipped, every_frame (frames are all taken now, not sampled).
+skipped, failed, every_frame (frames are all taken now, not sampled), tuning_disabled (why,
+once WORKER_STARTS workers in a row died before they were ready).
 
 A buffer with too little texture to tune on (the reference windows track fewer than 3
 features on most frames: a covered lens, a dark room) is not tuned on: every window size would
@@ -188,6 +189,8 @@ class AutoTuner:
         self.stamp_ns = 0
         self._said: set[str] = set()  # the changes logged at INFO since the last start
         self.every_frame = False  # frames are taken one after the other into the buffer
+        self.last_seq = -1  # seq of the newest buffered frame
+        self.start_failures = 0  # workers in a row that died before they were ready
         self.next_sample = 0.0  # when the next frame for the scene signal is taken
         self.watched = -math.inf  # when the last estimate was taken (monotonic)
         self.fast = False  # it came less than 1.5 ESTIMATE_PERIOD_S after the one before
@@ -328,6 +331,20 @@ class AutoTuner:
         if self.frames and self.frames[-1][0].shape != pixels.shape:
             self.frames.clear()  # another camera: one tuning runs on one frame size
             self.offered = 0
+        elif self.frames and (msg.seq <= self.last_seq or (
+                msg.seq - self.last_seq > BREAK_SEQ
+                and msg.stamp_ns - self.frames[-1][1] > BREAK_S * 1e9)):
+            # a camera restarted (seq back), another one, or frames missed for a while: the
+            # buffer's frames are not consecutive with this one, and a tuning on both sides
+            # of the break ran on two scenes (19 of one, 11 of another) and took them for
+            # one reference. A pending tuning waits for a full buffer again. (Frames skipped
+            # by an unpaced pipeline's latest-only delivery come within BREAK_S.)
+            log.info("frames broke off (seq %d after %d): the buffer starts again",
+                     msg.seq, self.last_seq)
+            self.frames.clear()
+            self.offered = 0
+            self.triggers.restart()
+        self.last_seq = msg.seq
         self.frames.append((pixels, msg.stamp_ns))
         self.offered = min(self.offered + 1, self.args.buffer)
         # only the frames a cycle runs on are kept (the latest within --max-megapixels): a
@@ -372,12 +389,24 @@ class AutoTuner:
             return
         try:
             result = self.worker.poll()
+            if self.worker.ready:
+                self.start_failures = 0
         except (EOFError, OSError) as e:
             self.node.status.error(f"tuning worker died: {e!r}")
             self.worker.close()
-            if not self.worker.ready:  # it cannot even start: retrying would only spin
-                log.error("tuning worker died at start-up (%r): tuning disabled", e)
+            if not self.worker.ready:
+                self.start_failures += 1
+            if self.start_failures >= WORKER_STARTS:  # it cannot start: retrying would spin
+                log.error("tuning worker died at start-up %d times in a row (last: %r): "
+                          "tuning disabled", self.start_failures, e)
                 self.worker = None
+                self.every_frame = False
+                self.node.unsubscribe(self.node.keys.frame)
+                self.node.status.extra.update(tuning=False, every_frame=False, pending=None,
+                                              tuning_disabled=f"the tuning worker died at "
+                                              f"start-up {self.start_failures} times: {e!r}")
+                self.node.status.error(f"tuning disabled: the tuning worker died at start-up "
+                                       f"{self.start_failures} times in a row ({e!r})")
                 return
             log.error("tuning worker died (%r): starting another", e)
             self.worker = Worker()
@@ -413,11 +442,13 @@ class AutoTuner:
         extra.update(tuning=False, last_cycle_s=round(cycle, 3))
         if result[0] == "skipped":  # a covered lens, a dark room: again on new frames
             self.triggers.finished(now, ok=False, refill=True)
-            extra["skipped"] = extra.get("skipped", 0) + 1
+            extra.update(skipped=extra.get("skipped", 0) + 1, pending=self.triggers.pending)
             log.warning("tuning (%s) skipped: %s", self.reason, result[1])
             return
         if result[0] != "ok":
             self.triggers.finished(now, ok=False)
+            # due again: said now, not at the next frame (there may be none for a while)
+            extra.update(failed=extra.get("failed", 0) + 1, pending=self.triggers.pending)
             self.node.status.error(f"tuning failed: {result[1]}")
             log.error("tuning (%s) failed: %s", self.reason, result[1])
             return
@@ -468,6 +499,14 @@ class AutoTuner:
         self.node.publish(self.node.keys.report, payload, reliable=True)
 
 
+#: Workers in a row that may die before they are ready (a start-up that fails, or one killed)
+#: before tuning is disabled: one killed while it warmed up disabled it for good.
+WORKER_STARTS = 3
+#: Frames missed (``seq`` jumping by more than BREAK_SEQ, the tracker's MAX_GAP: beyond it its
+#: prediction is a guess) over more than BREAK_S s break the buffer's run of consecutive
+#: frames (:meth:`AutoTuner._buffer`).
+BREAK_SEQ = 8
+BREAK_S = 0.5
 #: How long a restarted tuner waits for motion-estimation's status (the set in force), s
 IN_FORCE_QUERY_S = 0.5
 

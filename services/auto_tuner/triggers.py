@@ -277,8 +277,10 @@ class Triggers:
         if self._scene.update(self.distance / self.config.scene_threshold):
             self.why = (f"scene distance {self.distance:.2f} (threshold "
                         f"{self.config.scene_threshold:g})")
-            # the frames since the signal rose show the new scene already
-            return self._change(SCENE, fresh=self._scene.count)
+            # the frames since the signal rose show the new scene already, those the
+            # buffer holds (a signal that rose on sampled frames, before the buffer started
+            # again, counted frames never buffered: a tuning on 29 of --buffer 30)
+            return self._change(SCENE, fresh=min(self._scene.count, self.fresh))
         return None
 
     def estimate(self, *, first: bool, npi: int, ids: set[int] | list[int],

@@ -148,3 +148,84 @@ def test_the_buffer_keeps_only_the_frames_a_cycle_runs_on():
         for n in range(6):
             tuner.feed(key, Frame.from_image(big, seq=n, stamp_ns=10**9 + n).encode())
         assert node.status.extra["buffered"] == 4
+
+
+def test_a_camera_restarted_while_the_buffer_fills_starts_it_again():
+    """Frames of one camera, then another's (``seq`` back to 0): the buffer held both sides
+    of the cut, and the tuning ran on two scenes (19 frames of one, 11 of the other) and
+    took them for one reference. It starts again at the cut, and the tuning waits for a
+    whole buffer of the new frames."""
+    scene_a = sequence(BUFFER, motion=Motion(dx=1.0), seed=1)
+    scene_b = sequence(BUFFER, motion=Motion(dx=-1.0), seed=5)
+    with Running("auto-tuner", "--buffer", str(BUFFER), "--min-interval", "0",
+                 "--tune-sweep-step", "5") as tuner:
+        key, extra = tuner.node.keys.frame, tuner.node.status.extra
+        for seq, image in enumerate(scene_a[:BUFFER - 2]):
+            tuner.feed(key, Frame.from_image(image, seq=seq, stamp_ns=10**9 + seq).encode())
+        assert extra["buffered"] == BUFFER - 2
+        for seq, image in enumerate(scene_b[:BUFFER - 1]):  # the other camera, from seq 0
+            tuner.feed(key, Frame.from_image(image, seq=seq, stamp_ns=2 * 10**9 + seq).encode())
+            assert extra["buffered"] == seq + 1
+        time.sleep(0.3)
+        assert extra["tunings"] == 0 and not extra["tuning"]  # BUFFER - 1 of the new frames
+        tuner.feed(key, Frame.from_image(scene_b[-1], seq=BUFFER - 1,
+                                         stamp_ns=2 * 10**9 + BUFFER).encode())
+        _until(lambda: extra["tunings"] == 1, "the initial tuning")
+
+
+def test_frames_missed_for_a_while_start_the_buffer_again_and_a_few_skipped_do_not():
+    images = sequence(3 * BUFFER, motion=Motion(dx=1.0), seed=1)
+    with Running("auto-tuner", "--buffer", str(3 * BUFFER), "--min-interval", "0") as tuner:
+        key, extra = tuner.node.keys.frame, tuner.node.status.extra
+
+        def feed(i: int, seq: int, t_s: float) -> None:
+            tuner.feed(key, Frame.from_image(images[i], seq=seq,
+                                             stamp_ns=int((1 + t_s) * 1e9)).encode())
+        for i in range(4):  # 30 fps
+            feed(i, i, i / 30)
+        feed(4, 12, 12 / 30)  # 8 frames skipped in 0.3 s: latest-only at speed
+        assert extra["buffered"] == 5
+        feed(5, 60, 2.0)  # 40 frames missed over 1.3 s: the stream broke off
+        assert extra["buffered"] == 1
+
+
+def test_a_worker_killed_while_it_starts_is_replaced_and_three_in_a_row_disable_tuning():
+    """A worker that dies before it is ready (killed, out of memory) was taken for one that
+    cannot start: tuning was off for good after one, with the status still ok and its
+    every_frame and pending stale. A replacement starts; three in a row turn tuning off,
+    said in the status."""
+    import multiprocessing
+    import os
+    import signal
+
+    def kill_the_worker_before_it_is_ready(pid_before: int | None) -> int:
+        deadline = time.monotonic() + 30
+        while True:
+            workers = [p for p in multiprocessing.active_children()
+                       if p.name == "auto-tuner-worker" and p.pid != pid_before
+                       and p.is_alive()]
+            if workers:
+                os.kill(workers[0].pid, signal.SIGKILL)  # it takes ~1 s to be ready
+                return workers[0].pid
+            assert time.monotonic() < deadline, "no worker started"
+            time.sleep(0.002)
+
+    images = sequence(BUFFER, motion=Motion(dx=1.0), seed=1)
+    with Running("auto-tuner", "--buffer", str(BUFFER), "--min-interval", "0",
+                 "--tune-sweep-step", "5") as tuner:
+        key, extra = tuner.node.keys.frame, tuner.node.status.extra
+        killed = kill_the_worker_before_it_is_ready(None)
+        # the replacement is ready, and tunes
+        for seq, image in enumerate(images):
+            tuner.feed(key, Frame.from_image(image, seq=seq, stamp_ns=10**9 + seq).encode())
+        _until(lambda: extra["tunings"] == 1, "a tuning by the replacement")
+        assert "tuning_disabled" not in extra
+    with Running("auto-tuner", "--buffer", str(BUFFER)) as tuner:
+        extra = tuner.node.status.extra
+        killed = None
+        for _ in range(3):
+            killed = kill_the_worker_before_it_is_ready(killed)
+        _until(lambda: "tuning_disabled" in extra, "tuning disabled")
+        assert "3 times" in extra["tuning_disabled"]
+        assert extra["every_frame"] is False and extra["pending"] is None
+        assert not tuner.node.subscribed(tuner.node.keys.frame)

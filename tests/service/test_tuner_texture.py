@@ -39,6 +39,8 @@ def test_the_auto_tuner_skips_a_cycle_on_a_covered_lens_and_keeps_its_parameters
         extra = dict(node.status.extra)
         published = [Params.decode(p) for p in node.published_on(node.keys.params)]
     assert extra["skipped"] == 1 and extra["tunings"] == 0 and not extra["tuning"]
+    # due again, said at once (it said None until a frame came, maybe long after)
+    assert extra["pending"] == "initial tuning"
     assert node.status.last_error in ("", None)  # not a fault
     # only the start-up announcement of the parameters in force, repeated; nothing tuned
     assert published and {(p.params_id, p.reason) for p in published} == \

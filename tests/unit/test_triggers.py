@@ -135,6 +135,21 @@ def test_scene_change_waits_for_a_refilled_buffer_and_the_interval(scene_a, scen
     assert feed(t, scene_b[5:]) == []  # the new scene is the reference now
 
 
+def test_a_scene_confirmed_after_the_buffer_started_again_counts_only_its_frames(
+        scene_a, scene_b):
+    """The frames since the scene signal rose count as fresh, but only those the buffer
+    holds: frames seen before it started again (``restart``: samples, not buffered) made a
+    tuning run on 29 frames of ``--buffer 30``."""
+    t = Triggers(TriggerConfig(buffer=5, min_interval_s=0, confirm=3))
+    feed(t, scene_a[:5])
+    t.started()
+    t.finished(now=2.0)
+    assert feed(t, scene_b[:2]) == []  # raised twice, on samples
+    t.restart()  # the buffer starts again
+    assert feed(t, scene_b[2:3]) == [SCENE]  # the third confirms
+    assert t.fresh == 1
+
+
 def test_frames_are_wanted_one_after_the_other_only_while_a_tuning_waits_for_them(
         scene_a, scene_b):
     t = Triggers(TriggerConfig(buffer=4, min_interval_s=10, confirm=2))

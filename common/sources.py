@@ -27,9 +27,18 @@ import numpy as np
 from . import synthetic
 from .vision.preprocess import Grey
 
-IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
+#: Image files a folder or glob source takes: those cv2.imread reads (OpenEXR is off in
+#: OpenCV's wheels). The Netpbm, JPEG 2000, Radiance, PFM and Sun raster ones were left out:
+#: a folder of .pnm files held "no image".
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".jpe", ".bmp", ".dib", ".tif", ".tiff", ".pgm",
+              ".ppm", ".pbm", ".pnm", ".pam", ".pxm", ".webp", ".jp2", ".hdr", ".pic", ".pfm",
+              ".ras", ".sr")
 VIDEO_EXTS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 BUILTIN = "builtin"
+#: The slowest paced camera, frames a second (``--fps``: 0, unpaced, or at least this): the
+#: simulator steps its robot at most 10 s at a time, and below it ``--fps 1e-10`` crashed the
+#: file camera's sleep (time_t overflow) and stamped the simulator's frames past int64.
+MIN_FPS = 0.1
 #: Frame sides ``parse_size`` accepts by default, px.
 SIZE_RANGE = (8, 8192)
 #: Camera device indices ``device:N`` accepts (cv2.VideoCapture(-1) crashes the process).

@@ -58,15 +58,20 @@ class Range:
     integer: bool = False
     lo_open: bool = False
     unit: str = ""
+    or_zero: bool = False  # 0 allowed too (an "off" value below lo)
 
     def allowed(self, metavar: str = "X") -> str:
-        """``0..1000``, ``0 < S <= 3600``, with the unit after it if any."""
+        """``0..1000``, ``0 < S <= 3600``, ``0 or 0.1..1000``, with the unit after it if any."""
         text = (f"{_num(self.lo)} < {metavar} <= {_num(self.hi)}" if self.lo_open
                 else f"{_num(self.lo)}..{_num(self.hi)}")
+        if self.or_zero:
+            text = f"0 or {text}"
         return f"{text} {self.unit}" if self.unit else text
 
     def contains(self, value: float) -> bool:
         """Whether ``value`` is allowed (False for NaN)."""
+        if self.or_zero and value == 0:
+            return True
         above = self.lo < value if self.lo_open else self.lo <= value
         return above and value <= self.hi
 
@@ -106,17 +111,20 @@ class _Number(argparse.Action):
 
 
 def add_number(parser: Any, *names: str, lo: float, hi: float, integer: bool = False,
-               lo_open: bool = False, unit: str = "", **kwargs: Any) -> argparse.Action:
+               lo_open: bool = False, unit: str = "", or_zero: bool = False,
+               **kwargs: Any) -> argparse.Action:
     """``parser.add_argument(*names, **kwargs)`` for a number in ``lo..hi`` (``lo`` excluded
-    when ``lo_open``, whole numbers when ``integer``). ``parser`` may be an argument group.
-    The help may say ``%(allowed)s`` for the range. Defaults are not checked: give valid ones.
+    when ``lo_open``, whole numbers when ``integer``, 0 as well when ``or_zero``). ``parser``
+    may be an argument group. The help may say ``%(allowed)s`` for the range. Defaults are
+    not checked: give valid ones.
     """
     if "type" in kwargs or "nargs" in kwargs:
         raise TypeError("add_number parses one value itself: no type= or nargs=")
     if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
         raise ValueError(f"range {lo}..{hi} of {names} is not a finite interval")
     action: argparse.Action = parser.add_argument(
-        *names, action=_Number, range=Range(lo, hi, integer, lo_open, unit), **kwargs)
+        *names, action=_Number, range=Range(lo, hi, integer, lo_open, unit, or_zero),
+        **kwargs)
     return action
 
 

@@ -46,6 +46,7 @@ from ...common.bus import Node
 from ...common.messages import MAX_SIDE, encode_frame, peek_int
 from ...common.sources import (
     BUILTIN,
+    MIN_FPS,
     DeviceFrames,
     FileFrames,
     SourceError,
@@ -55,7 +56,7 @@ from ...common.sources import (
     open_files,
     parse_size,
 )
-from ..runtime import Faults, add_service_args, ready, serve, wait_for_consumers
+from ..runtime import Faults, add_service_args, paced, ready, serve, wait_for_consumers
 from ..usage import add_number, print_error, say_on_stderr
 from .ros2cam import default_domain, is_ros2, run_ros2, topic_of
 from .simcam import make_simulator, run_sim
@@ -81,9 +82,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "sensor_msgs/msg/Image topic over rmw_zenoh, e.g. "
                              "ros2:/camera/image_raw; CompressedImage when the topic ends in "
                              "/compressed)")
-    add_number(parser, "--fps", lo=0, hi=1000, default=0.0, metavar="F",
+    add_number(parser, "--fps", lo=MIN_FPS, hi=1000, or_zero=True, default=0.0, metavar="F",
                help="frames per second, %(allowed)s; 0 = as fast as the pipeline takes them "
-                    "(default 0)")
+                    "(default 0; the simulator's 0 is 30, or with --lockstep its simulated "
+                    "clock's 30 frames a second, as fast as the pipeline takes them)")
     parser.add_argument("--loop", action="store_true",
                         help="replay a file source forever; with sim, start the scenario "
                              "again when it ends (else the camera exits 0 there)")
@@ -174,23 +176,35 @@ def open_source(spec: str, size: tuple[int, int] | None, loop: bool,
             cached.append(f)
             total += f.nbytes
             if total > LOOP_CACHE_BYTES:
-                return _passes(frames)
+                return _passes(frames, path)
     except VideoCutShort as e:
         say_on_stderr("camera")(f"warning: {e}; looping the {len(cached)} frames it holds")
     return itertools.chain.from_iterable(itertools.repeat(cached))
 
 
-def _passes(frames: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
+def _passes(frames: Iterable[np.ndarray], path: str) -> Iterator[np.ndarray]:
     """``frames`` again and again, decoded each pass (a source too large to keep): a video cut
-    short is played to where it ends each time, which the log says once."""
+    short is played to where it ends each time, which the log says once.
+
+    Raises
+    ------
+    SourceError
+        When a pass gives no frame: its files were removed or became unreadable (a USB stick
+        or a network share gone). It went round in silence for ever, a core busy."""
     warned = False
     while True:
+        given = 0
         try:
-            yield from frames
+            for frame in frames:
+                given += 1
+                yield frame
         except VideoCutShort as e:
             if not warned:
                 log.warning("%s; looping the frames it holds", e)
                 warned = True
+        if not given:
+            raise SourceError(f"{path}: a pass of --loop gave no frame (its files were "
+                              "removed or cannot be read any more)")
 
 
 class _Acks:
@@ -324,12 +338,11 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
                 log.info("stopped after %d frames", sent_before)
                 return 0
             if period:
-                next_t += period
-                delay = next_t - time.perf_counter()
-                if delay > 0:
-                    node.sleep(delay)
-                else:
-                    next_t = time.perf_counter()  # late: do not burst to catch up
+                if sent_before:  # the first frame goes at once (it waited a whole period)
+                    next_t = paced(node, next_t, period)
+                if node.stop.is_set():  # stopped while it waited: no frame more
+                    log.info("stopped after %d frames", sent_before)
+                    return 0
             elif sent:
                 need = {keys.estimate: sent[0]} if len(sent) == window else {}
                 if window > 1:

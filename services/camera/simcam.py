@@ -19,7 +19,7 @@ import time
 from ...common.bus import Node
 from ...common.messages import CmdVel, Estimate, MessageError, Pose, encode_frame
 from ...common.sources import parse_size
-from ..runtime import Faults, ready, wait_for_consumers
+from ..runtime import Faults, paced, ready, wait_for_consumers
 from .scenarios import ScenarioError, load_scenario
 from .sim import CAMERA_SIDES, Camera, Command, Simulator
 
@@ -136,12 +136,7 @@ def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
         elif args.lockstep:
             got = None
         else:
-            next_t += dt
-            delay = next_t - time.perf_counter()
-            if delay > 0:
-                node.sleep(delay)
-            else:
-                next_t = time.perf_counter()
+            next_t = paced(node, next_t, dt)
             got = _drain_commands(node)
         if control and got is not None:
             cmd = Command(vx=got.vx, vy=got.vy, wz=got.wz)

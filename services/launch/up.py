@@ -62,7 +62,7 @@ from ...common.bus import (
     add_zenoh_args,
     install_signal_handlers,
 )
-from ...common.sources import SourceError, probe_device
+from ...common.sources import MIN_FPS, SourceError, probe_device
 from ..usage import add_number, plural, print_error
 from .launchfile import (
     LaunchError,
@@ -87,7 +87,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the camera's source: file:PATH, device:N, builtin or "
                              "sim[:SCENARIO]; drops the launch file's --loop. 'none': no "
                              "camera (frames come from elsewhere, e.g. vistrack replay)")
-    add_number(parser, "--fps", lo=0, hi=1000, metavar="F",
+    add_number(parser, "--fps", lo=MIN_FPS, hi=1000, or_zero=True, metavar="F",
                help="the camera's frames per second (its --fps), %(allowed)s")
     parser.add_argument("--size", metavar="WxH",
                         help="the camera's frame size (its --size: each side 8..4096, "

@@ -109,7 +109,7 @@ CASES = {
         (["--tolerance", "inf"], "--tolerance inf is out of range: allowed 0..100"),
     ],
     "camera": [
-        (["--fps", "1e9", NS], "--fps 1e9 is out of range: allowed 0..1000"),
+        (["--fps", "1e9", NS], "--fps 1e9 is out of range: allowed 0 or 0.1..1000"),
         (["--source", "device:-1", NS],
          "'device:-1': device index -1 is out of range: allowed 0..99"),
         (["--source", "device:x", NS],
@@ -201,15 +201,16 @@ CASES = {
          "--name '' is 0 characters long: a common name has 1 to 64"),
     ],
     "up": [
-        (["--fps", "nan", "-l", "tcp/127.0.0.1:1"], "--fps nan is out of range: allowed 0..1000"),
+        (["--fps", "nan", "-l", "tcp/127.0.0.1:1"],
+         "--fps nan is out of range: allowed 0 or 0.1..1000"),
         # up's own flag, with the camera's range (argparse's 'invalid float value' named none)
         (["--fps", "abc", "-l", "tcp/127.0.0.1:1"],
-         "--fps 'abc' is not a number: allowed 0..1000"),
+         "--fps 'abc' is not a number: allowed 0 or 0.1..1000"),
         (["--size", "", "-l", "tcp/127.0.0.1:1"],  # was: native size, without a word
          "--size '' is not WIDTHxHEIGHT, e.g. 256x256"),
         (["--camera", "file:{d}/empty", "-l", "tcp/127.0.0.1:1"],
-         "{d}/empty: folder holds no image (.png, .jpg, .jpeg, .bmp, .tif, .tiff, .pgm, .ppm, "
-         ".webp)"),
+         "{d}/empty: folder holds no image (.png, .jpg, .jpeg, .jpe, .bmp, .dib, .tif, .tiff, "
+         ".pgm, .ppm, .pbm, .pnm, .pam, .pxm, .webp, .jp2, .hdr, .pic, .pfm, .ras, .sr)"),
         # read before anything starts: up used to start all five, then end on the camera's
         # exit (code 1, no file named in a launch file)
         (["--camera", "file:{d}/junk.mp4", "-l", "tcp/127.0.0.1:1"],

@@ -734,7 +734,7 @@ BAD_LAUNCH_FILES = {
     # what the service itself would refuse is refused here, before anything starts
     "flag out of range": ("services:\n  camera:\n    flags: {--fps: -5}\n",
                           r"line 3: services\.camera\.flags: --fps -5 is out of range: "
-                          r"allowed 0\.\.1000$"),
+                          r"allowed 0 or 0\.1\.\.1000$"),
     "flag not a number": ("services:\n  preprocessing:\n    flags: [--search-size, .nan]\n",
                           r"line 3: services\.preprocessing\.flags: --search-size 'nan' is "
                           r"not an integer: allowed 2\.\.128$"),
@@ -779,7 +779,7 @@ def test_listen_and_connect_together_is_a_usage_error(capsys):
 
 
 @pytest.mark.parametrize(("flags", "message"), [
-    (["--fps", "-1"], "--fps -1 is out of range: allowed 0..1000"),
+    (["--fps", "-1"], "--fps -1 is out of range: allowed 0 or 0.1..1000"),
     (["--size", "5000x5000"], "--size 5000x5000 is out of range: width and height must be "
                               "8..4096"),
     (["--camera", "sim:nowhere"], "--source sim:nowhere: 'nowhere' is neither a built-in "

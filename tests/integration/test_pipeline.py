@@ -56,8 +56,8 @@ def test_every_estimate_equals_vistrack_track(rubberwhale, free_port):
 @pytest.mark.parametrize(("flags", "message"), [
     (["--in-flight", "0"], "--in-flight 0 is out of range: allowed 1..16"),
     (["--in-flight", "17"], "--in-flight 17 is out of range: allowed 1..16"),
-    (["--fps", "-1"], "--fps -1 is out of range: allowed 0..1000"),
-    (["--fps", "nan"], "--fps nan is out of range: allowed 0..1000"),
+    (["--fps", "-1"], "--fps -1 is out of range: allowed 0 or 0.1..1000"),
+    (["--fps", "nan"], "--fps nan is out of range: allowed 0 or 0.1..1000"),
     (["--ack-timeout", "0"], "--ack-timeout 0 is out of range: allowed 0 < S <= 3600"),
 ])
 def test_camera_bad_flags_are_one_line_and_exit_2(flags, message):

@@ -97,3 +97,45 @@ def test_a_video_with_empty_entries_is_complete(drop_frame_video, caplog, capsys
     assert len(got) == (25 if loop else 10)
     _same_frames(got, frames)
     assert not caplog.records and capsys.readouterr().err == ""
+
+
+def test_a_loop_whose_files_are_gone_ends_with_an_error(tmp_path, monkeypatch, caplog):
+    """Decoded each pass (too large to keep), its files removed (a USB stick pulled): each
+    was skipped with a warning, and the loop went round for ever with no frame, a core busy,
+    deaf to a stop. A pass that gives no frame now ends it with an error."""
+    from vistrack.common.bus import MemoryNode
+
+    monkeypatch.setattr(service, "LOOP_CACHE_BYTES", 1)
+    rng = np.random.default_rng(0)
+    folder = tmp_path / "stick"
+    folder.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(folder / f"f{i}.png"), rng.integers(0, 256, (60, 80), dtype=np.uint8))
+    skipped = service.Skipped()
+    with MemoryNode("camera") as node, caplog.at_level(logging.WARNING, logger="vistrack.camera"):
+        skipped.attach(node)
+        frames = service.open_source(f"file:{folder}", None, loop=True, skip=skipped)
+        assert len(list(itertools.islice(frames, 4))) == 4  # a pass and one more frame
+        for f in folder.iterdir():
+            f.unlink()
+        with pytest.raises(SourceError, match=f"{folder}: a pass of --loop gave no frame"):
+            next(frames)  # the rest of this pass, then an empty one
+        assert node.status.extra["skipped"] == 5  # this pass's 2, the next one's 3
+
+
+@pytest.mark.parametrize("ext", [".pnm", ".pbm", ".jp2", ".ras"])
+def test_a_folder_or_glob_of_other_image_types_opencv_reads_is_taken(tmp_path, ext):
+    """A folder of .pnm files held "no image", and a glob of them matched "no image file",
+    though each one alone opened (as a video)."""
+    from vistrack.common.sources import open_files
+
+    rng = np.random.default_rng(0)
+    images = [np.where(rng.random((40, 48)) < 0.5, 0, 255).astype(np.uint8) for _ in range(3)]
+    for i, image in enumerate(images):
+        assert cv2.imwrite(str(tmp_path / f"f{i}{ext}"), image), ext
+    # what OpenCV reads of each file (a lossy JPEG 2000 is not the image written)
+    held = [cv2.imread(str(tmp_path / f"f{i}{ext}"), cv2.IMREAD_UNCHANGED) for i in range(3)]
+    for spec in (str(tmp_path), str(tmp_path / f"*{ext}")):
+        got = list(open_files([spec]))
+        assert len(got) == 3, spec
+        assert all(np.array_equal(g, h) for g, h in zip(got, held, strict=True)), spec

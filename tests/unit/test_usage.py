@@ -13,7 +13,8 @@ from vistrack.services.usage import FlagError, add_number, check_endpoint, one_l
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="vistrack test")
-    add_number(p, "--fps", lo=0, hi=1000, default=0.0, metavar="F", help="fps, %(allowed)s")
+    add_number(p, "--fps", lo=0.1, hi=1000, or_zero=True, default=0.0, metavar="F",
+               help="fps, %(allowed)s")
     add_number(p, "--in-flight", lo=1, hi=16, integer=True, default=2, metavar="N")
     add_number(p, "--timeout", lo=0, hi=3600, lo_open=True, unit="s", default=None,
                metavar="S")
@@ -21,10 +22,12 @@ def parser() -> argparse.ArgumentParser:
 
 
 @pytest.mark.parametrize(("argv", "message"), [
-    (["--fps", "nan"], "--fps nan is out of range: allowed 0..1000"),
-    (["--fps=-inf"], "--fps -inf is out of range: allowed 0..1000"),
-    (["--fps", "1e400"], "--fps 1e400 is out of range: allowed 0..1000"),  # float: inf
-    (["--fps", "fast"], "--fps 'fast' is not a number: allowed 0..1000"),
+    (["--fps", "nan"], "--fps nan is out of range: allowed 0 or 0.1..1000"),
+    (["--fps=-inf"], "--fps -inf is out of range: allowed 0 or 0.1..1000"),
+    (["--fps", "1e400"], "--fps 1e400 is out of range: allowed 0 or 0.1..1000"),  # float: inf
+    (["--fps", "fast"], "--fps 'fast' is not a number: allowed 0 or 0.1..1000"),
+    (["--fps", "0.05"], "--fps 0.05 is out of range: allowed 0 or 0.1..1000"),  # between
+    (["--fps", "-0.0001"], "--fps -0.0001 is out of range: allowed 0 or 0.1..1000"),
     (["--in-flight", "17"], "--in-flight 17 is out of range: allowed 1..16"),
     (["--in-flight", "2.0"], "--in-flight '2.0' is not an integer: allowed 1..16"),
     (["--timeout", "0"], "--timeout 0 is out of range: allowed 0 < S <= 3600 s"),
@@ -41,10 +44,12 @@ def test_values_inside_the_range_are_converted_and_defaults_kept():
     assert (args.fps, args.in_flight, args.timeout) == (1000.0, 16, 0.001)
     assert isinstance(args.in_flight, int)
     assert vars(parser().parse_args([])) == {"fps": 0.0, "in_flight": 2, "timeout": None}
+    assert parser().parse_args(["--fps", "0"]).fps == 0.0  # the value of its own
+    assert parser().parse_args(["--fps", "0.1"]).fps == 0.1
 
 
 def test_help_shows_the_declared_range():
-    assert "fps, 0..1000" in " ".join(parser().format_help().split())
+    assert "fps, 0 or 0.1..1000" in " ".join(parser().format_help().split())
 
 
 def test_a_range_is_declared_once_and_checked():

@@ -1,0 +1,48 @@
+"""A paced camera (``--fps F``): its first frame at once, and no burst after a late wake-up.
+
+The camera's loop runs in-process on a MemoryNode (``camera.loop`` given the frames)."""
+
+from __future__ import annotations
+
+import time
+
+from vistrack.common import synthetic
+from vistrack.common.bus import MemoryNode
+from vistrack.services.camera import service as camera
+from vistrack.services.runtime import paced
+
+from loops import Running
+
+
+def test_the_first_frame_goes_at_once_at_a_slow_rate():
+    """At --fps 0.1 the first frame waited a whole period, 10 s (at --fps 1e-9, for ever)."""
+    images = synthetic.builtin_sequence(8)[:2]
+    with Running("camera", "--fps", "0.1", target=camera.loop, extra=(iter(images),)) as cam:
+        deadline = time.monotonic() + 5.0  # half the period: ample for a loop's start
+        while not cam.node.published_on(cam.node.keys.frame):
+            assert cam.thread.is_alive() and time.monotonic() < deadline, "no first frame"
+            time.sleep(0.005)
+        first = time.monotonic()
+        while time.monotonic() < first + 1.0:  # the next one is a period away
+            assert len(cam.node.published_on(cam.node.keys.frame)) == 1
+            time.sleep(0.05)
+        started = cam.thread.is_alive()
+        cam.node.stop.set()
+        cam.thread.join(5)
+        assert started and not cam.thread.is_alive()  # the stop ends the period's wait
+    assert len(cam.node.published_on(cam.node.keys.frame)) == 1  # none after the stop
+
+
+def test_a_frame_woken_late_moves_the_next_slot_rather_than_bursting():
+    """A wake-up 0.25 s late at 10 fps: the frame after it comes a period later. The slots
+    stayed where they were and the next frame went at once: frames 416 and 0.2 ms apart."""
+    with MemoryNode("camera") as node:
+        t0 = time.perf_counter()
+        slot = paced(node, t0 - 0.35, 0.1)  # the last frame's slot was 0.35 s ago
+        assert slot >= t0  # now, not 0.25 s ago
+        before = time.perf_counter()
+        paced(node, slot, 0.1)
+        assert time.perf_counter() - before >= 0.09
+        # a little late (a quarter of a period) keeps the rate: the slot is kept
+        t1 = time.perf_counter()
+        assert paced(node, t1 - 0.125, 0.1) == t1 - 0.025

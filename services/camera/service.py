@@ -140,10 +140,14 @@ class Skipped:
         if self.count:
             node.status.extra["skipped"] = self.count
 
-    def __call__(self, e: SourceError) -> None:
-        self.count += 1
+    def add(self, n: int) -> None:
+        """Count ``n`` more frames left out (said already)."""
+        self.count += n
         if self.node is not None:
             self.node.status.extra["skipped"] = self.count
+
+    def __call__(self, e: SourceError) -> None:
+        self.add(1)
         text = str(e)
         if text not in self._said:
             self._said.add(text)
@@ -169,17 +173,43 @@ def open_source(spec: str, size: tuple[int, int] | None, loop: bool,
     # so the camera spends its CPU on publishing, not on decoding the same files again. A
     # video cut short (a recording that lost its end) loops the frames it holds: said once,
     # as a warning, where a single pass ends with the error
-    cached: list[np.ndarray] = []
+    # (frames skipped just before it, frame): the skips are counted again as each pass
+    # comes to them, so a frame left out leaves its seq out every pass, as a source read
+    # each pass does (counted all at once while caching, before anything was sent, they
+    # moved every seq: a pass began at seq 2, with no gap anywhere)
+    cached: list[tuple[int, np.ndarray]] = []
+    before = seen = skip.count if skip is not None else 0
     total = 0
     try:
         for f in frames:
-            cached.append(f)
+            now = skip.count if skip is not None else 0
+            cached.append((now - seen, f))
+            seen = now
             total += f.nbytes
             if total > LOOP_CACHE_BYTES:
+                if skip is not None:
+                    skip.count = before  # read again from the start: skipped again there
                 return _passes(frames, path)
     except VideoCutShort as e:
         say_on_stderr("camera")(f"warning: {e}; looping the {len(cached)} frames it holds")
-    return itertools.chain.from_iterable(itertools.repeat(cached))
+    trailing = (skip.count - seen) if skip is not None else 0
+    if skip is None:
+        return itertools.chain.from_iterable(itertools.repeat([f for _, f in cached]))
+    skip.count = before
+    return _replayed(cached, trailing, skip)
+
+
+def _replayed(cached: list[tuple[int, np.ndarray]], trailing: int,
+              skip: Skipped) -> Iterator[np.ndarray]:
+    """The cached frames, pass after pass, each after counting the frames skipped before it
+    (``trailing``: those after the last) in ``skip``."""
+    while True:
+        for gap, frame in cached:
+            if gap:
+                skip.add(gap)
+            yield frame
+        if trailing:
+            skip.add(trailing)
 
 
 def _passes(frames: Iterable[np.ndarray], path: str) -> Iterator[np.ndarray]:

@@ -1,4 +1,5 @@
-"""A paced camera (``--fps F``): its first frame at once, and no burst after a late wake-up.
+"""A paced camera (``--fps F``): its first frame at once, no burst after a late wake-up, and the
+seq of the frames a looping source leaves out.
 
 The camera's loop runs in-process on a MemoryNode (``camera.loop`` given the frames)."""
 
@@ -6,12 +7,16 @@ from __future__ import annotations
 
 import time
 
+import cv2
+import msgpack
+import numpy as np
+
 from vistrack.common import synthetic
 from vistrack.common.bus import MemoryNode
 from vistrack.services.camera import service as camera
 from vistrack.services.runtime import paced
 
-from loops import Running
+from loops import IDLE_S, Running
 
 
 def test_the_first_frame_goes_at_once_at_a_slow_rate():
@@ -46,3 +51,29 @@ def test_a_frame_woken_late_moves_the_next_slot_rather_than_bursting():
         # a little late (a quarter of a period) keeps the rate: the slot is kept
         t1 = time.perf_counter()
         assert paced(node, t1 - 0.125, 0.1) == t1 - 0.025
+
+
+def test_a_looping_folder_leaves_the_seq_of_a_skipped_frame_out_every_pass(tmp_path):
+    """Kept in memory, its frames skipped while it was read were counted before anything
+    was sent: the first pass began at seq 2 with no gap anywhere. The README: "its seq left
+    out as for a dropped frame"."""
+    rng = np.random.default_rng(0)
+    for i in range(5):
+        shape = (100, 100) if i == 2 else (60, 80)  # the third of another size: left out
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), rng.integers(0, 256, shape, dtype=np.uint8))
+    # as camera.main opens the source, and hands it to the loop
+    skipped = camera.Skipped()
+    source = camera.open_source(f"file:{tmp_path}", None, True, skipped)
+
+    def run(node, args):
+        skipped.attach(node)
+        return camera.loop(node, args, source, skipped)
+
+    with Running("camera", "--source", f"file:{tmp_path}", "--loop", "--fps", "200",
+                 target=run) as cam:
+        deadline = time.monotonic() + IDLE_S
+        while len(cam.node.published_on(cam.node.keys.frame)) < 8:
+            assert cam.thread.is_alive() and time.monotonic() < deadline
+            time.sleep(0.01)
+    seqs = [msgpack.unpackb(p)["seq"] for p in cam.node.published_on(cam.node.keys.frame)]
+    assert seqs[:8] == [0, 1, 3, 4, 5, 6, 8, 9]

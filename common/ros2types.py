@@ -32,11 +32,12 @@ import functools
 import importlib.util
 import json
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import cv2
+import msgpack
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
@@ -219,9 +220,12 @@ def _strings(values: Any) -> list[str]:
     return [str(v) for v in values] if isinstance(values, (list, tuple)) else []
 
 
-def report(msg: Report, frame_id: str = FRAME_ID) -> Any:
+def report(msg: Report, frame_id: str = FRAME_ID, whole: Mapping[str, Any] | None = None
+           ) -> Any:
     """``vistrack_msgs/msg/Report``: the design, per-response values, effects and significant
-    terms as typed fields, and the whole report as JSON in ``json``."""
+    terms as typed fields, and the whole report as JSON in ``json``: ``whole``, the map as
+    published (the auto-tuner's ``trigger``, ``changed``, ``params_id``, ... besides the
+    contract's fields, which are all ``msg`` holds), else ``msg``."""
     terms: list[str] = []
     for eff in msg.effects.values():
         if isinstance(eff, dict):
@@ -250,11 +254,13 @@ def report(msg: Report, frame_id: str = FRAME_ID) -> Any:
     return _type(REPORT)(
         header=header(msg.stamp_ns, frame_id), seq=msg.seq, factors=_strings(msg.factors),
         design=design, order=np.array(msg.order, np.uint32), terms=terms,
-        responses=responses, optimum=optimum, json=json.dumps(to_jsonable(msg)))
+        responses=responses, optimum=optimum,
+        json=json.dumps(to_jsonable(msg if whole is None else whole)))
 
 
-def to_ros(msg: Message, frame_id: str = FRAME_ID) -> Any:
-    """The ROS 2 message of a contract message (see the table above).
+def to_ros(msg: Message, frame_id: str = FRAME_ID, payload: bytes | None = None) -> Any:
+    """The ROS 2 message of a contract message (see the table above); ``payload``: the bytes it
+    was decoded from, whose fields beyond the contract's a report's ``json`` keeps.
 
     Raises
     ------
@@ -270,7 +276,8 @@ def to_ros(msg: Message, frame_id: str = FRAME_ID) -> Any:
     if isinstance(msg, Params):
         return params(msg, frame_id)
     if isinstance(msg, Report):
-        return report(msg, frame_id)
+        whole = msgpack.unpackb(payload, raw=False) if payload is not None else None
+        return report(msg, frame_id, whole if isinstance(whole, dict) else None)
     raise TypeError(f"{type(msg).__name__} has no ROS 2 type")
 
 

@@ -143,7 +143,7 @@ def loop(node: Node, args: argparse.Namespace, participant: rmw.Participant | No
                 continue
             with node.status.timed():
                 try:
-                    cdr = r2.serialize(r2.to_ros(msg))
+                    cdr = r2.serialize(r2.to_ros(msg, payload=payload))
                 except (struct.error, OverflowError, ValueError) as e:
                     # a valid message whose value the ROS 2 type cannot hold
                     node.status.reject(e)

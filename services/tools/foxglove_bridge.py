@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import sys
 import threading
 import time
@@ -160,7 +161,7 @@ class Bridge:
         if msg is None:
             return
         if watched:
-            self._log(key, channel, lambda: r2.to_ros(msg), t_ns)
+            self._log(key, channel, lambda: r2.to_ros(msg, payload=payload), t_ns)
         if isinstance(msg, Estimate):
             self._recent.append(msg)
             if msg.stamp_ns in self._frames_sent:
@@ -181,8 +182,8 @@ class Bridge:
     def _overlays(self, est: Estimate, t_ns: int) -> None:
         for key, channel in self.overlays.items():
             if channel.has_sinks():
-                draw = r2.OVERLAYS[key_suffix(key)]
-                self._log(key, channel, lambda draw=draw: draw(est), t_ns)
+                self._log(key, channel, functools.partial(r2.OVERLAYS[key_suffix(key)], est),
+                          t_ns)
 
 
 def main(args: argparse.Namespace) -> int:

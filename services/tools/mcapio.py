@@ -158,7 +158,7 @@ class McapWriter:
         try:
             msg = decode_any(key, payload)
             # every message of the sample made before any is written: all or none
-            parts = [(key, typename, r2.serialize(r2.to_ros(msg)))]
+            parts = [(key, typename, r2.serialize(r2.to_ros(msg, payload=payload)))]
             if isinstance(msg, Estimate):
                 root = key[:-len(suffix)]
                 parts += [(root + overlay, r2.IMAGE_MARKER, r2.serialize(draw(msg)))

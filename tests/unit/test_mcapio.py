@@ -355,3 +355,18 @@ def test_a_valid_message_no_ros_2_type_holds_is_rejected_and_the_file_goes_on(tm
     per_topic = {topic for topic, *_ in rows}
     assert {f"/{ROOT}/motion/estimate", *(f"/{ROOT}/{s}" for s in r2.OVERLAYS)} <= per_topic
     assert len(rows) == 2 * (1 + len(r2.OVERLAYS))  # two samples, each with its overlays
+
+
+def test_a_report_keeps_the_fields_beyond_the_contract_in_its_json(tmp_path):
+    """The README: "the whole report as JSON in json". It held only the contract's fields:
+    the auto-tuner's trigger, changed and params_id were dropped on the way."""
+    key, payload, t_ns = next(s for s in _samples(4) if s[0].endswith("tuner/report"))
+    published = msgpack.unpackb(payload)
+    published.update(trigger="scene change", changed=True, params_id=7)
+    path = tmp_path / "report.mcap"
+    with McapWriter(path, robot="robot", keys=[f"{ROOT}/**"]) as writer:
+        assert writer.write_at(key, msgpack.packb(published), t_ns)
+    _, _, rows = _read(path)
+    (whole,) = [json.loads(dec.json) for topic, *_, dec in rows if topic.endswith("report")]
+    assert (whole["trigger"], whole["changed"], whole["params_id"]) == ("scene change", True, 7)
+    assert whole["optimum"] == published["optimum"] and whole["seq"] == published["seq"]

@@ -115,13 +115,15 @@ def export(recording: Recording | McapRecording, writer: Writer,
         warn("export", line)
     for topic, why in sorted(getattr(recording, "skipped", {}).items()):
         warn("export", f"{topic} not exported: {why}")
+    overlays = getattr(writer, "messages", writer.count) - writer.count
     print(f"vistrack export: {writer.count} of {read} samples ({len(writer.keys_seen)} keys) "
           f"from {recording.path} written to {writer.path} as "
-          f"{format_of(args.output, args.format)} in {time.monotonic() - start:.2f} s",
-          file=sys.stderr)
+          f"{format_of(args.output, args.format)}"
+          + (f", with {overlays} overlay messages drawn from the estimates" if overlays else "")
+          + f" in {time.monotonic() - start:.2f} s", file=sys.stderr)
     if damage is not None:
-        warn("export", f"{recording.path} is damaged: exported the {read} valid samples "
-                       f"before byte offset {damage.offset}")
+        warn("export", f"{recording.path} is damaged: read the {read} valid samples before byte "
+                       f"offset {damage.offset}, and wrote {writer.count} of them")
         error("export", damage)
         return 2
     return 0

@@ -104,6 +104,7 @@ class McapWriter:
     Attributes
     ----------
     count : samples written (overlays not counted).
+    messages : MCAP messages written (each estimate's overlays too).
     keys_seen : keys of the samples written.
     skipped : key -> samples not written because the key has no ROS 2 type.
     rejected : key -> samples not written because the payload is not a valid message, or
@@ -133,6 +134,7 @@ class McapWriter:
         self._mcap.add_metadata("vistrack", {"robot": robot, "keys": json.dumps(keys),
                                              "start_ns": str(self.start_ns), "tool": tool})
         self.count = 0
+        self.messages = 0  # MCAP messages written: the samples and their overlays
         self.keys_seen: set[str] = set()
         self.skipped: collections.Counter[str] = collections.Counter()
         self.rejected: collections.Counter[str] = collections.Counter()
@@ -172,6 +174,7 @@ class McapWriter:
         for part_key, part_type, data in parts:
             self._add(part_key, part_type, data, t_ns, msg.stamp_ns, msg.seq)
         self.count += 1
+        self.messages += len(parts)
         self.keys_seen.add(key)
         return True
 

@@ -171,6 +171,14 @@ def test_export_vtr_to_mcap_and_back_keeps_every_sample(samples, tmp_path):
     assert run.returncode == 0, run.stderr
     assert (f"12 samples of vistrack/robot/sim/pose not written: it has no ROS 2 type ({vtr} "
             "keeps them)") in run.stderr  # not "record to .vtr": it was read from one
+    # the closing line's counts add up to what the file holds (it said 363 of 545 samples,
+    # and the file held 543 messages: the overlays drawn from the estimates)
+    estimates = sum(k.endswith("motion/estimate") for k, _, _ in samples)
+    written = len(samples) - 12
+    overlays = estimates * len(r2.OVERLAYS)
+    assert (f"{written} of {len(samples)} samples" in run.stderr
+            and f"with {overlays} overlay messages drawn from the estimates" in run.stderr)
+    assert len(_read(out)[2]) == written + overlays
     back = tmp_path / "back.vtr"
     run = vistrack("export", out, back)
     assert run.returncode == 0, run.stderr

@@ -123,6 +123,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_service_args(parser)
 
 
+#: The simulator's own flags: (flag, dest, default), refused with another source.
+SIM_ONLY = (("--lockstep", "lockstep", False), ("--no-control", "no_control", False),
+            ("--texture", "texture", None), ("--noise", "noise", 0.0), ("--seed", "seed", 0))
+
+
 class Skipped:
     """The frames a file source could not give while it ran (an image that does not read,
     one of another size than the first): each left out, said once per file as a warning (a
@@ -465,6 +470,10 @@ def check_args(args: argparse.Namespace) -> None:
     if _is_sim(args):
         make_simulator(args)
         return
+    given = [flag for flag, dest, default in SIM_ONLY if getattr(args, dest) != default]
+    if given:  # they were ignored in silence: --texture /nonexistent with a file source ran
+        raise SourceError(f"{', '.join(given)}: for --source sim only (the robot simulator), "
+                          f"not {args.source}")
     size = _size(args)
     if is_ros2(args.source):
         topic_of(args.source)

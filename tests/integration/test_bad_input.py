@@ -110,6 +110,10 @@ CASES = {
     ],
     "camera": [
         (["--fps", "1e9", NS], "--fps 1e9 is out of range: allowed 0 or 0.1..1000"),
+        (["--fps", "1e-10", NS], "--fps 1e-10 is out of range: allowed 0 or 0.1..1000"),
+        # the simulator's own flags were ignored in silence with another source
+        (["--source", "builtin", "--texture", "/nonexistent", "--seed", "3", NS],
+         "--texture, --seed: for --source sim only (the robot simulator), not builtin"),
         (["--source", "device:-1", NS],
          "'device:-1': device index -1 is out of range: allowed 0..99"),
         (["--source", "device:x", NS],

@@ -246,7 +246,9 @@ _RANGES: dict[str, tuple[float, float, bool]] = {
     "target_size_m": (0.01, 10.0, True),
     "background_distance_m": (0.5, 1000.0, True),
     "amplitude_m": (-10.0, 10.0, True),
-    "period_s": (0.0, 86400.0, False),
+    # a period of 5e-324 s made the offsets NaN: the target left the frames and every pose
+    # failed; one shorter than 10 ms aliases at any frame rate a camera takes (1000 fps)
+    "period_s": (0.01, 86400.0, True),
     "phase_deg": (-360.0, 360.0, True),
     "start_s": (0.0, 86400.0, True),
     "end_s": (0.0, 86400.0, True),

@@ -498,9 +498,13 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
     textured = exp.textured(base if base is not None else TrackerParams())
     if textured < MIN_TEXTURED:
         h, w = np.shape(exp.frames[0])[:2]
+        most = (base if base is not None else TrackerParams()).max_features
         # a frame no wider than the reference's correlation window holds none of its templates
         cause = (f"frames of {w}x{h} px hold no {exp.reference[1]} px correlation window: "
                  "give larger frames" if min(h, w) <= exp.reference[1]
+                 # max_features 1 or 2 (allowed) was said to be a covered lens
+                 else f"max_features is {most}: fewer features than that can be tracked"
+                 if most < MIN_VALID_NPI
                  else "a covered lens, a dark or uniform scene?")
         raise TextureError(
             f"the frames have too little texture to tune on: the reference windows "

@@ -36,6 +36,16 @@ def test_frames_smaller_than_the_reference_window_say_so(real_image):
         tune(_noise(6), seed=1)
 
 
+@pytest.mark.parametrize("most", [1, 2])
+def test_a_feature_cap_below_three_says_so_not_a_covered_lens(real_image, most):
+    """--max-features 1 or 2 (allowed) leaves no estimate valid (3 features or more): every
+    tuning was skipped as if the lens were covered."""
+    frames = [np.ascontiguousarray(real_image[k:k + 120, k:k + 160]) for k in range(6)]
+    with pytest.raises(TextureError, match=rf"max_features is {most}: fewer features than "
+                                           r"that can be tracked"):
+        tune(frames, seed=1, base=TrackerParams(max_features=most))
+
+
 def test_the_share_of_textured_frames_counts_the_frames_with_a_valid_estimate(real_image):
     """A real scene whose last frames go dark: the reference tracks it on the frames before."""
     frames = [real_image] * 4 + [np.zeros_like(real_image)] * 4

@@ -87,6 +87,7 @@ THUMB = 32  # thumbnail side, px
 THUMB_BLUR = 1.5  # Gaussian sigma on the thumbnail, thumbnail px
 THUMB_SHIFT = 4  # largest shift tried each way, thumbnail px (THUMB / 8)
 REF_FRAMES = 10  # reference thumbnails kept from a tuned buffer
+FLAT_RMS = 1.0  # grey levels of RMS contrast below which a thumbnail window is flat
 
 
 # -- the scene signal ------------------------------------------------------------------------
@@ -101,9 +102,11 @@ def thumbnail(frame: np.ndarray) -> np.ndarray:
 
 
 def _normalise(rows: np.ndarray) -> np.ndarray:
+    """Each row less its mean, to unit norm; a flat one (an RMS contrast below FLAT_RMS grey
+    levels: a covered lens, its sensor noise averaged into the thumbnail) all zeros."""
     rows = rows - rows.mean(axis=-1, keepdims=True)
     norm = np.linalg.norm(rows, axis=-1, keepdims=True)
-    return rows / np.where(norm > 1e-6, norm, 1.0)  # a flat window stays all zeros
+    return rows / np.where(norm > FLAT_RMS * np.sqrt(rows.shape[-1]), norm, np.inf)
 
 
 def reference_windows(thumbs: list[np.ndarray]) -> np.ndarray:
@@ -123,9 +126,13 @@ def reference_windows(thumbs: list[np.ndarray]) -> np.ndarray:
 
 def scene_distance(thumb: np.ndarray, references: np.ndarray) -> float:
     """1 - the best normalised correlation of ``thumb``'s central window with ``references``
-    (from :func:`reference_windows`): 0 same view, ~1 unrelated, at most 2."""
+    (from :func:`reference_windows`): 0 same view, ~1 unrelated, at most 2. A flat view
+    (:func:`_normalise`) is 0 from flat references (a covered lens still covered: it read 1,
+    a scene change, logged after every skipped tuning), 1 from textured ones."""
     k = THUMB_SHIFT
     centre = _normalise(thumb[k:THUMB - k, k:THUMB - k].ravel()[None, :])[0]
+    if not centre.any():
+        return 0.0 if not references.any(axis=1).all() else 1.0
     return float(1.0 - np.max(references @ centre))
 
 

@@ -60,6 +60,22 @@ def test_a_flat_frame_is_far_from_a_textured_scene(scene_a):
     assert scene_distance(thumbnail(flat), refs_of(scene_a[:10])) == pytest.approx(1.0)
 
 
+def test_a_flat_view_is_the_same_as_a_flat_reference_and_far_from_texture(scene_a):
+    """A covered lens tuned on (skipped: no texture) and still covered read a distance of 1,
+    a scene change, every time: flat windows normalised to zeros correlate 0. Sensor noise
+    on a covered lens (sigma 3 on grey 12) is flat too, once averaged into the thumbnail."""
+    rng = np.random.default_rng(0)
+
+    def dark() -> np.ndarray:
+        return np.clip(np.rint(12 + rng.normal(0, 3, SIZE)), 0, 255).astype(np.uint8)
+
+    black = np.zeros(SIZE, np.uint8)
+    assert scene_distance(thumbnail(black), refs_of([black])) == 0.0
+    assert scene_distance(thumbnail(dark()), refs_of([dark(), dark()])) == 0.0
+    assert scene_distance(thumbnail(black), refs_of(scene_a[:10])) == pytest.approx(1.0)
+    assert scene_distance(thumbnail(scene_a[5]), refs_of([black])) == pytest.approx(1.0)
+
+
 def test_thumbnail_rejects_a_colour_frame():
     with pytest.raises(ValueError, match="shape"):
         thumbnail(np.zeros((8, 8, 3), np.uint8))

@@ -35,8 +35,9 @@ to a quarter of its CPU; at camera resolutions each frame is a megabyte or more)
 The parameters in force are published again every second (same ``params_id``) for late
 joiners. ``--no-tune`` keeps only that reminder (no frame is taken). Status ``extra``:
 buffered, tunings, last_reason, tuning, last_cycle_s, pending, scene_distance, scale_ratio,
-skipped, failed, every_frame (frames are all taken now, not sampled), tuning_disabled (why,
-once WORKER_STARTS workers in a row died before they were ready).
+skipped, failed, every_frame (frames are all taken now, not sampled), tuning_for_s (the age
+of the cycle in progress, else null), tuning_disabled (why, once WORKER_STARTS workers in a row
+died before they were ready).
 
 A buffer with too little texture to tune on (the reference windows track fewer than 3
 features on most frames: a covered lens, a dark room) is not tuned on: every window size would
@@ -191,6 +192,7 @@ class AutoTuner:
         self.every_frame = False  # frames are taken one after the other into the buffer
         self.last_seq = -1  # seq of the newest buffered frame
         self.start_failures = 0  # workers in a row that died before they were ready
+        self._slow_said = False  # the cycle in progress was said to be slow
         self.next_sample = 0.0  # when the next frame for the scene signal is taken
         self.watched = -math.inf  # when the last estimate was taken (monotonic)
         self.fast = False  # it came less than 1.5 ESTIMATE_PERIOD_S after the one before
@@ -413,6 +415,16 @@ class AutoTuner:
             result = ("error", "worker died") if self.triggers.running else None
         if result is not None:
             self._finish(result, now)
+        elif self.triggers.running:
+            # how long the cycle in progress has run: a slow one (a minute at 1280x720 on a
+            # shaking camera) and a stuck worker looked the same, tuning true and nothing else
+            running = now - self.started
+            self.node.status.extra["tuning_for_s"] = round(running, 1)
+            if running >= SLOW_CYCLE_S and not self._slow_said:
+                self._slow_said = True
+                log.warning("tuning (%s) has run for %.0f s (its worker, pid %s, at idle "
+                            "priority: a busy machine, or a stopped worker?)", self.reason,
+                            running, self.worker.pid)
         reason = self.triggers.due(now)
         if reason is not None and self.worker.ready and len(self.frames) >= 2:
             self.triggers.started()
@@ -431,7 +443,8 @@ class AutoTuner:
                                 "tolerance": self.args.tolerance,
                                 "step": self.args.tune_sweep_step,
                                 "max_megapixels": self.args.max_megapixels})
-            self.node.status.extra.update(tuning=True, pending=None)
+            self.node.status.extra.update(tuning=True, pending=None, tuning_for_s=0.0)
+            self._slow_said = False
             log.info("tuning (%s) on %d frames%s", reason, len(self.frames),
                      "" if len(self.frames) == self.offered else
                      f" (the latest of {self.offered} within --max-megapixels)")
@@ -439,7 +452,7 @@ class AutoTuner:
     def _finish(self, result: tuple, now: float) -> None:
         extra = self.node.status.extra
         cycle = now - self.started
-        extra.update(tuning=False, last_cycle_s=round(cycle, 3))
+        extra.update(tuning=False, last_cycle_s=round(cycle, 3), tuning_for_s=None)
         if result[0] == "skipped":  # a covered lens, a dark room: again on new frames
             self.triggers.finished(now, ok=False, refill=True)
             extra.update(skipped=extra.get("skipped", 0) + 1, pending=self.triggers.pending)
@@ -502,6 +515,8 @@ class AutoTuner:
 #: Workers in a row that may die before they are ready (a start-up that fails, or one killed)
 #: before tuning is disabled: one killed while it warmed up disabled it for good.
 WORKER_STARTS = 3
+#: A cycle running this long, s, is said in the log once (its age is ``extra.tuning_for_s``).
+SLOW_CYCLE_S = 120.0
 #: Frames missed (``seq`` jumping by more than BREAK_SEQ, the tracker's MAX_GAP: beyond it its
 #: prediction is a guess) over more than BREAK_S s break the buffer's run of consecutive
 #: frames (:meth:`AutoTuner._buffer`).

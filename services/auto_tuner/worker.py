@@ -137,6 +137,11 @@ class Worker:
                 pass
         threading.Thread(target=send, name="tuning-job", daemon=True).start()
 
+    @property
+    def pid(self) -> int | None:
+        """The worker process's id (None before it started)."""
+        return self._proc.pid
+
     def poll(self) -> tuple | None:
         """The worker's next result, or None; raises EOFError when the worker died."""
         while self._conn.poll():

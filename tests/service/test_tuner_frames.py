@@ -229,3 +229,33 @@ def test_a_worker_killed_while_it_starts_is_replaced_and_three_in_a_row_disable_
         assert "3 times" in extra["tuning_disabled"]
         assert extra["every_frame"] is False and extra["pending"] is None
         assert not tuner.node.subscribed(tuner.node.keys.frame)
+
+
+def test_the_status_says_how_long_the_cycle_in_progress_has_run(caplog):
+    """A stopped worker (or a slow cycle) showed tuning: true and nothing else."""
+    import logging
+    import multiprocessing
+    import os
+    import signal
+
+    images = sequence(BUFFER, motion=Motion(dx=1.0), seed=1)
+    with caplog.at_level(logging.INFO, logger="vistrack.auto_tuner"), \
+            Running("auto-tuner", "--buffer", str(BUFFER), "--min-interval", "0",
+                    "--tune-sweep-step", "5") as tuner:
+        key, extra = tuner.node.keys.frame, tuner.node.status.extra
+        tuner.feed(key, Frame.from_image(images[0], seq=0, stamp_ns=10**9).encode())
+        _until(lambda: any("tuning worker ready" in r.getMessage() for r in caplog.records),
+               "the worker to be ready")
+        (worker,) = [p for p in multiprocessing.active_children()
+                     if p.name == "auto-tuner-worker"]
+        os.kill(worker.pid, signal.SIGSTOP)
+        try:
+            for seq, image in enumerate(images[1:], 1):
+                tuner.feed(key, Frame.from_image(image, seq=seq, stamp_ns=10**9 + seq).encode())
+            _until(lambda: extra["tuning"], "the tuning to start")
+            _until(lambda: (extra.get("tuning_for_s") or 0.0) >= 1.0, "its age to show")
+            assert extra["tunings"] == 0
+        finally:
+            os.kill(worker.pid, signal.SIGCONT)
+        _until(lambda: extra["tunings"] == 1, "the tuning to end")
+        assert extra["tuning_for_s"] is None and extra["last_cycle_s"] >= 1.0

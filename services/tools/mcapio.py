@@ -263,7 +263,10 @@ class McapRecording:
             self.info = _vistrack_metadata(self.path)
             replayed = [c for c in summary.channels.values()
                         if self._channel(c, summary.schemas.get(c.schema_id)) is not None]
-            if not replayed:
+            # a vistrack recording that caught nothing (no publisher) is empty, as an empty
+            # .vtr is: it replays and exports nothing (it was refused as "no vistrack topic")
+            empty_own = not summary.channels and bool(self.info)
+            if not replayed and not empty_own:
                 ours = {t: why for t, why in self.skipped.items() if t.startswith(f"/{PREFIX}/")}
                 why = "; ".join(f"{t}: {w}" for t, w in sorted(ours.items())) if ours else (
                     f"it has {_topics(summary)} (vistrack replays the /{PREFIX}/<robot>/<key> "

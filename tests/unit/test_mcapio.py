@@ -378,3 +378,23 @@ def test_a_report_keeps_the_fields_beyond_the_contract_in_its_json(tmp_path):
     (whole,) = [json.loads(dec.json) for topic, *_, dec in rows if topic.endswith("report")]
     assert (whole["trigger"], whole["changed"], whole["params_id"]) == ("scene change", True, 7)
     assert whole["optimum"] == published["optimum"] and whole["seq"] == published["seq"]
+
+
+def test_an_empty_recording_replays_and_exports_nothing_as_an_empty_vtr_does(tmp_path):
+    """A recorder that caught nothing (no publisher) writes an MCAP file with no channel: it
+    was refused ("no vistrack topic to replay", exit 2, for export too) where an empty .vtr
+    replays and exports with exit 0."""
+    for name, writer_type in (("empty.mcap", McapWriter), ("empty.vtr", RecordWriter)):
+        path = tmp_path / name
+        with writer_type(path, robot="robot", keys=[f"{ROOT}/**"]):
+            pass
+        out = tmp_path / f"out-{name}.vtr"
+        run = vistrack("export", path, out)
+        assert run.returncode == 0, (name, run.stderr)
+        assert f"0 of 0 samples (0 keys) from {path}" in run.stderr
+        assert list(Recording(out).records()) == []
+    with pytest.raises(RecordError, match="no vistrack topic"):  # another program's, empty
+        path = tmp_path / "foreign.mcap"
+        with open(path, "wb") as f:
+            Ros2Writer(f).finish()
+        McapRecording(path)

@@ -315,7 +315,12 @@ def released(node: Node, args: argparse.Namespace) -> bool:
         return True
     while not node.stop.is_set():
         if select.select([sys.stdin], [], [], 0.1)[0]:
-            return bool(sys.stdin.readline())
+            if sys.stdin.readline():
+                return True
+            # the launcher is gone, or a unit file gave /dev/null: it only said "stopped"
+            log.warning("--start-on-stdin: standard input ended before the line that starts "
+                        "the frames (run by hand or from a unit file, leave the flag out)")
+            return False
     return False
 
 

@@ -126,3 +126,16 @@ def test_nothing_publishing_or_answering_is_said(free_port):
     assert err == f"vistrack status: error: no live service for robot 'robot' at {endpoint}\n"
     code, out, err = results["status --json"]
     assert code == 1 and json.loads(out) == [] and err.count("\n") == 1
+
+
+def test_a_camera_waiting_for_stdin_that_ends_says_so(free_port):
+    """--start-on-stdin from a unit file or a script (stdin /dev/null): it said only
+    "stopped", exit 0, and no frame was ever sent."""
+    endpoint = f"tcp/127.0.0.1:{free_port}"
+    run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "camera", "--source",
+                          "builtin", "--start-on-stdin", "-l", endpoint, NS],
+                         stdin=subprocess.DEVNULL, capture_output=True, text=True,
+                         timeout=TIMEOUT_S)
+    assert run.returncode == 0, run.stderr
+    assert ("--start-on-stdin: standard input ended before the line that starts the frames"
+            in run.stderr), run.stderr

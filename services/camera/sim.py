@@ -95,6 +95,9 @@ NEAR_M = 0.05
 VOID_GREY = 128.0
 
 
+#: What a scenario's end may be missed by, s, the clock summing steps in floating point.
+DONE_SLACK_S = 1e-6
+
 class TextureError(ValueError):
     """A texture file is missing or unreadable, or a texture array is unusable."""
 
@@ -564,8 +567,10 @@ class Simulator:
 
     @property
     def done(self) -> bool:
-        """True once the clock has reached the scenario's duration (stepping may go on)."""
-        return self.t >= self.scenario.duration_s
+        """True once the clock has reached the scenario's duration (stepping may go on), to
+        within DONE_SLACK_S: the clock is a float sum of steps, and 15 steps of 1/30 s fell
+        short of 0.5 s (a 16th frame; 20 s at 7 fps gave 141)."""
+        return self.t >= self.scenario.duration_s - DONE_SLACK_S
 
     def target_position(self) -> tuple[float, float]:
         """Ground-truth target centre (tx, ty), m, world frame, at the current time."""

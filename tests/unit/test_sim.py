@@ -473,6 +473,18 @@ components:
     assert sim.done and sim.pose()["tx"] == pytest.approx(1.0)
 
 
+@pytest.mark.parametrize(("duration", "fps", "frames"), [(0.5, 30, 15), (20, 7, 140),
+                                                          (20, 30, 600), (0.1, 1000, 100)])
+def test_a_scenario_lasts_its_frames_whatever_the_rounding(duration, fps, frames):
+    """The clock sums steps in floating point: 15 steps of 1/30 s fell short of 0.5 s."""
+    sim = Simulator(parse_scenario(f"name: a\nduration_s: {duration}\ncomponents: []\n"))
+    steps = 0
+    while not sim.done:
+        sim.step(Command(), 1 / fps)
+        steps += 1
+    assert steps == frames
+
+
 def test_builtin_scenarios_load():
     assert {"default", "sideways", "approach", "steps"} <= set(BUILTIN_SCENARIOS)
     for name in BUILTIN_SCENARIOS:

@@ -963,6 +963,23 @@ class Node(abc.ABC):
         finally:
             self._busy_since = time.monotonic()
 
+    def wait_event(self, event: threading.Event, timeout: float) -> bool:
+        """Wait until ``event`` is set (True), or ``timeout`` s pass or ``stop`` is set
+        (False): a loop whose input comes through a callback of its own. Time spent here is
+        waiting, not work, for :attr:`busy_s`."""
+        self._busy_since = None
+        try:
+            deadline = time.monotonic() + timeout
+            while not self.stop.is_set():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                if event.wait(min(left, 0.1)):
+                    return True
+            return False
+        finally:
+            self._busy_since = time.monotonic()
+
     @property
     def busy_s(self) -> float:
         """Seconds the loop has been working since it last waited (in :meth:`recv`,

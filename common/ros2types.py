@@ -43,6 +43,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from .messages import (
+    MAX_SIDE,
     CmdVel,
     Estimate,
     Frame,
@@ -441,18 +442,23 @@ OVERLAYS = {"camera/features": feature_marker, "camera/centroid": centroid_marke
 #: OpenCV conversion to grey (None: already one channel, or one of :data:`_BYTE_OF_PIXEL`'s).
 #: Raw Bayer, as machine-vision cameras send it, is demosaiced by OpenCV, whose pattern names
 #: are those of the second row (ROS's ``bayer_rggb8`` is OpenCV's BayerBG, as ``cv_bridge``
-#: maps them). YUV 4:2:2 (USB cameras' YUYV, ``usb_cam``'s ``yuv422_yuy2``, and UYVY,
-#: ``yuv422``) is its luma byte: grey as the camera made it.
+#: maps them). YUV 4:2:2 (USB cameras' YUYV, ``usb_cam``'s ``yuv422_yuy2`` or ``yuyv``, and
+#: UYVY, ``yuv422`` or ``uyvy``, the names ``sensor_msgs`` gives the same layouts) is its luma
+#: byte: grey as the camera made it. The generic ``8UC3`` and ``8UC4`` are OpenCV's BGR and
+#: BGRA, as ``cv_bridge`` reads them.
 IMAGE_ENCODINGS: dict[str, tuple[int, int | None]] = {
     "mono8": (1, None), "8UC1": (1, None), "mono16": (2, None), "16UC1": (2, None),
     "rgb8": (3, cv2.COLOR_RGB2GRAY), "bgr8": (3, cv2.COLOR_BGR2GRAY),
+    "8UC3": (3, cv2.COLOR_BGR2GRAY),
     "rgba8": (4, cv2.COLOR_RGBA2GRAY), "bgra8": (4, cv2.COLOR_BGRA2GRAY),
+    "8UC4": (4, cv2.COLOR_BGRA2GRAY),
     "bayer_rggb8": (1, cv2.COLOR_BayerBG2GRAY), "bayer_bggr8": (1, cv2.COLOR_BayerRG2GRAY),
     "bayer_gbrg8": (1, cv2.COLOR_BayerGR2GRAY), "bayer_grbg8": (1, cv2.COLOR_BayerGB2GRAY),
-    "yuv422_yuy2": (2, None), "yuv422": (2, None),
+    "yuv422_yuy2": (2, None), "yuyv": (2, None), "yuv422": (2, None), "uyvy": (2, None),
 }
 #: The two-byte encodings that carry the grey level in one byte of each pixel's two: which.
-_BYTE_OF_PIXEL = {"yuv422_yuy2": 0, "yuv422": 1}  # Y0 U Y1 V; U Y0 V Y1
+_BYTE_OF_PIXEL = {"yuv422_yuy2": 0, "yuyv": 0,  # Y0 U Y1 V
+                  "yuv422": 1, "uyvy": 1}  # U Y0 V Y1
 
 
 def grey_of_image(obj: Any, grey: Callable[[np.ndarray], np.ndarray] | None = None
@@ -521,10 +527,13 @@ def _grey_of(image: np.ndarray, grey: Callable[[np.ndarray], np.ndarray] | None)
 
 
 def frame_of_camera(obj: Any, *, seq: int,
-                    grey: Callable[[np.ndarray], np.ndarray] | None = None) -> Frame:
+                    grey: Callable[[np.ndarray], np.ndarray] | None = None,
+                    resize: Callable[[np.ndarray], np.ndarray] | None = None) -> Frame:
     """The ``camera/frame`` of an ``Image`` or ``CompressedImage`` from a ROS 2 camera (see
     :func:`grey_of_image`, :func:`grey_of_compressed`; ``grey``: the camera's
-    ``vision.preprocess.Grey``), stamped with the header's stamp.
+    ``vision.preprocess.Grey``), ``resize`` d if given (before the size check: a 5472 px
+    wide camera with ``--size`` was refused as wider than a ``camera/frame`` carries),
+    stamped with the header's stamp.
 
     Raises
     ------
@@ -533,7 +542,12 @@ def frame_of_camera(obj: Any, *, seq: int,
     """
     image = (grey_of_compressed(obj, grey) if obj.__msgtype__ == COMPRESSED_IMAGE
              else grey_of_image(obj, grey))
+    if resize is not None:
+        image = resize(image)
     try:
         return Frame.from_image(image, seq=seq, stamp_ns=stamp_ns(obj.header))
     except MessageError as e:
+        if image.ndim == 2 and max(image.shape) > MAX_SIDE:
+            raise ValueError(f"{e} (a camera/frame carries at most {MAX_SIDE} px a side: "
+                             "give --size WxH to scale the images)") from None
         raise ValueError(str(e)) from None

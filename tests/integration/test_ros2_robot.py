@@ -264,3 +264,52 @@ def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_p
             "NN/%/%/camera_driver"} <= names
     twist_token = next(t for t in tokens if "/MP/%/%/vistrack/%cmd_vel/" in t)
     assert twist_token.endswith(f"/{dds(r2.TWIST)}/{STORE.hash_rihs01(r2.TWIST)}/::2,:,:,:,,")
+
+
+def test_a_camera_faster_than_its_conversion_is_taken_latest_only(rubberwhale, free_port):
+    """4K JPEGs from a ROS 2 camera at 100 Hz, each ~30 ms to decode here: the camera took
+    them in Zenoh's callback one after the other, so they queued (a 30 Hz 4K stream ran 4.7 s
+    behind after 5 s, every estimate late). Now the newest waits, older ones are dropped and
+    counted, and every frame sent is a fresh one."""
+    bgr = cv2.imread(str(rubberwhale / "frame10.png"), cv2.IMREAD_COLOR)
+    ok, jpeg = cv2.imencode(".jpg", np.tile(bgr, (5, 7, 1))[:2160, :3840])
+    assert ok
+    topic = "/camera/image_raw/compressed"
+    client = zenoh_config(f"tcp/127.0.0.1:{free_port}")
+    client.insert_json5("mode", '"client"')
+    with router(free_port) as ep, zenoh.open(client) as session:
+        arrivals: list[tuple[int, int]] = []  # (arrival ns, stamp ns) of each camera/frame
+
+        def on_frame(sample: zenoh.Sample) -> None:
+            arrivals.append((time.time_ns(), msgpack.unpackb(sample.payload.to_bytes())
+                             ["stamp_ns"]))
+        sub = session.declare_subscriber("vistrack/robot/camera/frame", on_frame)
+        cam = service("camera", ep, "--source", f"ros2:{topic}", "--domain", "0",
+                      "--size", "640x323", "-m", "client")
+        pub = session.declare_publisher(data_key(topic, r2.COMPRESSED_IMAGE),
+                                        congestion_control=zenoh.CongestionControl.BLOCK)
+        try:
+            cam.wait_for("ready", timeout=90)
+            wait_for(lambda: pub.matching_status.matching, what="the camera")
+            sent = []
+            for _ in range(150):  # 1.5 s at 100 Hz
+                stamp = time.time_ns()
+                header = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+                    sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id="camera_optical")
+                msg = T[r2.COMPRESSED_IMAGE](header=header, format="jpeg",
+                                             data=jpeg.reshape(-1))
+                pub.put(STORE.serialize_cdr(msg, r2.COMPRESSED_IMAGE).tobytes())
+                sent.append(stamp)
+                time.sleep(0.01)
+            time.sleep(2.0)  # what was still on its way
+            status = service_status(session, "camera")
+        finally:
+            pub.undeclare()
+            sub.undeclare()
+            cam.stop()
+    assert arrivals, "no frame came"
+    lags = [(arrived - stamp) / 1e9 for arrived, stamp in arrivals]
+    # fresh frames only: at most a few decodes behind (a queue was seconds behind)
+    assert max(lags) < 1.0, f"frames up to {max(lags):.2f} s behind their images"
+    assert arrivals[-1][1] >= sent[-1] - 0.5e9  # the last frame is one of the last images
+    assert status["dropped"] >= 1 and status["received"] == len(sent), status

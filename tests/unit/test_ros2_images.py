@@ -55,6 +55,8 @@ def _image(pixels: np.ndarray, encoding: str, *, pad: int = 0, bigendian: int = 
 
 @pytest.mark.parametrize(("encoding", "convert"), [
     ("bgr8", lambda b: b),
+    ("8UC3", lambda b: b),  # generic: OpenCV's BGR, as cv_bridge reads it
+    ("8UC4", lambda b: np.dstack([b, np.full(b.shape[:2], 200, np.uint8)])),
     ("rgb8", lambda b: b[:, :, ::-1]),
     ("bgra8", lambda b: np.dstack([b, np.full(b.shape[:2], 200, np.uint8)])),
     ("rgba8", lambda b: np.dstack([b[:, :, ::-1], np.full(b.shape[:2], 9, np.uint8)])),
@@ -110,7 +112,9 @@ def test_raw_bayer_of_real_texture_gives_its_grey(bgr):
 
 
 @pytest.mark.parametrize(("encoding", "luma_first"), [("yuv422_yuy2", True),
-                                                      ("yuv422", False)])
+                                                      ("yuv422", False),
+                                                      # sensor_msgs' names of the same two
+                                                      ("yuyv", True), ("uyvy", False)])
 def test_yuv422_gives_its_luma_bytes(bgr, encoding, luma_first):
     """YUYV (a USB camera's, usb_cam's yuv422_yuy2) and UYVY (yuv422): the grey is the Y byte
     of each pixel, whatever the chroma bytes beside it hold."""
@@ -189,3 +193,16 @@ def test_a_camera_s_16_bit_images_are_scaled_by_the_depth_of_its_samples(bgr, bi
         np.testing.assert_array_equal(frame.data, grey)
     assert stream.bits == bits
     assert r2.grey_of_image(msg).max() < 256 >> (16 - bits) or bits == 16  # the high byte
+
+
+def test_an_image_wider_than_a_frame_carries_is_taken_with_size():
+    """A 5472 x 3648 camera (20 MP) with --size was refused, 'width must be in 1..4096':
+    the size was checked before the resize. Without --size the error says to give it."""
+    from vistrack.common.sources import resize
+
+    big = np.tile(np.arange(5472, dtype=np.uint8)[None, :], (8, 1))  # 5472 x 8
+    msg = _image(big, "mono8")
+    frame = r2.frame_of_camera(msg, seq=0, resize=lambda image: resize(image, (684, 8)))
+    assert (frame.width, frame.height) == (684, 8)
+    with pytest.raises(ValueError, match=r"give --size WxH to scale the images"):
+        r2.frame_of_camera(msg, seq=0)

@@ -195,7 +195,8 @@ class LaunchSpec:
                     size: str | None = None, loop: bool = False) -> LaunchSpec:
         """A copy whose camera flags are overridden (``vistrack up --camera/--fps/--size``).
 
-        A new ``source`` drops the launch file's ``--loop`` unless ``loop`` is true. Each
+        A new ``source`` drops the launch file's ``--loop`` unless ``loop`` is true, and one
+        other than the simulator its simulator flags (``--noise``, ``--lockstep``, ...). Each
         flag given takes the place of the launch file's (``--fps 30`` and ``--fps=30`` alike),
         so that the camera's command line, in ``ps`` and the log, says each once.
         ``source="none"`` leaves the camera
@@ -230,6 +231,14 @@ class LaunchSpec:
         flags = list(camera.flags)
         if source is not None or loop:
             flags = [f for f in flags if f != "--loop"]
+        if source is not None and not source.startswith("sim"):
+            # the simulator's own flags go with it (a sim launch file run with --camera
+            # builtin was refused for its --noise and --lockstep)
+            from ..camera.service import SIM_ONLY  # here: the camera imports OpenCV
+
+            for flag, _, default in SIM_ONLY:
+                flags = ([f for f in flags if f != flag] if default is False
+                         else _without(flags, flag))
         for flag in (f for f in extra if f.startswith("--") and f != "--loop"):
             flags = _without(flags, flag)
         new = dataclasses.replace(camera, flags=(*flags, *extra))

@@ -829,6 +829,14 @@ def test_flag_list_and_mapping_forms_and_camera_overrides():
     assert spec.with_camera() is spec
     with pytest.raises(LaunchError, match="starts no camera"):
         load_launch("services: {preprocessing: }\n").with_camera(source="builtin")
+    # a simulator's launch file with another camera: its simulator flags go (they were
+    # refused by the camera's check: "--lockstep, --noise: for --source sim only")
+    sim = load_launch("services: {camera: {flags: {--source: 'sim:default', --fps: 30, "
+                      "--noise: 2, --lockstep: true, --seed: 4}}}\n")
+    assert sim.with_camera(source="builtin").service("camera").flags == (
+        "--fps", "30", "--source", "builtin")
+    assert sim.with_camera(source="sim:steps").service("camera").flags == (
+        "--fps", "30", "--noise", "2", "--lockstep", "--seed", "4", "--source", "sim:steps")
 
 
 def test_camera_none_leaves_the_camera_out():

@@ -95,7 +95,20 @@ def as_a_tool(conf: zenoh.Config, args: argparse.Namespace) -> zenoh.Config:
       machine answered the scouting.
 
     A config file (``-c``) that sets either is left as it says (``--no-multicast-scouting``
-    is what the flag says)."""
+    is what the flag says).
+
+    Raises
+    ------
+    BusError
+        For ``-m router``: a router routes between everything it reaches, and a tool run so
+        with an ``-e`` to each of two systems joined them (each service then took the other
+        system's samples, and their launchers killed services whose status queries the other
+        system answered)."""
+    if conf.get_json("mode") == '"router"':
+        where = "-m router" if getattr(args, "mode", None) == "router" else \
+            f"{args.config}: mode router"
+        raise BusError(f"{where}: a tool does not run as a router (it would route between "
+                       "the systems it reaches): allowed peer (the default) or client")
     unset = zenoh.Config()
     for key, value, when in (
             ("scouting/gossip/target", TOOL_GOSSIP_TARGET, True),

@@ -145,3 +145,18 @@ def test_the_tools_of_one_system_reach_each_other(tmp_path):
     assert echo.returncode == 0, err
     lines = [json.loads(line) for line in out.splitlines()]  # not messages: said so, sized
     assert [(d["key"], d["nbytes"]) for d in lines] == [(KEY, 1), (KEY, 2), (KEY, 3)], out
+
+
+def test_a_tool_does_not_run_as_a_router(tmp_path):
+    """`-m router` with an -e to each of two systems routed between them: every service
+    took the other system's samples, and a launcher killed services as hung when the other
+    system answered their status queries. Refused, from the flag or a config file."""
+    conf = tmp_path / "router.json5"
+    conf.write_text('{mode: "router"}\n')
+    for flags, where in ((["-m", "router", "-e", "tcp/127.0.0.1:1", "-e", "tcp/127.0.0.1:2"],
+                          "-m router"), (["-c", str(conf)], f"{conf}: mode router")):
+        run = vistrack("echo", "isolation", "--count", "1", *flags, timeout=30)
+        assert run.returncode == 2, run.stderr
+        assert run.stderr == (f"vistrack echo: error: {where}: a tool does not run as a router "
+                              "(it would route between the systems it reaches): allowed peer "
+                              "(the default) or client\n")

@@ -642,7 +642,12 @@ class Launcher:
         if self._session is None:
             return
         try:
-            self._session.get(self.keys.status(service), on_reply, timeout=STATUS_PERIOD_S)
+            # every queryable of the key answers, and the one of process pid counts: by
+            # default only the best-matching one did, and where another system's service of
+            # the same name was reachable its answer alone came, and a healthy service was
+            # killed as hung
+            self._session.get(self.keys.status(service), on_reply, timeout=STATUS_PERIOD_S,
+                              target=zenoh.QueryTarget.ALL)
         except zenoh.ZError:
             pass  # the session is closing: the run is ending
 

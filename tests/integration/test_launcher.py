@@ -406,6 +406,34 @@ def test_a_launcher_that_did_not_run_for_a_while_kills_no_service(procs, tmp_pat
     up.wait_line(r"the launcher did not run for [0-9.]+ s .*judged again from now", 1)
 
 
+def test_another_answer_to_a_status_query_kills_no_healthy_service(procs, tmp_path,
+                                                                   free_port):
+    """The launcher's status queries reached the best-matching queryable only: with another
+    system's service of the same name reachable (a tool had joined them), its answer alone
+    came, of another pid, and a healthy service was killed as hung within its 5 s. Here a
+    session of the test answers motion-estimation's status queries with another pid, as a
+    complete queryable (the one best matching), for 8 s."""
+    robot = f"t{uuid.uuid4().hex[:8]}"
+    up = start_up(procs, tmp_path, free_port, robot)
+    me = re.search(LAUNCHER + r"started motion-estimation \(pid (\d+)", up.output, re.M)
+    assert me, up.output
+    conf = zenoh.Config()
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{free_port}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(conf) as session:
+        other = session.declare_queryable(
+            f"vistrack/{robot}/motion_estimation/status",
+            lambda query: query.reply(query.key_expr, msgpack.packb(
+                {"service": "motion_estimation", "pid": 1, "busy_s": 0.0})),
+            complete=True)
+        try:
+            time.sleep(8.0)
+        finally:
+            other.undeclare()
+    assert "is hung" not in up.output, up.output
+    assert alive(int(me[1])), up.output
+
+
 def test_sigint_stops_everything_within_5_s(procs, tmp_path, free_port):
     up = start_up(procs, tmp_path, free_port, f"t{uuid.uuid4().hex[:8]}")
     children = services_and_spare(up.proc.pid, 5)

@@ -127,12 +127,13 @@ def reference_windows(thumbs: list[np.ndarray]) -> np.ndarray:
 def scene_distance(thumb: np.ndarray, references: np.ndarray) -> float:
     """1 - the best normalised correlation of ``thumb``'s central window with ``references``
     (from :func:`reference_windows`): 0 same view, ~1 unrelated, at most 2. A flat view
-    (:func:`_normalise`) is 0 from flat references (a covered lens still covered: it read 1,
-    a scene change, logged after every skipped tuning), 1 from textured ones."""
+    (:func:`_normalise`) is 0 from references mostly flat (a covered lens still covered: it
+    read 1, a scene change, logged after every skipped tuning), 1 from references mostly
+    textured (a webcam's black first frames among them do not make darkness the scene)."""
     k = THUMB_SHIFT
     centre = _normalise(thumb[k:THUMB - k, k:THUMB - k].ravel()[None, :])[0]
     if not centre.any():
-        return 0.0 if not references.any(axis=1).all() else 1.0
+        return 0.0 if np.mean(~references.any(axis=1)) > 0.5 else 1.0
     return float(1.0 - np.max(references @ centre))
 
 

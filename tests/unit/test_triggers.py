@@ -74,6 +74,8 @@ def test_a_flat_view_is_the_same_as_a_flat_reference_and_far_from_texture(scene_
     assert scene_distance(thumbnail(dark()), refs_of([dark(), dark()])) == 0.0
     assert scene_distance(thumbnail(black), refs_of(scene_a[:10])) == pytest.approx(1.0)
     assert scene_distance(thumbnail(scene_a[5]), refs_of([black])) == pytest.approx(1.0)
+    # a black first frame among textured ones does not make darkness the tuned scene
+    assert scene_distance(thumbnail(black), refs_of([black, *scene_a[:9]])) == 1.0
 
 
 def test_thumbnail_rejects_a_colour_frame():

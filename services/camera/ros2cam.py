@@ -43,6 +43,8 @@ PREFIX = "ros2:"
 NODE_NAME = "vistrack_camera"
 #: Rejected images are logged at most once every this, s (each is counted in the status).
 REJECTED_LOG_S = 5.0
+#: Seconds without an image after which the camera says where to look (once).
+NO_IMAGE_S = 5.0
 
 
 def is_ros2(spec: str) -> bool:
@@ -111,12 +113,47 @@ def run_ros2(node: Node, args: argparse.Namespace, size: tuple[int, int] | None)
         ready(node)
         # waiting counts as waiting (a bare stop.wait() left the status's busy_s growing
         # with uptime, and vistrack up killed the camera as hung after its hang_timeout)
+        started = time.monotonic()
+        said = False
         while not node.stop.is_set():
             if node.wait_event(convert.waiting, 1.0):
                 payload = convert.take()
                 if payload is not None:
                     convert(payload)
+            elif not said and time.monotonic() - started >= NO_IMAGE_S \
+                    and not node.status.received:
+                said = True
+                log.warning("%s", no_image_said(session, topic, typename, args.domain))
     return 0
+
+
+def no_image_said(session: zenoh.Session, topic: str, typename: str, domain: int) -> str:
+    """What to say of a topic that sent no image in NO_IMAGE_S: where to look, and the
+    publishers of a topic of that name the ROS 2 graph has on other domains or of another
+    type (a domain, a namespace or a raw/compressed mismatch was total silence)."""
+    text = (f"no image on {topic} ({typename}, ROS domain {domain}) in {NO_IMAGE_S:g} s: is "
+            "the camera publishing that topic, on that domain (--domain, ROS_DOMAIN_ID)? A "
+            "topic whose last name is 'compressed' is read as CompressedImage, any other as "
+            "Image")
+    env = os.environ.get("ROS_DOMAIN_ID", "")
+    if env and str(domain) != env.strip():
+        text += f"; ROS_DOMAIN_ID={env!r} is not a domain id 0..232: domain 0 was taken"
+    name = rmw.mangle(topic)
+    seen = set()
+    try:
+        for reply in session.liveliness().get("@ros2_lv/**", timeout=1.0):
+            if reply.ok is None:
+                continue
+            # @ros2_lv/<domain>/<zid>/<nid>/<id>/<kind>/<enclave>/<namespace>/<node>/<topic>/
+            # <type>/<hash>/<qos> (rmw_zenoh's graph cache)
+            parts = str(reply.ok.key_expr).split("/")
+            if len(parts) > 10 and parts[5] == "MP" and parts[9] == name:
+                seen.add(f"domain {parts[1]} ({parts[10]})")
+    except zenoh.ZError:
+        pass  # the session is closing
+    if seen:
+        text += f"; publishers of a topic of that name: {', '.join(sorted(seen))}"
+    return text
 
 
 def frame_of_payload(payload: bytes, typename: str, seq: int,

@@ -313,3 +313,28 @@ def test_a_camera_faster_than_its_conversion_is_taken_latest_only(rubberwhale, f
     assert max(lags) < 1.0, f"frames up to {max(lags):.2f} s behind their images"
     assert arrivals[-1][1] >= sent[-1] - 0.5e9  # the last frame is one of the last images
     assert status["dropped"] >= 1 and status["received"] == len(sent), status
+
+
+def test_a_camera_that_sends_nothing_says_where_to_look(free_port):
+    """A publisher on another ROS domain (or namespace, or raw where compressed was named)
+    was total silence: received 0, nothing logged. After 5 s the camera says what it waits
+    for and the publishers of a topic of that name the graph has."""
+    client = zenoh_config(f"tcp/127.0.0.1:{free_port}")
+    client.insert_json5("mode", '"client"')
+    with router(free_port) as ep, zenoh.open(client) as session:
+        zid = str(session.zid())
+        token = session.liveliness().declare_token(  # a camera driver on domain 5
+            f"@ros2_lv/5/{zid}/0/1/MP/%/%/camera_driver/%camera%image_raw/{dds(r2.IMAGE)}/"
+            f"{STORE.hash_rihs01(r2.IMAGE)}/::2,:,:,:,,")
+        sink = session.declare_subscriber("vistrack/robot/camera/frame", lambda s: None)
+        cam = service("camera", ep, "--source", "ros2:/camera/image_raw", "--domain", "0",
+                      "-m", "client")
+        try:
+            cam.wait_for("ready", timeout=90)
+            line = cam.wait_for("no image on /camera/image_raw", timeout=20)
+        finally:
+            cam.stop()
+            sink.undeclare()
+            token.undeclare()
+    assert "(sensor_msgs/msg/Image, ROS domain 0) in 5 s" in line, line
+    assert f"publishers of a topic of that name: domain 5 ({dds(r2.IMAGE)})" in line, line

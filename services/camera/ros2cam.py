@@ -136,8 +136,12 @@ def no_image_said(session: zenoh.Session, topic: str, typename: str, domain: int
             "topic whose last name is 'compressed' is read as CompressedImage, any other as "
             "Image")
     env = os.environ.get("ROS_DOMAIN_ID", "")
-    if env and str(domain) != env.strip():
-        text += f"; ROS_DOMAIN_ID={env!r} is not a domain id 0..232: domain 0 was taken"
+    try:
+        rmw.validate_domain(int(env))
+    except ValueError:
+        if env:
+            text += (f"; ROS_DOMAIN_ID={env!r} is not a domain id "
+                     f"{rmw.DOMAIN_RANGE[0]}..{rmw.DOMAIN_RANGE[1]}: the default was 0")
     name = rmw.mangle(topic)
     seen = set()
     try:

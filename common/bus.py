@@ -1329,8 +1329,15 @@ class ZenohNode(Node):
 
 # -- process helpers ----------------------------------------------------------------------
 
+#: The signals that stop a process in order: SIGHUP too (a terminal or SSH session that
+#: went), which killed the launcher at once, its children then all at the same moment by
+#: their parent-death signal, the ros2 bridge perhaps before the controller's last stop.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
 def install_signal_handlers(stop: threading.Event) -> Callable[[], None]:
-    """Make SIGINT and SIGTERM set ``stop`` so the service loop ends and closes its session.
+    """Make SIGINT, SIGTERM and SIGHUP set ``stop`` so the service loop ends and closes its
+    session.
 
     A second SIGINT raises KeyboardInterrupt, so a stuck process can still be interrupted.
     Signal handlers can only be installed from the main thread; elsewhere (a service run in
@@ -1357,7 +1364,7 @@ def install_signal_handlers(stop: threading.Event) -> Callable[[], None]:
             requested = True
             threading.Thread(target=stop.set, name="stop-request", daemon=True).start()
 
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
 
     def restore() -> None:
         for sig, old in previous.items():

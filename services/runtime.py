@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from ..common.bus import (
+    STOP_SIGNALS,
     BusError,
     Node,
     ZenohNode,
@@ -185,7 +186,7 @@ def _watch_stop_requests(node: Node, returned: threading.Event, logger: logging.
     def watch() -> None:
         while True:
             signum = os.read(r, 1)
-            if signum and signum[0] in (signal.SIGINT, signal.SIGTERM):
+            if signum and signum[0] in STOP_SIGNALS:
                 break
         node.stop.set()
         if returned.wait(STOP_DEADLINE_S):

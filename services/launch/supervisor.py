@@ -225,6 +225,9 @@ class Launcher:
         self._probes: dict[str, zenoh.Publisher] = {}  # never put: matching status only
         self._gate_deadline = 0.0
         self._end_code: int | None = None
+        #: services that failed (exit code non-zero) and were not restarted: the run, ended
+        #: by its camera's file or its --duration, failed (it said 0)
+        self._lost: list[str] = []
         self._started = False
         self._stopped = False
 
@@ -323,7 +326,8 @@ class Launcher:
         Returns
         -------
         code : None while the run goes on; the run's exit code once it should end (0 when
-            the camera has finished its file; 1 when every service has exited and one failed).
+            the camera has finished its file, 1 if a service failed and was not restarted
+            meanwhile; 1 when every service has exited and one failed).
         """
         self._step(startup=False)
         return self._end_code
@@ -331,7 +335,8 @@ class Launcher:
     def run_until(self, stop: threading.Event | None = None,
                   deadline: float | None = None) -> int:
         """Supervise until the run ends, ``stop`` or ``stop_event`` is set, or the monotonic
-        ``deadline`` passes; return the exit code (0 for a stop or the deadline)."""
+        ``deadline`` passes; return the exit code (0 for a stop, and for the deadline unless
+        a service failed and was not restarted: 1)."""
         while True:
             code = self.poll()
             if code is not None:
@@ -340,6 +345,9 @@ class Launcher:
                 return 0
             now = time.monotonic()
             if deadline is not None and now >= deadline:
+                if self._lost:
+                    self._log(f"duration reached; the run lost {', '.join(self._lost)}")
+                    return 1
                 self._log("duration reached")
                 return 0
             self._wait(TICK_S if deadline is None else max(0.0, min(TICK_S, deadline - now)))
@@ -667,8 +675,9 @@ class Launcher:
             child.restart_at = now + delay
             self._log(f"{name} exited with {code}, restarting in {delay:g} s")
         elif child.spec.name == "camera" and code == 0:
-            self._log("camera finished (exit 0): ending the run")
-            self._end_code = 0
+            self._log("camera finished (exit 0): ending the run"
+                      + (f", which lost {', '.join(self._lost)}" if self._lost else ""))
+            self._end_code = 1 if self._lost else 0
         elif child.spec.name == "camera" and policy == "never":
             # no frame will come again: a file camera's run that ended in an error (a video
             # cut short, once its frames were out) or a camera that failed ends the run too,
@@ -678,6 +687,8 @@ class Launcher:
             self._end_code = 1
         else:
             self._log(f"{name} exited with {code}, not restarted (restart: {policy})")
+            if code != 0:
+                self._lost.append(name)
 
     def _command(self, spec: ServiceSpec) -> list[str]:
         cmd = [self._python, "-m", "vistrack.services.cli", spec.cli_name, *spec.flags]

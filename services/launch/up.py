@@ -58,6 +58,7 @@ from types import FrameType
 from typing import Any
 
 from ...common.bus import (
+    STOP_SIGNALS,
     BusError,
     add_zenoh_args,
     install_signal_handlers,
@@ -181,7 +182,7 @@ def main(args: argparse.Namespace) -> int:
 
 @contextlib.contextmanager
 def _interrupting() -> Iterator[None]:
-    """SIGINT and SIGTERM raise KeyboardInterrupt within: a first run's compile of the
+    """SIGINT, SIGTERM and SIGHUP raise KeyboardInterrupt within: a first run's compile of the
     kernels (a long call in this thread) ends at once. The handlers that only set the stop
     event were run between the compiler's bytecodes and nothing looked at the event: Ctrl-C
     or SIGTERM took effect 45 to 50 s later, when the compile was done (systemd's
@@ -193,7 +194,7 @@ def _interrupting() -> Iterator[None]:
     def interrupt(signum: int, frame: FrameType | None) -> None:
         raise KeyboardInterrupt
 
-    previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, interrupt) for sig in STOP_SIGNALS}
     try:
         yield
     finally:

@@ -434,12 +434,34 @@ def test_another_answer_to_a_status_query_kills_no_healthy_service(procs, tmp_pa
     assert alive(int(me[1])), up.output
 
 
-def test_sigint_stops_everything_within_5_s(procs, tmp_path, free_port):
+def test_a_run_that_lost_a_service_for_good_is_a_failure(procs, tmp_path, free_port):
+    """motion-estimation killed under restart: never, then the camera's file ends: the run
+    said 'stopped (exit 0)', with 90 % of the file's estimates missing."""
+    text = FIVE.replace("--loop: true", "--loop: false").replace(
+        "motion-estimation:\n        restart: on-failure",
+        "motion-estimation:\n        restart: never")
+    launch = write_launch(tmp_path / "lost.yaml", text)
+    up = Proc("up", str(launch), "-l", f"tcp/127.0.0.1:{free_port}", "--no-multicast-scouting",
+              "--robot", f"t{uuid.uuid4().hex[:8]}")
+    procs.append(up)
+    up.wait_line(r"^vistrack up: ready \(5 services\)$", READY_S)
+    me = re.search(LAUNCHER + r"started motion-estimation \(pid (\d+)", up.output, re.M)
+    assert me, up.output
+    os.kill(int(me[1]), signal.SIGKILL)
+    assert up.wait_exit(60) == 1, up.output
+    assert re.search(LAUNCHER + r"camera finished \(exit 0\): ending the run, which lost "
+                     r"motion-estimation$", up.output, re.M), up.output
+
+
+# SIGHUP (a terminal or SSH session that went) killed the launcher (exit 129): its children
+# all died at once by their parent-death signal, none of the ordered stop
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGHUP])
+def test_sigint_stops_everything_within_5_s(procs, tmp_path, free_port, sig):
     up = start_up(procs, tmp_path, free_port, f"t{uuid.uuid4().hex[:8]}")
     children = services_and_spare(up.proc.pid, 5)
 
     t0 = time.monotonic()
-    up.proc.send_signal(signal.SIGINT)
+    up.proc.send_signal(sig)
     code = up.wait_exit(STOP_S)
     elapsed = time.monotonic() - t0
 

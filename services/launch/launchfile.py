@@ -14,6 +14,7 @@ import dataclasses
 import importlib
 import json
 import math
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -393,8 +394,17 @@ def _endpoints(reader: _Reader, node: yaml.Node, path: str) -> tuple[str, ...]:
         except (zenoh.ZError, FlagError):
             raise reader.error(item, path, f"{endpoint!r} is not a Zenoh endpoint: "
                                "<protocol>/<address>, e.g. tcp/127.0.0.1:7447") from None
+        if any_port(endpoint):
+            raise reader.error(item, path, f"{endpoint!r}: the services connect to the "
+                               "router's endpoints, so give it a port of its own, not 0")
         out.append(endpoint)
     return tuple(out)
+
+
+def any_port(endpoint: str) -> bool:
+    """Whether ``endpoint`` asks for any free port (``:0``): fine for a process nobody
+    connects to, not for the router the services are told to connect to."""
+    return re.search(r":0(?:[?#].*)?$", endpoint.partition("/")[2]) is not None
 
 
 def _service_name(reader: _Reader, node: yaml.Node, path: str) -> str:
@@ -497,7 +507,10 @@ def _flags(reader: _Reader, service: str, node: yaml.Node, path: str) -> tuple[s
     else:
         raise reader.error(node, path, "expected a list of strings or a mapping flag -> value")
     for arg in argv:
-        if arg.split("=", 1)[0] in RESERVED_FLAGS:
+        # -eENDPOINT too (argparse's attached short form): it got past as one word, and the
+        # service joined a second router
+        if arg.split("=", 1)[0] in RESERVED_FLAGS or (
+                arg.startswith("-e") and not arg.startswith("--")):
             raise reader.error(node, path, f"{arg} is set by the launcher (from robot and the "
                                f"router); reserved: {', '.join(RESERVED_FLAGS)}")
     problem = check_service_flags(service, argv)

@@ -68,6 +68,7 @@ from ..usage import add_number, plural, print_error
 from .launchfile import (
     LaunchError,
     LaunchSpec,
+    any_port,
     camera_source,
     check_service_flags,
     default_launch,
@@ -128,10 +129,21 @@ def launch_from_args(args: argparse.Namespace) -> LaunchSpec:
     changes: dict[str, Any] = {}
     if args.robot is not None:
         changes["robot"] = args.robot
+    if args.mode == "router":
+        # each service then tried to listen on 7447 (a router's default), and all but the
+        # first found it taken: a start-up failure
+        raise LaunchError("-m router: the services cannot all be routers (the embedded "
+                          "router, or -e ROUTER, routes for them): allowed peer (the "
+                          "default) or client")
     if args.listen:
         if args.connect:
             raise LaunchError("-l/--listen sets the embedded router's endpoints, and "
                               "-e/--connect replaces that router: give one of them")
+        for endpoint in args.listen:
+            if any_port(endpoint):
+                # the services were told to connect to port 0: 'nothing answers there'
+                raise LaunchError(f"-l {endpoint}: the services connect to the router's "
+                                  "endpoints, so give it a port of its own, not 0")
         changes["listen"] = tuple(args.listen)
         router_config(list(args.listen))  # a malformed endpoint is a usage error
     if args.ready_timeout is not None:

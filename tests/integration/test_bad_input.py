@@ -205,6 +205,12 @@ CASES = {
          "--name '' is 0 characters long: a common name has 1 to 64"),
     ],
     "up": [
+        # every service tried to listen on 7447, all but one found it taken
+        (["-m", "router"], "-m router: the services cannot all be routers (the embedded "
+                           "router, or -e ROUTER, routes for them): allowed peer (the default) "
+                           "or client"),
+        (["-l", "tcp/127.0.0.1:0"], "-l tcp/127.0.0.1:0: the services connect to the "
+                                    "router's endpoints, so give it a port of its own, not 0"),
         (["--fps", "nan", "-l", "tcp/127.0.0.1:1"],
          "--fps nan is out of range: allowed 0 or 0.1..1000"),
         # up's own flag, with the camera's range (argparse's 'invalid float value' named none)

@@ -774,8 +774,16 @@ BAD_LAUNCH_FILES = {
                          r"line 3: services\.camera\.flags: unrecognized arguments: --fp 30"),
     "reserved flag": ("services:\n  preprocessing:\n    flags: {--robot: r2}\n",
                       r"line 3: services\.preprocessing\.flags: --robot is set by the launcher"),
+    # argparse's attached short form: the service joined a second router
+    "reserved flag attached": ("services:\n  preprocessing:\n    flags: ['-etcp/127.0.0.1:1']\n",
+                               r"line 3: services\.preprocessing\.flags: -etcp/127\.0\.0\.1:1 "
+                               r"is set by the launcher"),
     "bad backoff": ("services:\n  camera:\n    backoff: {initial: -1}\n",
                     r"line 3: services\.camera\.backoff\.initial: -1 is out of range"),
+    # the services were told to connect to port 0: "nothing answers there", exit 1 in 6 s
+    "router on any port": ("router: {listen: [tcp/127.0.0.1:0]}\nservices: {camera: }\n",
+                           r"line 1: router\.listen: 'tcp/127\.0\.0\.1:0': the services "
+                           r"connect to the router's endpoints, so give it a port of its own"),
     "bad endpoint": ("router: {listen: [localhost]}\nservices: {camera: }\n",
                      r"line 1: router\.listen: 'localhost' is not a Zenoh endpoint"),
     "endpoint without a port": ("router: {listen: [tcp/127.0.0.1]}\nservices: {camera: }\n",

@@ -296,9 +296,21 @@ class _Reader:
         where = f"{path}: " if path else "the launch file: "
         return LaunchError(f"{self.source}, line {line}: {where}{message}", line)
 
-    def value(self, node: yaml.Node) -> Any:
-        """The Python value of a scalar node (YAML's own typing: 30 is an int, true a bool)."""
-        return self._loader.construct_object(node, deep=True)
+    def value(self, node: yaml.Node, path: str) -> Any:
+        """The Python value of a scalar node (YAML's own typing: 30 is an int, true a bool).
+
+        A merge key (``<<: *defaults``), a tag the safe loader does not know (``!foo``) or a
+        value its tag does not fit (``!!int abc``) is an error naming its line: each was a
+        Python traceback, exit 1."""
+        if node.tag == "tag:yaml.org,2002:merge":
+            raise self.error(node, path, "YAML merge keys (<<) are not taken: write the keys "
+                                         "out")
+        try:
+            return self._loader.construct_object(node, deep=True)
+        except (yaml.YAMLError, ValueError, TypeError) as e:
+            problem = getattr(e, "problem", None) or str(e)
+            raise self.error(node, path, f"{node.value!r} tagged {node.tag}: cannot be "
+                                         f"read ({problem})") from None
 
     def mapping(self, node: yaml.Node, path: str,
                 allowed: Iterable[str]) -> dict[str, tuple[yaml.Node, yaml.Node]]:
@@ -308,7 +320,7 @@ class _Reader:
             raise self.error(node, path, f"expected a mapping with keys {', '.join(allowed)}")
         out: dict[str, tuple[yaml.Node, yaml.Node]] = {}
         for key_node, value_node in node.value:
-            key = self.value(key_node) if isinstance(key_node, yaml.ScalarNode) else None
+            key = self.value(key_node, path) if isinstance(key_node, yaml.ScalarNode) else None
             if not isinstance(key, str):
                 raise self.error(key_node, path, "keys must be strings")
             if key not in allowed:
@@ -322,7 +334,7 @@ class _Reader:
 
     def scalar(self, node: yaml.Node, path: str, kinds: tuple[type, ...], what: str) -> Any:
         """A scalar of one of ``kinds`` (a bool is not a number here)."""
-        value = self.value(node) if isinstance(node, yaml.ScalarNode) else None
+        value = self.value(node, path) if isinstance(node, yaml.ScalarNode) else None
         if (not isinstance(node, yaml.ScalarNode) or not isinstance(value, kinds)
                 or (isinstance(value, bool) and bool not in kinds)):
             shown = repr(value) if isinstance(node, yaml.ScalarNode) else f"a {node.id}"
@@ -335,7 +347,7 @@ class _Reader:
         A plain (unquoted) scalar in exponent form is one too: YAML 1.1 reads ``1e3`` as a
         string."""
         allowed = allowed or f"{lo:g}..{hi:g} s"
-        value = self.value(node) if isinstance(node, yaml.ScalarNode) else None
+        value = self.value(node, path) if isinstance(node, yaml.ScalarNode) else None
         if isinstance(value, str) and node.style is None:
             try:
                 value = float(value)

@@ -780,6 +780,16 @@ BAD_LAUNCH_FILES = {
                                r"is set by the launcher"),
     "bad backoff": ("services:\n  camera:\n    backoff: {initial: -1}\n",
                     r"line 3: services\.camera\.backoff\.initial: -1 is out of range"),
+    # each of these three was a Python traceback, exit 1
+    "merge key": ("services: {camera: &d {restart: always}, preprocessing: {<<: *d}}\n",
+                  r"line 1: services\.preprocessing: YAML merge keys \(<<\) are not taken: "
+                  r"write the keys out"),
+    "unknown tag": ("robot: !foo bar\nservices: {camera: }\n",
+                    r"line 1: robot: 'bar' tagged !foo: cannot be read \(could not determine "
+                    r"a constructor for the tag '!foo'\)"),
+    "bad typed tag": ("ready_timeout: !!int abc\nservices: {camera: }\n",
+                      r"line 1: ready_timeout: 'abc' tagged tag:yaml\.org,2002:int: cannot "
+                      r"be read"),
     # the services were told to connect to port 0: "nothing answers there", exit 1 in 6 s
     "router on any port": ("router: {listen: [tcp/127.0.0.1:0]}\nservices: {camera: }\n",
                            r"line 1: router\.listen: 'tcp/127\.0\.0\.1:0': the services "

@@ -206,17 +206,18 @@ def test_a_ros2_robot_drives_vistrack_and_takes_its_commands(rubberwhale, free_p
             small = np.ascontiguousarray(frames[0][:4, :4])
             robot.seq += 2  # two images lost on the way: the attachments' numbers tell
             robot.publish_image(small, data=np.zeros(47, np.uint8))
-            if path == "direct":  # preprocessing's input is latest-only (a ring of one): the
-                # second bad image would overwrite the first one still waiting there
-                wait_for(lambda: service_status(session, reader).get("rejected") == 1,
-                         what="the first bad image rejected")
+            # both inputs are latest-only (preprocessing's a ring of one, the camera's a slot
+            # its callback fills): the second bad image would overwrite the first one still
+            # waiting there
+            wait_for(lambda: service_status(session, reader).get("rejected") == 1,
+                     what="the first bad image rejected")
             robot.publish_image(small, encoding="nv21")
             wait_for(lambda: service_status(session, reader).get("rejected") == 2,
                      what=f"the {reader} to count 2 rejected images")
             status = service_status(session, reader)
             assert "nv21" in status["last_error"]
-            # its loop waits while Zenoh's callback does the work: not busy (a busy_s that
-            # grew with uptime got the camera killed as hung under vistrack up)
+            # its loop waits for an image, and waiting is not busy (a busy_s that grew with
+            # uptime got the camera killed as hung under vistrack up)
             status = wait_for(lambda: (st := service_status(session, reader))["uptime_s"] > 2.5
                               and st, what=f"the {reader} up 2.5 s")
             assert status["busy_s"] < 1.0, status["busy_s"]

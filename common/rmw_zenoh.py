@@ -188,6 +188,18 @@ def liveliness_token(rmw: Rmw, zid: str, node_id: int, entity_id: int, kind: str
     return "/".join(parts)
 
 
+def token_parts(key: str) -> tuple[str, str, str | None, str | None] | None:
+    """(domain, kind, mangled topic, DDS type) of a liveliness key laid out as
+    :func:`liveliness_token` makes it (topic and type None for a node's), None for another
+    key."""
+    parts = key.split("/")
+    if len(parts) < 9 or parts[0] != ADMIN_SPACE:
+        return None
+    if len(parts) < 11:
+        return parts[1], parts[5], None, None
+    return parts[1], parts[5], parts[9], parts[10]
+
+
 def gid(token: str) -> bytes:
     """The entity's GID: XXH3-128 of its liveliness key, low 64 bits then high, each little
     endian (``Entity::Entity``: memcpy of ``low64`` and ``high64`` on a little-endian host)."""

@@ -71,6 +71,7 @@ from ...common.messages import (
     pack,
 )
 from ...common.params import FACTORS, ParamError
+from ...common.vision.tracker import MAX_GAP
 from ..runtime import (
     NO_ESTIMATE,
     ParamsInForce,
@@ -334,7 +335,7 @@ class AutoTuner:
             self.frames.clear()  # another camera: one tuning runs on one frame size
             self.offered = 0
         elif self.frames and (msg.seq <= self.last_seq or (
-                msg.seq - self.last_seq > BREAK_SEQ
+                msg.seq - self.last_seq > MAX_GAP
                 and msg.stamp_ns - self.frames[-1][1] > BREAK_S * 1e9)):
             # a camera restarted (seq back), another one, or frames missed for a while: the
             # buffer's frames are not consecutive with this one, and a tuning on both sides
@@ -517,10 +518,9 @@ class AutoTuner:
 WORKER_STARTS = 3
 #: A cycle running this long, s, is said in the log once (its age is ``extra.tuning_for_s``).
 SLOW_CYCLE_S = 120.0
-#: Frames missed (``seq`` jumping by more than BREAK_SEQ, the tracker's MAX_GAP: beyond it its
+#: Frames missed (``seq`` jumping by more than the tracker's MAX_GAP: beyond it its
 #: prediction is a guess) over more than BREAK_S s break the buffer's run of consecutive
 #: frames (:meth:`AutoTuner._buffer`).
-BREAK_SEQ = 8
 BREAK_S = 0.5
 #: How long a restarted tuner waits for motion-estimation's status (the set in force), s
 IN_FORCE_QUERY_S = 0.5

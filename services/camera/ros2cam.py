@@ -145,14 +145,12 @@ def no_image_said(session: zenoh.Session, topic: str, typename: str, domain: int
     name = rmw.mangle(topic)
     seen = set()
     try:
-        for reply in session.liveliness().get("@ros2_lv/**", timeout=1.0):
+        for reply in session.liveliness().get(f"{rmw.ADMIN_SPACE}/**", timeout=1.0):
             if reply.ok is None:
                 continue
-            # @ros2_lv/<domain>/<zid>/<nid>/<id>/<kind>/<enclave>/<namespace>/<node>/<topic>/
-            # <type>/<hash>/<qos> (rmw_zenoh's graph cache)
-            parts = str(reply.ok.key_expr).split("/")
-            if len(parts) > 10 and parts[5] == "MP" and parts[9] == name:
-                seen.add(f"domain {parts[1]} ({parts[10]})")
+            parts = rmw.token_parts(str(reply.ok.key_expr))
+            if parts is not None and parts[1] == rmw.PUBLISHER and parts[2] == name:
+                seen.add(f"domain {parts[0]} ({parts[3]})")
     except zenoh.ZError:
         pass  # the session is closing
     if seen:
@@ -184,8 +182,7 @@ class _Converter:
         self.seq = 0
         self.grey = Grey()  # 16-bit images: scaled by the depth of the camera's samples
         self._last: dict[bytes, int] = {}  # publisher GID -> its last sequence number
-        self._lock = threading.Lock()
-        self._slot_lock = threading.Lock()
+        self._slot_lock = threading.Lock()  # Zenoh's callback against the loop
         self._newest: bytes | None = None  # the image waiting to be converted
         self.waiting = threading.Event()  # set while one waits
         self._said_at = -math.inf  # when a rejection was last logged (monotonic)
@@ -236,7 +233,7 @@ class _Converter:
 
     def __call__(self, payload: bytes) -> None:
         node = self.node
-        with self._lock, node.status.timed():
+        with node.status.timed():  # on the loop's thread only
             try:
                 frame = frame_of_payload(payload, self.typename, self.seq, self.size,
                                          self.grey)

@@ -39,6 +39,7 @@ import argparse
 import collections
 import json
 import logging
+import math
 import os
 import queue
 import signal
@@ -311,6 +312,7 @@ class Status:
         self.extra_on_read: Callable[[], Mapping[str, Any]] | None = None
         self.started = time.time()
         self._started_mono = time.monotonic()
+        self._said: dict[str, tuple[float, int]] = {}  # what -> (last logged at, unsaid since)
         # Takes in what has arrived but is not counted yet (set by the node: its arrivals
         # are counted when the loop or a reader of these counters first looks at them).
         self.absorb: Callable[[], object] = _nothing
@@ -349,6 +351,23 @@ class Status:
     def count_dropped(self, n: int = 1) -> None:
         with self._lock:
             self._dropped += n
+
+    def say(self, what: str, every_s: float) -> int | None:
+        """Whether to log a repeated message about ``what`` now: None while the last was
+        logged less than ``every_s`` s ago (this one is counted as unsaid), else how many went
+        unsaid since (0: the first, or the first after a quiet ``every_s``). A peer sending
+        bad input at 1 kHz then costs one log line every ``every_s`` s, not a thousand a
+        second; the counters keep every one."""
+        now = time.monotonic()
+        with self._lock:
+            at, unsaid = self._said.get(what, (-math.inf, 0))
+            if now - at < every_s:
+                self._said[what] = at, unsaid + 1
+                return None
+            if len(self._said) >= 256:  # keys named by peers: bounded
+                self._said.clear()
+            self._said[what] = now, 0
+            return unsaid
 
     def reject(self, error: BaseException | str) -> None:
         """Count a bad input and remember why (logged by the caller)."""

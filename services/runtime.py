@@ -391,10 +391,22 @@ def dispatch(node: Node, handlers: Mapping[str, Handler], logger: logging.Logger
             faults.failed(key, peek_seq(payload), e)
 
 
+#: Rejections of one kind of input (its key or type) are logged at most once every this, s,
+#: each later line with the count of those not logged since; the status counts every one.
+REJECTED_LOG_S = 5.0
+
+
 def reject(node: Node, logger: logging.Logger, what: str, error: BaseException | str) -> None:
-    """Count a bad input in the status and log why (the loop goes on)."""
+    """Count a bad input in the status and log why (the loop goes on): the first of ``what``
+    at once, then at most once every :data:`REJECTED_LOG_S` with how many more came (a peer
+    sending 3000 bad messages in a second wrote 3000 ERROR lines, and a depth camera on a
+    ROS 2 topic 30 a second for as long as it ran)."""
     node.status.reject(error)
-    logger.error("rejected %s: %s", what, error)
+    unsaid = node.status.say(f"rejected {what}", REJECTED_LOG_S)
+    if unsaid is not None:
+        more = f" ({unsaid} more rejected since the last said, each counted in the status)" \
+            if unsaid else ""
+        logger.error("rejected %s: %s%s", what, error, more)
 
 
 M = TypeVar("M")

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import os
 import threading
 import time
@@ -35,14 +34,12 @@ from ...common.bus import Node
 from ...common.messages import Frame
 from ...common.sources import resize
 from ...common.vision.preprocess import Grey
-from ..runtime import ready, wait_for_consumers
+from ..runtime import ready, reject, wait_for_consumers
 
 log = logging.getLogger("vistrack.camera")
 
 PREFIX = "ros2:"
 NODE_NAME = "vistrack_camera"
-#: Rejected images are logged at most once every this, s (each is counted in the status).
-REJECTED_LOG_S = 5.0
 #: Seconds without an image after which the camera says where to look (once).
 NO_IMAGE_S = 5.0
 
@@ -185,8 +182,6 @@ class _Converter:
         self._slot_lock = threading.Lock()  # Zenoh's callback against the loop
         self._newest: bytes | None = None  # the image waiting to be converted
         self.waiting = threading.Event()  # set while one waits
-        self._said_at = -math.inf  # when a rejection was last logged (monotonic)
-        self._unsaid = 0  # rejections not logged since
         node.status.extra["frames"] = 0
 
     def on_sample(self, sample: zenoh.Sample) -> None:
@@ -213,17 +208,6 @@ class _Converter:
             self._newest = payload
             self.waiting.set()
 
-    def _say_rejected(self, e: ValueError) -> None:
-        """Log a rejected image, at most once every REJECTED_LOG_S with the count of those
-        since (a depth camera's 32FC1 at 30 Hz logged 30 ERROR lines a second)."""
-        now = time.monotonic()
-        if now - self._said_at < REJECTED_LOG_S:
-            self._unsaid += 1
-            return
-        more = f" ({self._unsaid} more since the last said)" if self._unsaid else ""
-        log.error("rejected %s: %s%s", self.typename, e, more)
-        self._said_at, self._unsaid = now, 0
-
     def take(self) -> bytes | None:
         """The newest image waiting, if any (it is no longer waiting)."""
         with self._slot_lock:
@@ -238,8 +222,7 @@ class _Converter:
                 frame = frame_of_payload(payload, self.typename, self.seq, self.size,
                                          self.grey)
             except ValueError as e:
-                node.status.reject(e)
-                self._say_rejected(e)
+                reject(node, log, self.typename, e)  # logged at most every REJECTED_LOG_S
                 return
             node.publish(node.keys.frame, frame.encode(), reliable=False)
             self.seq += 1

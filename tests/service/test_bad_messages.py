@@ -719,3 +719,46 @@ def test_on_the_cameras_clock_a_simulated_clock_ahead_of_the_host_is_followed():
         finally:
             node.stop.set()
             thread.join(5)
+
+
+def test_a_flood_of_bad_messages_is_counted_in_full_and_logged_once_a_window(
+        caplog, monkeypatch):
+    """A peer sending bad estimates at 1 kHz wrote one ERROR line each (3000 in a burst, a
+    depth camera's images 30 a second for as long as it ran): the first is logged at once,
+    the rest at most once every REJECTED_LOG_S with how many came meanwhile; the status
+    counts every one, and good input still goes through."""
+    from vistrack.services import runtime
+    from vistrack.services.fuzzy_controller.service import loop
+
+    monkeypatch.setattr(runtime, "REJECTED_LOG_S", 0.5)
+    caplog.set_level(logging.ERROR, logger="vistrack.fuzzy_controller")
+    said = lambda: [r.getMessage() for r in caplog.records  # noqa: E731
+                    if r.getMessage().startswith("rejected motion/estimate")]
+    bad = msgpack.packb({"v": 1, "seq": "one"})
+    with MemoryNode("fuzzy_controller") as node:
+        thread = threading.Thread(target=loop, args=(node, parse("fuzzy-controller")))
+        thread.start()
+        try:
+            wait_for(lambda: node.feed(node.keys.estimate, bad), what="the subscription")
+            for n in range(2, 201):  # one at a time: the estimate is latest-only
+                wait_for(lambda n=n: node.status.rejected == n - 1, what=f"rejection {n - 1}")
+                node.feed(node.keys.estimate, bad)
+            wait_for(lambda: node.status.rejected == 200, what="200 rejections")
+            assert len(said()) == 1 and "more rejected" not in said()[0]
+            time.sleep(0.6)
+            node.feed(node.keys.estimate, bad)
+            wait_for(lambda: len(said()) == 2, what="the second line")
+            assert "(199 more rejected since the last said, each counted in the status)" \
+                in said()[1]
+            stamp = time.time_ns()
+            node.feed(node.keys.estimate, Estimate(
+                seq=1, stamp_ns=stamp, npi=50, xc=128.0, yc=128.0, xe=400.0, ye=400.0,
+                dx=0.0, dy=0.0, scale=1.0, t_ms=1.0, first=True, features=[],
+                params_id=0).encode())
+            wait_for(lambda: any(CmdVel.decode(c).stamp_ns == stamp
+                                 for c in node.published_on(node.keys.cmd_vel)),
+                     what="the good estimate's command")
+        finally:
+            node.stop.set()
+            thread.join(5)
+    assert node.status.rejected == 201

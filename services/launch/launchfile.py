@@ -64,7 +64,8 @@ ready_timeout: 60
 #            takes the list form: [--scale-band, '0.8', '1.25']
 #   restart: never | on-failure (non-zero exit or killed) | always (default on-failure)
 #   backoff: restart delays in seconds: the first is `initial`, each next one doubles up to
-#            `max`, and they start over once the service has run `reset_after` seconds
+#            `max` (after an `initial` of 0: 0.5, 1, 2, ...), and they start over once the
+#            service has run `reset_after` seconds
 #            (default {initial: 0.5, max: 10, reset_after: 10}; each 0..3600)
 #   hang_timeout: seconds a running service may go without answering its status query, with
 #            its loop stuck on one input, or without its liveliness token, before it is
@@ -119,8 +120,18 @@ class Backoff:
             raise LaunchError(f"backoff reset_after {self.reset_after:g} s must be >= 0")
 
     def delay(self, failures: int) -> float:
-        """Delay before the restart that follows ``failures`` quick exits in a row (0-based)."""
-        return min(self.max, self.initial * 2.0 ** min(failures, 60))
+        """Delay before the restart that follows ``failures`` quick exits in a row (0-based).
+        With ``initial`` 0 the first restart is at once and the next ones double from
+        :data:`FIRST_DOUBLED` (0 doubled stays 0: a service that failed at start-up was
+        started again on every tick of the supervisor, ten interpreters a second, for as long
+        as the run lasted); ``max`` 0 keeps every restart immediate, as asked."""
+        if self.initial > 0:
+            return min(self.max, self.initial * 2.0 ** min(failures, 60))
+        return 0.0 if failures == 0 else min(self.max, FIRST_DOUBLED * 2.0 ** min(failures - 1, 60))
+
+
+#: The delay, s, that follows an immediate first restart (``backoff.initial`` 0), doubled after.
+FIRST_DOUBLED = 0.5
 
 
 #: Default ``hang_timeout``, s: a few status queries (one a second) gone unanswered.

@@ -929,3 +929,11 @@ def test_camera_none_with_camera_flags_is_a_usage_error(capsys):
 
 def test_backoff_doubles_up_to_its_max():
     assert [Backoff(0.5, 3.0).delay(i) for i in range(5)] == [0.5, 1.0, 2.0, 3.0, 3.0]
+
+
+def test_a_backoff_from_zero_restarts_at_once_then_doubles():
+    """initial 0 doubled stayed 0: a service failing at start-up was started again on every
+    tick, for the whole run. max 0 asks for every restart at once, and gets it."""
+    assert [Backoff(0.0, 3.0).delay(i) for i in range(5)] == [0.0, 0.5, 1.0, 2.0, 3.0]
+    assert [Backoff(0.0, 0.2).delay(i) for i in range(3)] == [0.0, 0.2, 0.2]
+    assert [Backoff(0.0, 0.0).delay(i) for i in range(3)] == [0.0, 0.0, 0.0]

@@ -115,9 +115,16 @@ def _score(errors: np.ndarray, one_motion: np.ndarray | None = None,
                  gross_one_motion=gross_and(one_motion), gross_beside=gross_and(beside))
 
 
+#: the share of a window's pixels whose flow must be known for :func:`one_motion` to judge it
+KNOWN_SHARE = 0.25
+
+
 def one_motion(flow: np.ndarray, n: int) -> Callable[[np.ndarray, int], np.ndarray]:
     """``f(points, k)``: whether the ground truth ``flow`` (H, W, 2) varies by less than
-    GROSS_PX across the (2n + 1)^2 window of each point (N, 2), known everywhere in it. A
+    GROSS_PX across the (2n + 1)^2 window of each point (N, 2), over its pixels of known flow
+    where they are at least KNOWN_SHARE of it (sparse ground truth, KITTI's LiDAR-based: a
+    window known everywhere was none of its pairs', and every gross error there read as on a
+    motion boundary). A
     window across a motion boundary holds two motions: the flow of its centre pixel is not
     the one motion a patch tracker can report (on the pairs, every feature off by more than
     2 px had 2.5 to 15.7 px of flow across its window; the others' median, 0.4 to 0.7)."""
@@ -128,7 +135,8 @@ def one_motion(flow: np.ndarray, n: int) -> Callable[[np.ndarray, int], np.ndarr
         for j, (x, y) in enumerate(np.rint(points).astype(int)):
             if n <= x < w - n and n <= y < h - n:
                 win = flow[y - n:y + n + 1, x - n:x + n + 1].reshape(-1, 2)
-                if np.isfinite(win).all():  # unknown flow is NaN (groundtruth.read_flo)
+                win = win[np.isfinite(win).all(1)]  # unknown flow is NaN (read_flo)
+                if len(win) >= KNOWN_SHARE * (2 * n + 1) ** 2:
                     out[j] = np.hypot(*(win.max(0) - win.min(0))) < GROSS_PX
         return out
     return f

@@ -185,6 +185,20 @@ def test_one_motion_tells_a_window_across_a_motion_boundary():
     assert single(points, 0).tolist() == [True, False, True, False, False]
 
 
+def test_one_motion_judges_sparse_ground_truth_on_its_known_pixels():
+    """KITTI's ground truth is known on a quarter of the pixels or less: a window known
+    everywhere was none, and every gross error read as one on a motion boundary. A window is
+    judged on its known pixels where they are at least KNOWN_SHARE of it."""
+    flow = np.full((40, 60, 2), np.nan, np.float32)  # unknown, as read_flo gives it
+    flow[::2, ::2] = 0.0  # a quarter of the pixels known, one motion
+    flow[::2, 40::2, 0] = 6.0  # a second motion from x = 40 on
+    flow[24:, :20] = np.nan  # and nothing known in the lower left
+    single = one_motion(flow, 4)
+    points = np.array([[10, 10], [40, 10], [10, 32]], np.float64)
+    # one motion on its known pixels; two motions; too little known to tell
+    assert single(points, 0).tolist() == [True, False, False]
+
+
 def test_beside_truth_tells_the_motion_of_a_pixel_next_to_the_point():
     flow = np.zeros((40, 60, 2), np.float32)
     flow[:, 30:, 0] = 5.0  # two motions, the boundary between x = 29 and x = 30

@@ -157,6 +157,7 @@ class Tracker:
         #: own matches (:func:`_zoom_retry`)
         self.zoom_warps = 0
         self._lost = np.zeros(len(STATUS_NAMES), np.int64)
+        self._few = 0  # matches dropped with a frame that kept too few (_track)
         self.redetections = 0
         # matches that followed their prediction (step 0 of .pyramid) rather than a search
         self.followed = 0
@@ -196,13 +197,13 @@ class Tracker:
     def lost_total(self) -> int:
         """Features lost since the tracker was made: their window left the image, or their
         match was rejected."""
-        return int(self._lost.sum())
+        return int(self._lost.sum()) + self._few
 
     @property
     def rejected_total(self) -> int:
         """Features lost because their match could not be trusted (not because their window
         left the image, nor because the frame's searches were over budget)."""
-        return int(self._lost[BORDER:OVER].sum())
+        return int(self._lost[BORDER:OVER].sum()) + self._few
 
     @property
     def over_budget(self) -> int:
@@ -216,8 +217,11 @@ class Tracker:
         image), ``cut`` (the minimum on an image edge: leaving it), ``border``, ``ambiguous``,
         ``runaway``, ``fb``, ``disagrees``, ``residual`` (rejected, see the module notes),
         ``budget`` (not searched: the frame's searches had reached
-        :data:`.pyramid.FRAME_WORK`)."""
-        return {name: int(v) for name, v in zip(STATUS_NAMES[1:], self._lost[1:], strict=True)}
+        :data:`.pyramid.FRAME_WORK`), ``few`` (the matches of a frame that kept fewer than
+        MIN_VALID_NPI of its features, dropped: the track started again)."""
+        by = {name: int(v) for name, v in zip(STATUS_NAMES[1:], self._lost[1:], strict=True)}
+        by["few"] = self._few
+        return by
 
     @property
     def frame_shape(self) -> tuple[int, int] | None:
@@ -399,6 +403,16 @@ class Tracker:
             self.followed += int(np.count_nonzero(taken))
         pos, vel, ids, lost, moved, dx, dy, scale, turn = _advance(
             self._pos, found, ssd, status, self._ids, self._wsum, float(p.max_residual))
+        if 0 < len(pos) < MIN_VALID_NPI <= len(self._pos):
+            # fewer than MIN_VALID_NPI of the frame's features kept (a scene cut, the lens
+            # covered from one frame to the next): those kept are as likely lookalikes as the
+            # same points, and too few for the step's inlier test. A cut from RubberWhale to
+            # Grove2 kept 2 of 89, moved (+26, -30) and (-9, +0.5) px, and their mean stepped
+            # dx, dy by (+8.8, -14.6) px in an estimate marked valid. They are dropped, lost
+            # as "few", and the track starts again (update: every feature lost)
+            self._few += len(pos)
+            pos, vel, ids = pos[:0], vel[:0], ids[:0]
+            moved = False
         if moved:
             self._acc_dx += dx
             self._acc_dy += dy

@@ -499,6 +499,8 @@ class _EstimateWire(msgspec.Struct):
     features: list[tuple[_Count, _Finite, _Finite]]
     params_id: _ParamsId
     valid: bool | msgspec.UnsetType = msgspec.UNSET  # absent: an older publisher's
+    width: _Side | msgspec.UnsetType = msgspec.UNSET  # absent: an older publisher's
+    height: _Side | msgspec.UnsetType = msgspec.UNSET
 
 
 def _image_view(wire: Any) -> np.ndarray | None:
@@ -719,6 +721,9 @@ class Estimate(_Message):
         features for a meaningful centroid and scatter: nothing should act on the estimate.
         Its numbers are finite all the same (see the README's CONTRACT). None (the default,
         and a message from a publisher that predates the field) derives it from ``npi``.
+    width, height : the size of the frame the estimate is of, px (1..MAX_SIDE); None (the
+        default, and a message from a publisher that predates the fields): not said. The
+        controller normalises the centring error by ``width``.
     """
 
     KEY: ClassVar[str] = "motion/estimate"
@@ -742,10 +747,22 @@ class Estimate(_Message):
     features: list = field(default_factory=list)
     params_id: int
     valid: bool | None = None
+    width: int | None = None
+    height: int | None = None
 
     def _validate(self) -> None:
         valid = self.npi >= MIN_VALID_NPI if self.valid is None else self.valid
         object.__setattr__(self, "valid", _bool(self.KEY, "valid", valid))
+        for name in ("width", "height"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, _SIDE(self.KEY, name, getattr(self, name)))
+
+    def _wire_fields(self) -> dict[str, Any]:
+        values = super()._wire_fields()
+        for name in ("width", "height"):  # not said: left out, as an older publisher's
+            if values[name] is None:
+                del values[name]
+        return values
 
     @classmethod
     def _from_map(cls, m: dict[str, Any]) -> Estimate:
@@ -753,6 +770,11 @@ class Estimate(_Message):
             m = {**m, "valid": None}
         elif m["valid"] is None:  # None means "derive" to the constructor only
             raise _error(cls.KEY, "valid", "must be true or false", None)
+        for name in ("width", "height"):
+            if name not in m:
+                m = {**m, name: None}
+            elif m[name] is None:  # absent is "not said", nil is a wrong type
+                raise _error(cls.KEY, name, f"must be an integer in 1..{MAX_SIDE}", None)
         return super()._from_map(m)
 
     @classmethod
@@ -763,6 +785,9 @@ class Estimate(_Message):
         values["_wire_features"] = wire.features
         if wire.valid is msgspec.UNSET:  # derived from npi, as the constructor does
             values["valid"] = wire.npi >= MIN_VALID_NPI
+        for name in ("width", "height"):
+            if values[name] is msgspec.UNSET:
+                values[name] = None
         return values
 
     def __getattr__(self, name: str) -> Any:
@@ -785,7 +810,8 @@ Estimate._FAST = msgspec.msgpack.Decoder(_EstimateWire)
 def encode_estimate(*, seq: int, stamp_ns: int, npi: int, xc: float, yc: float, xe: float,
                     ye: float, dx: float, dy: float, scale: float, t_ms: float, first: bool,
                     ids: np.ndarray, points: np.ndarray, params_id: int,
-                    valid: bool | None = None) -> bytes:
+                    valid: bool | None = None, width: int | None = None,
+                    height: int | None = None) -> bytes:
     """``Estimate(...).encode()`` byte for byte, with the features given as arrays: ``ids``
     (N,) integers >= 0 and ``points`` (N, 2) finite x, y.
 
@@ -819,6 +845,10 @@ def encode_estimate(*, seq: int, stamp_ns: int, npi: int, xc: float, yc: float, 
     values["params_id"] = checks["params_id"](key, "params_id", params_id)
     values["valid"] = _bool(key, "valid", values["npi"] >= MIN_VALID_NPI if valid is None
                             else valid)
+    if width is not None:
+        values["width"] = _SIDE(key, "width", width)
+    if height is not None:
+        values["height"] = _SIDE(key, "height", height)
     return pack(values)
 
 

@@ -63,20 +63,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_rehearsal_arg(parser)
 
 
-def estimate_message(e, *, seq: int, stamp_ns: int, params_id: int) -> Estimate:
-    """The ``motion/estimate`` message of a library estimate."""
+def estimate_message(e, *, seq: int, stamp_ns: int, params_id: int,
+                     shape: tuple[int, int] | None = None) -> Estimate:
+    """The ``motion/estimate`` message of a library estimate; ``shape``: its frame's
+    (height, width), sent as ``height`` and ``width``."""
+    height, width = (None, None) if shape is None else shape
     return Estimate(seq=seq, stamp_ns=stamp_ns, npi=e.npi, xc=e.xc, yc=e.yc, xe=e.xe, ye=e.ye,
                     dx=e.dx, dy=e.dy, scale=e.scale, t_ms=e.t_ms, first=e.first,
-                    valid=e.valid, features=e.features(), params_id=params_id)
+                    valid=e.valid, features=e.features(), params_id=params_id,
+                    width=width, height=height)
 
 
-def estimate_payload(e, *, seq: int, stamp_ns: int, params_id: int) -> bytes:
+def estimate_payload(e, *, seq: int, stamp_ns: int, params_id: int,
+                     shape: tuple[int, int] | None = None) -> bytes:
     """``estimate_message(...).encode()``, byte for byte, built from the estimate's arrays
     without the message object (:func:`~vistrack.common.messages.encode_estimate`)."""
+    height, width = (None, None) if shape is None else shape
     return encode_estimate(seq=seq, stamp_ns=stamp_ns, npi=e.npi, xc=e.xc, yc=e.yc, xe=e.xe,
                            ye=e.ye, dx=e.dx, dy=e.dy, scale=e.scale, t_ms=e.t_ms,
                            first=e.first, ids=e.ids, points=e.points, params_id=params_id,
-                           valid=e.valid)
+                           valid=e.valid, width=width, height=height)
 
 
 #: Frames over which a re-detection keeps candidates coming (``motion/demand``).
@@ -234,7 +240,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                         vision_tracker.over_budget_said(msg.seq, tracker.over_budget - over),
                         state.params_id, state.params.factors())
         out = estimate_payload(est, seq=msg.seq, stamp_ns=msg.stamp_ns,
-                               params_id=state.params_id)
+                               params_id=state.params_id, shape=filtered.shape)
         last_est = est
         node.publish(node.keys.estimate, out, reliable=node.answer_reliably)
         answered = (msg.seq, msg.stamp_ns, out)

@@ -89,6 +89,8 @@ def test_motion_estimation_marks_an_estimate_without_features_invalid():
     for e in got:
         assert all(math.isfinite(getattr(e, k))
                    for k in ("xc", "yc", "xe", "ye", "dx", "dy", "scale", "t_ms"))
+    # each says the size of its frame (the controller's centring error is in its width)
+    assert [(e.width, e.height) for e in got] == [f.shape[::-1] for f in frames]
 
 
 def test_motion_estimation_status_counts_rejected_features_by_reason():
@@ -102,7 +104,7 @@ def test_motion_estimation_status_counts_rejected_features_by_reason():
         track(node, frames)
         extra = node.status.as_dict()["extra"]  # the tracker's counters: computed when read
     by = extra["rejected_by"]
-    assert set(by) == {"border", "ambiguous", "runaway", "fb", "disagrees", "residual"}
+    assert set(by) == {"border", "ambiguous", "runaway", "fb", "disagrees", "residual", "few"}
     assert extra["rejected_features"] == sum(by.values()) > 10, extra
     assert extra["lost"] >= extra["rejected_features"] and "rejected" not in extra
 
@@ -223,3 +225,36 @@ def test_the_controller_does_not_move_the_robot_on_an_estimate_already_stale():
     assert all((c.vx, c.vy, c.wz) == (0.0, 0.0, 0.0) for c in answered[1:3])
     assert answered[3].vy < 0.0  # fresh, 30 px right of the set point: it moves again
     assert late == 2
+
+
+def test_the_controller_reads_the_centring_error_in_the_estimates_image_width():
+    """The centring error is in half-image-widths. Fixed at 256 px, a 768 px camera's error
+    read 3 times too large and the command swung +-0.2 m/s in a limit cycle: the estimate now
+    gives its frame's width, which the controller takes unless --image-width is given. The
+    same error in image widths gives the same command at 256 and at 768 px; 12 px at 768 read
+    as at 256 px commands more."""
+    from vistrack.services.fuzzy_controller.service import loop
+
+    def commands(width: int | None, off: float, *argv: str) -> list[CmdVel]:
+        base = time.time_ns()
+
+        def estimate(seq: int, dx: float) -> bytes:
+            return Estimate(seq=seq, stamp_ns=base + seq * 33_000_000, npi=40, xc=100.0,
+                            yc=100.0, xe=400.0, ye=400.0, dx=dx, dy=0.0, scale=1.0, t_ms=1.0,
+                            first=seq == 0, features=[], params_id=0, width=width,
+                            height=width).encode()
+
+        with Running("fuzzy_controller", loop, parse("fuzzy-controller", *argv)) as node:
+            return [command_for(node, estimate(seq, dx))
+                    for seq, dx in enumerate((0.0, off / 2, off))]
+
+    at_256 = commands(256, 4.0)  # below the 12.8 px of a full command
+    at_768 = commands(768, 12.0)
+    assert all(not c.stale for c in at_256 + at_768)
+    assert 0.05 < abs(at_256[2].vy) < 0.5  # the error moves the robot, short of the limit
+    for a, b in zip(at_256, at_768, strict=True):
+        assert math.isclose(a.vy, b.vy, rel_tol=1e-4, abs_tol=1e-9), (a, b)
+    # an older publisher's estimate (no width) is read at 256 px, and --image-width wins
+    assert math.isclose(commands(None, 4.0)[2].vy, at_256[2].vy, rel_tol=1e-4)
+    forced = commands(768, 12.0, "--image-width", "256")
+    assert abs(forced[2].vy) > abs(at_768[2].vy) + 0.05

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from vistrack.common.messages import (
+    MAX_SIDE,
     MESSAGE_TYPES,
     SCHEMA_VERSION,
     CmdVel,
@@ -51,7 +52,8 @@ def make(cls):
     if cls is Estimate:
         return Estimate(**common, npi=2, xc=10.5, yc=20.0, xe=3.0, ye=4.5, dx=-1.5, dy=0.25,
                         scale=1.02, t_ms=3.2, first=False,
-                        features=[[0, 10.0, 18.0], [4, 11.0, 22.0]], params_id=2)
+                        features=[[0, 10.0, 18.0], [4, 11.0, 22.0]], params_id=2, width=64,
+                        height=48)
     if cls is Params:
         return Params(**common, max_features=100, thres_percent=2.0, search_size=15,
                       corr_size=9, ungroup_size=5, params_id=3, source="tuner",
@@ -196,7 +198,8 @@ def test_decode_accepts_bytearray_and_memoryview():
 # -- rejections ---------------------------------------------------------------------------
 
 # fields added to the contract later: a message from an older publisher lacks them
-OPTIONAL = {(Estimate, "valid"), (PreFrame, "deferred")}
+OPTIONAL = {(Estimate, "valid"), (Estimate, "width"), (Estimate, "height"),
+            (PreFrame, "deferred")}
 
 
 @pytest.mark.parametrize(("cls", "name"), [
@@ -208,6 +211,19 @@ def test_missing_field_is_named(cls, name):
     del m[name]
     err = expect_error(cls, repack(m), name)
     assert "missing" in str(err)
+
+
+def test_an_estimates_frame_size_is_optional_and_checked():
+    """``width`` and ``height`` came later: without them an estimate decodes with None (not
+    said), and is encoded without them; given, each is a side of 1..MAX_SIDE px."""
+    m = raw_map(make(Estimate))
+    assert (m["width"], m["height"]) == (64, 48)
+    del m["width"], m["height"]
+    old = Estimate.decode(repack(m))
+    assert (old.width, old.height) == (None, None)
+    assert "width" not in raw_map(old) and "height" not in raw_map(old)
+    for bad in (0, MAX_SIDE + 1, None, 64.0, True):
+        expect_error(Estimate, repack({**m, "width": bad, "height": 48}), "width")
 
 
 @pytest.mark.parametrize(("npi", "valid"), [(0, False), (2, False), (3, True), (40, True)])

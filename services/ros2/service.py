@@ -16,13 +16,20 @@ ROS 2 node; ``ros2 topic list`` and ``ros2 topic echo /vistrack/estimate`` (with
 Commands and parameters are published reliable with KEEP_ALL history (Zenoh's BLOCK
 congestion control: none dropped), estimates reliable with the last 10 kept. A message that
 does not decode is rejected, counted and logged, and the service goes on.
+
+``/cmd_vel`` is the last hop before the motors: a command marked ``stale`` goes out as a stop
+whatever its numbers, one stamped more than ``--max-age`` s ago (a replay, clocks out of step)
+as a stop too, and every speed is clamped to ``--max-speed`` and ``--max-turn``
+(:func:`safe_command`).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import struct
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,7 +38,7 @@ from ...common import ros2types as r2
 from ...common.bus import Node
 from ...common.messages import CmdVel, Estimate, Params
 from ..camera.ros2cam import default_domain
-from ..runtime import add_service_args, decode_or_reject, ready, serve
+from ..runtime import REJECTED_LOG_S, add_service_args, decode_or_reject, ready, serve
 from ..usage import add_number
 
 log = logging.getLogger("vistrack.ros2")
@@ -76,6 +83,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="rename a topic, as ROS 2's --remap does: cmd_vel, "
                           "vistrack/estimate or vistrack/params (or their full names) to a "
                           "relative or absolute name (repeatable)")
+    base = parser.add_argument_group("the base (/cmd_vel: the last hop before the motors)")
+    add_number(base, "--max-speed", lo=0.0, hi=100.0, lo_open=True, default=1.0, metavar="M/S",
+               help="clamp linear.x and linear.y to +-this, %(allowed)s (default 1; the "
+                    "controller commands at most 0.8)")
+    add_number(base, "--max-turn", lo=0.0, hi=100.0, lo_open=True, default=1.0,
+               metavar="RAD/S", help="clamp angular.z to +-this, %(allowed)s (default 1)")
+    add_number(base, "--max-age", lo=0.0, hi=3600.0, default=1.0, metavar="S",
+               help="send a stop instead of a command stamped longer ago than this (this "
+                    "host's clock), %(allowed)s; 0: no check, for a simulator's clock "
+                    "(default 1)")
     add_service_args(parser)
 
 
@@ -141,6 +158,8 @@ def loop(node: Node, args: argparse.Namespace, participant: rmw.Participant | No
             msg = decode_or_reject(bridge.cls, payload, node, log)
             if msg is None:
                 continue
+            if isinstance(msg, CmdVel):
+                msg = safe_command(msg, args, node)
             with node.status.timed():
                 try:
                     cdr = r2.serialize(r2.to_ros(msg, payload=payload))
@@ -156,6 +175,37 @@ def loop(node: Node, args: argparse.Namespace, participant: rmw.Participant | No
         if own:
             participant.close()
     return 0
+
+
+def safe_command(cmd: CmdVel, args: argparse.Namespace, node: Node) -> CmdVel:
+    """The command the base gets: a stop where ``cmd`` is ``stale`` (a stop, whatever its
+    numbers) or stamped more than ``--max-age`` s ago, its speeds clamped to ``--max-speed``
+    and ``--max-turn``; each counted in the status (``stops_sent``, ``old_stopped``,
+    ``clamped``) and logged at most once every 5 s. As the last hop before the motors this
+    bridge passed on whatever came: a command an hour old, 1e6 m/s, ``stale`` with 0.5 m/s,
+    and a replay's recorded moves ten seconds after they were made."""
+    extra = node.status.extra
+    vx, vy, wz, stale = cmd.vx, cmd.vy, cmd.wz, cmd.stale
+    age = time.time() - cmd.stamp_ns * 1e-9
+    if not stale and args.max_age > 0 and age > args.max_age:
+        extra["old_stopped"] = extra.get("old_stopped", 0) + 1
+        if node.status.say("old command", REJECTED_LOG_S) is not None:
+            log.warning("control/cmd_vel seq %d is %.3g s old (--max-age %g s): a stop sent "
+                        "instead (a replay? clocks out of step?)", cmd.seq, age, args.max_age)
+        stale = True
+    if stale:
+        vx = vy = wz = 0.0
+    top, turn = args.max_speed, args.max_turn
+    cx, cy, cz = (min(max(vx, -top), top), min(max(vy, -top), top),
+                  min(max(wz, -turn), turn))
+    if (cx, cy, cz) != (vx, vy, wz):
+        extra["clamped"] = extra.get("clamped", 0) + 1
+        if node.status.say("clamped command", REJECTED_LOG_S) is not None:
+            log.warning("control/cmd_vel seq %d (vx %g, vy %g, wz %g) clamped to --max-speed "
+                        "%g m/s, --max-turn %g rad/s", cmd.seq, vx, vy, wz, top, turn)
+    if (cx, cy, cz, stale) == (cmd.vx, cmd.vy, cmd.wz, cmd.stale):
+        return cmd
+    return dataclasses.replace(cmd, vx=cx, vy=cy, wz=cz, stale=stale)
 
 
 def main(args: argparse.Namespace) -> int:

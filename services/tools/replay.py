@@ -5,7 +5,9 @@ FILE is a ``.vtr`` or an MCAP recording (told apart by content). An MCAP file's 
 turned back into the contract's (see :mod:`.mcapio`: ``preprocessing/frame``, the overlays and
 topics of other programs are not replayed, and the replay says so). KEY (``camera/frame``, a
 full key, a wildcard) replays only the matching samples: a recorded run's frames into a live
-pipeline that makes its own estimates.
+pipeline that makes its own estimates. ``control/cmd_vel`` is replayed only where a KEY names
+it: the recorded moves would drive a robot of that id (its ROS 2 bridge passes every command
+on to the base).
 
 Samples are published in file order, each at its recorded time since the first sample, divided
 by ``--speed`` (``--fast``: no waiting at all). Frames, estimates and poses are published like
@@ -77,12 +79,17 @@ def _robot(value: str) -> str:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+#: The key a replay leaves out unless a KEY argument names it (:class:`_Selection`).
+COMMANDS = "control/cmd_vel"
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE",
                         help="a recording made by vistrack record (.vtr or MCAP)")
     parser.add_argument("keys", nargs="*", metavar="KEY",
                         help="replay only these keys: camera/frame, estimate, '**', full keys "
-                             "(default: every recorded sample)")
+                             f"(default: every recorded sample but {COMMANDS}, which only a "
+                             "KEY naming it replays: a robot would move)")
     pace = parser.add_mutually_exclusive_group()
     add_number(pace, "--speed", lo=0.01, hi=1000, default=1.0, metavar="X",
                help="playback speed, a multiple of the recorded one, %(allowed)s (default 1)")
@@ -151,13 +158,22 @@ def _key_filter(keys: Keys, key: str) -> zenoh.KeyExpr:
 
 
 class _Selection:
-    """Whether a recorded key is among the KEY arguments (all keys without any)."""
+    """Whether a recorded key is among the KEY arguments (all keys without any), but
+    ``control/cmd_vel`` only where a KEY names it (``commands``): replayed with the rest, the
+    recorded moves went to the ROS 2 bridge of a robot of that id, which drove its base with
+    them (29 moving commands in a 1 s replay, interleaved with its own controller's stops).
+    ``held_back`` says whether one was left out."""
 
-    def __init__(self, exprs: list[zenoh.KeyExpr]) -> None:
+    def __init__(self, exprs: list[zenoh.KeyExpr], commands: bool = False) -> None:
         self._exprs = exprs
+        self._commands = commands
         self._known: dict[str, bool] = {}
+        self.held_back = False
 
     def __call__(self, key: str) -> bool:
+        if not self._commands and key.endswith("/" + COMMANDS):
+            self.held_back = True
+            return False
         if not self._exprs:
             return True
         chosen = self._known.get(key)
@@ -348,7 +364,7 @@ def replay(session: zenoh.Session, keys: Keys, recording: Recording | McapRecord
            selected: list[zenoh.KeyExpr], args: argparse.Namespace) -> int:
     start = time.monotonic()
     with stop_on_signals() as stop:
-        selection = _Selection(selected)
+        selection = _Selection(selected, commands=any("cmd_vel" in k for k in args.keys))
         player = _Player(session, args, stop, selection)
         try:
             while player.play(recording.records()) and args.loop:
@@ -360,6 +376,10 @@ def replay(session: zenoh.Session, keys: Keys, recording: Recording | McapRecord
         finally:
             player.close()
             _note_skipped(recording, selection)
+            if selection.held_back:
+                print(f"vistrack replay: note: {COMMANDS} not replayed (a robot of this id "
+                      f"would move): name it to replay it (vistrack replay FILE {COMMANDS} "
+                      "...)", file=sys.stderr)
     acks = player.acks
     waited = f" ({acks.timeouts} estimates not seen within --ack-timeout)" \
         if acks is not None and acks.timeouts else ""

@@ -262,7 +262,8 @@ def test_ros2_bridge_publishes_every_command_in_order_as_rmw_zenoh_does(free_por
             twist_key = ros_key(7, "/cmd_vel", r2.TWIST)
             wait_for(lambda: any(p.key == twist_key and p.matched()
                                  for p in participant.publishers), what="matching")
-            commands = [CmdVel(seq=i, stamp_ns=i, vx=0.01 * i, vy=-0.02 * i, wz=0.5,
+            now = time.time_ns()
+            commands = [CmdVel(seq=i, stamp_ns=now + i, vx=0.01 * i, vy=-0.015 * i, wz=0.5,
                                stale=i % 7 == 0) for i in range(60)]
             for i, cmd in enumerate(commands):
                 node.feed(node.keys.cmd_vel, cmd.encode())
@@ -294,6 +295,8 @@ def test_ros2_bridge_publishes_every_command_in_order_as_rmw_zenoh_does(free_por
         gids.add(attachment[17:])
         t = STORE.deserialize_cdr(payload, r2.TWIST)
         c = commands[n - 1]
+        if c.stale:  # a stop, whatever its numbers
+            c = CmdVel(seq=c.seq, stamp_ns=c.stamp_ns, vx=0.0, vy=0.0, wz=0.0, stale=True)
         assert (t.linear.x, t.linear.y, t.linear.z) == (c.vx, c.vy, 0.0)
         assert (t.angular.x, t.angular.y, t.angular.z) == (0.0, 0.0, c.wz)
     assert len(gids) == 1
@@ -303,6 +306,56 @@ def test_ros2_bridge_publishes_every_command_in_order_as_rmw_zenoh_does(free_por
     assert [(f.id, f.x, f.y) for f in e.features] == [(1, 1.0, 2.0), (2, 2.0, 3.0)]
     p = STORE.deserialize_cdr(samples(params_key)[0][0], r2.PARAMS)
     assert (p.search_size, p.corr_size, p.params_id, p.source) == (15, 9, 6, "user")
+
+
+def test_the_bridge_sends_the_base_a_stop_for_a_stale_or_old_command_and_clamps_speeds(
+        free_port):
+    """/cmd_vel is the last hop before the motors, and it passed on whatever came: a command
+    an hour old, 1e6 m/s, one marked stale with 0.5 m/s, and a replay's recorded moves ten
+    seconds after they were made. Each now goes out safe, and the status counts it."""
+    listen = zenoh.Config()
+    listen.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{free_port}"]))
+    listen.insert_json5("scouting/multicast/enabled", "false")
+    got: list[bytes] = []
+    lock = threading.Lock()
+
+    def on_sample(s: zenoh.Sample) -> None:
+        with lock:
+            got.append(s.payload.to_bytes())
+
+    now = time.time_ns()
+    sent = [  # (vx, vy, wz, stale, stamp_ns) -> what the base must get
+        ((0.3, -0.2, 0.1, False, now), (0.3, -0.2, 0.1)),
+        ((0.5, 0.5, 0.0, True, now), (0.0, 0.0, 0.0)),
+        ((0.5, 0.0, 0.0, False, now - 3_600 * 10**9), (0.0, 0.0, 0.0)),
+        ((1e6, -1e300, 50.0, False, now), (1.0, -1.0, 1.0)),
+        ((0.2, 0.0, -0.3, False, now), (0.2, 0.0, -0.3)),
+    ]
+    args = parse("ros2", "--domain", "8")
+    with zenoh.open(listen) as ours, zenoh.open(rmw_config(free_port)) as theirs, \
+            MemoryNode("ros2") as node, \
+            rmw.Participant(ours, rmw.Rmw(8, "/", "vistrack")) as participant:
+        twist_key = ros_key(8, "/cmd_vel", r2.TWIST)
+        sub = theirs.declare_subscriber(twist_key, on_sample)
+        try:
+            thread = threading.Thread(target=bridge.loop, args=(node, args, participant),
+                                      daemon=True)
+            thread.start()
+            wait_for(lambda: "/cmd_vel" in node.status.extra, what="the bridge")
+            wait_for(lambda: any(p.key == twist_key and p.matched()
+                                 for p in participant.publishers), what="matching")
+            for i, ((vx, vy, wz, stale, stamp), _) in enumerate(sent):
+                node.feed(node.keys.cmd_vel, CmdVel(seq=i, stamp_ns=stamp, vx=vx, vy=vy,
+                                                    wz=wz, stale=stale).encode())
+            wait_for(lambda: len(got) == len(sent), what="every command")
+            node.stop.set()
+            thread.join(10)
+        finally:
+            sub.undeclare()
+    twists = [STORE.deserialize_cdr(p, r2.TWIST) for p in got]
+    assert [(t.linear.x, t.linear.y, t.angular.z) for t in twists] == [w for _, w in sent]
+    extra = node.status.extra
+    assert (extra["old_stopped"], extra["clamped"], node.status.rejected) == (1, 1, 0)
 
 
 def rmw_config(port: int) -> zenoh.Config:

@@ -352,18 +352,22 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
             progress.close()
     result = dataclasses.replace(result, offered=offered)  # the frames read, not those kept
     report = result.to_report()
+    # the report first: plots that cannot be written (a full disk) cost only the plots, not
+    # a run of many minutes, whose result was not printed at all
+    if args.format == "json":
+        print(json.dumps(report, allow_nan=False), file=out, flush=True)
+    else:
+        print_text(result, what, out)
+        out.flush()
     if args.out:
         from ..auto_tuner.plots import write_plots  # matplotlib only when plots are asked for
 
         try:
             write_plots(report, args.out)
         except OSError as e:
-            raise ValueError(f"--out {args.out}: {e.strerror or e}") from None
-    if args.format == "json":
-        print(json.dumps(report, allow_nan=False), file=out)
-    else:
-        print_text(result, what, out)
-        if args.out:
+            raise ValueError(f"--out {args.out}: {e.strerror or e} (the report above is "
+                             "complete; the plots were not written)") from None
+        if args.format != "json":
             print(f"\n# plots in {args.out} ({time.perf_counter() - start:.1f} s in all)",
                   file=out)
     if cut is not None:

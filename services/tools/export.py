@@ -91,8 +91,12 @@ def main(args: argparse.Namespace) -> int:
     except ToolError as e:
         error("export", e)
         return e.code
-    with writer:
-        return export(recording, writer, args)
+    try:
+        with writer:
+            return export(recording, writer, args)
+    except OSError as e:  # a full disk, /dev/full: a traceback, then one from the close
+        error("export", f"{args.output}: {e.strerror or e} (the export is incomplete)")
+        return 1
 
 
 def export(recording: Recording | McapRecording, writer: Writer,

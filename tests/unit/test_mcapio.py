@@ -398,3 +398,19 @@ def test_an_empty_recording_replays_and_exports_nothing_as_an_empty_vtr_does(tmp
         with open(path, "wb") as f:
             Ros2Writer(f).finish()
         McapRecording(path)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full here")
+@pytest.mark.parametrize("fmt", ["vtr", "mcap"])
+def test_an_export_onto_a_full_disk_is_one_line_not_a_traceback(samples, tmp_path, fmt):
+    """/dev/full (every write fails, as on a full disk): two chained tracebacks, the second
+    from the writer's close."""
+    vtr = tmp_path / "run.vtr"
+    with RecordWriter(vtr, robot="robot", keys=[f"{ROOT}/**"]) as writer:
+        for key, payload, t_ns in samples:
+            writer.write_at(key, payload, t_ns)
+    run = vistrack("export", vtr, "/dev/full", "--format", fmt)
+    assert run.returncode == 1, run.stderr
+    assert run.stderr.splitlines()[-1] == ("vistrack export: error: /dev/full: No space left "
+                                           "on device (the export is incomplete)")
+    assert "Traceback" not in run.stderr

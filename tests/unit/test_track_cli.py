@@ -224,3 +224,19 @@ def test_features_left_unsearched_by_the_work_budget_are_said(rubberwhale):
     warnings = [line for line in res.stderr.splitlines() if "warning" in line]
     assert len(warnings) == 1 and "features not searched" in warnings[0], res.stderr
     assert "budget" in res.stdout.splitlines()[-1]
+
+
+@pytest.mark.skipif(not __import__("os").path.exists("/dev/full"), reason="no /dev/full here")
+@pytest.mark.parametrize("fmt", ["table", "csv", "jsonl"])
+def test_an_output_that_cannot_be_written_is_one_line_not_a_traceback(rubberwhale, fmt):
+    """A full disk (/dev/full: every write fails with ENOSPC) printed a Python traceback."""
+    import subprocess
+    import sys
+
+    with open("/dev/full", "w") as full:
+        run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "track",
+                              str(rubberwhale), "--format", fmt], stdout=full,
+                             stderr=subprocess.PIPE, text=True, timeout=300)
+    assert run.returncode == 1, run.stderr
+    assert run.stderr == ("vistrack track: error: writing the output: No space left on "
+                          "device\n")

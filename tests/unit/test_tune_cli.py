@@ -259,3 +259,23 @@ def test_a_long_tune_says_how_far_it_is_where_no_line_can_be_rewritten():
     line = stream.getvalue()
     assert line.startswith("vistrack tune: design 10/100 after 0 s, about ") and \
         line.endswith(" to go in design\n") and line.count("\n") == 1, line
+
+
+def test_plots_that_cannot_be_written_still_leave_the_report(tmp_path, capsys, monkeypatch):
+    """The plots were written before the report was printed: on a full disk a run of many
+    minutes ended in one error line and nothing on stdout. The report now comes first."""
+    import errno
+
+    from vistrack.services.auto_tuner import plots
+
+    def full(report, out):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(plots, "write_plots", full)
+    code = _main(["tune", *FAST, "--seed", "3", "--out", str(tmp_path / "plots")])
+    captured = capsys.readouterr()
+    assert code == 2
+    assert "## Table 3" in captured.out and "Optimum" in captured.out
+    err = captured.err.strip().splitlines()
+    assert err[-1].startswith("vistrack tune: error: --out ") and "No space left" in err[-1]
+    assert "the report above is complete" in err[-1]

@@ -19,6 +19,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from decimal import Decimal
 from typing import Any
 
 import cv2
@@ -173,15 +174,18 @@ def _pass_on(said: str, read: bool) -> None:
         sys.stderr.flush()
 
 
-_DIGITS = re.compile(r"(\d+)")
+_DIGITS = re.compile(r"(\d+(?:\.\d+)?)")
 
 
-def name_order(path: str) -> tuple[tuple[tuple[int, int | str], ...], str]:
-    """Sort key of the frames of a folder or glob: by name, the runs of digits by their value
+def name_order(path: str) -> tuple[tuple[tuple[int, Decimal | str], ...], str]:
+    """Sort key of the frames of a folder or glob: by name, the numbers in it by their value
     (``f2.png`` before ``f10.png``, as a file browser shows them; ``ffmpeg -i v.mp4 f%d.png``
-    writes such names), zero-padded names in the same order as plain text."""
+    writes such names), zero-padded names in the same order as plain text, and a number with
+    a fraction by its value: frames named by their time stamp (``1700000000.25.png``, as
+    exporters write ``str(stamp)``) played .0, .5, .25, .75 when the fraction's digits were
+    read as a whole number."""
     parts = _DIGITS.split(path)
-    return tuple((1, int(p)) if i % 2 else (0, p) for i, p in enumerate(parts)), path
+    return tuple((1, Decimal(p)) if i % 2 else (0, p) for i, p in enumerate(parts)), path
 
 
 def _check_images(paths: list[str]) -> None:

@@ -63,3 +63,14 @@ def test_vistrack_track_sees_the_steady_motion_of_numbered_frames(tmp_path, real
     steps = np.diff(dx)
     assert len(steps) == 11
     np.testing.assert_allclose(steps, 1.0, atol=0.1)
+
+
+def test_time_stamped_names_sort_by_their_time():
+    """Exporters name frames ``str(stamp)``: 1700000000.25 came after 1700000000.5 when the
+    fraction's digits were read as a whole number (25 > 5), and the frames played out of
+    order with no warning."""
+    stamps = [1700000000.0 + 0.25 * i for i in range(8)]
+    names = [f"{t!r}.png" for t in stamps]
+    assert sorted(reversed(names), key=name_order) == names
+    assert sorted(["f2.5.png", "f10.png", "f2.25.png"], key=name_order) == \
+        ["f2.25.png", "f2.5.png", "f10.png"]

@@ -27,6 +27,7 @@ from ...common.messages import MAX_SIDE, Estimate, encode_cmd_vel
 from ...common.params import BOUNDS
 from ..runtime import (
     NO_ESTIMATE,
+    REJECTED_LOG_S,
     add_service_args,
     decode_or_reject,
     dispatch,
@@ -174,9 +175,11 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                                                        wz=wz, stale=stale), reliable=True)
         seq += 1
 
+    held_since: float | None = None  # when the watchdog began holding the robot (monotonic)
+
     def watchdog() -> None:
         """Repeat the stop while the estimates are stale (none for a while, or too old)."""
-        nonlocal last_stop
+        nonlocal last_stop, held_since
         mono = time.monotonic()
         silent = mono - last_taken > ctrl.config.stale_after_s
         if mono - last_stop >= STALE_REPEAT_S and (
@@ -186,6 +189,25 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             # stamped after a lockstep simulator's next frame would pass for that frame's answer
             send(time.time_ns(), 0.0, 0.0, 0.0, True)
             last_stop = mono
+            extra = node.status.extra
+            extra["watchdog_stops"] = extra.get("watchdog_stops", 0) + 1
+            if held_since is None:
+                # an operator saw a healthy status while the robot was held for minutes
+                held_since = mono
+                extra["held_since"] = round(time.time(), 3)
+                log.warning("no fresh estimate for %.2f s (--stale-after %g s): holding the "
+                            "robot stopped (a stop every %g s) until estimates come again",
+                            mono - last_taken if last_taken < math.inf else 0.0,
+                            ctrl.config.stale_after_s, STALE_REPEAT_S)
+
+    def released(cmd_stale: bool) -> None:
+        """A command from a fresh estimate: the watchdog's hold, if any, is over (said)."""
+        nonlocal held_since
+        if held_since is not None and not cmd_stale:
+            log.info("estimates fresh again after %.1f s held: driving",
+                     time.monotonic() - held_since)
+            held_since = None
+            node.status.extra.pop("held_since", None)
 
     def on_estimate(payload: bytes) -> None:
         nonlocal last_stop, last_taken, xc0, used, last, late_in_a_row, moving
@@ -206,10 +228,14 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             # back (a step of its wall clock). Every estimate was refused as out of order
             # until the clock had caught up (20 s for a 20 s step), the robot not stopped.
             # The controller's timing starts again from this one; the set point stays.
-            log.warning("estimate seq %d is stamped %.3g s before seq %d: the camera's clock "
-                        "was set back; the controller's timing starts again from it",
-                        est.seq, (last[1] - est.stamp_ns) * 1e-9, last[0])
-            node.status.extra["clock_steps"] = node.status.extra.get("clock_steps", 0) + 1
+            steps = node.status.extra["clock_steps"] = \
+                node.status.extra.get("clock_steps", 0) + 1
+            unsaid = node.status.say("clock step", REJECTED_LOG_S)  # 30 lines in 2 s, else
+            if unsaid is not None:
+                log.warning("estimate seq %d is stamped %.3g s before seq %d: the camera's "
+                            "clock was set back; the controller's timing starts again from "
+                            "it (%d in all)", est.seq, (last[1] - est.stamp_ns) * 1e-9,
+                            last[0], steps)
             ctrl.restart_timing()
         if camera_clock is not None:
             camera_clock.arrived(est.stamp_ns * 1e-9, restart=new_track or stepped)
@@ -255,6 +281,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         last_taken = time.monotonic()
         used = (est.seq, est.stamp_ns)
         send(est.stamp_ns, cmd.vx, cmd.vy, cmd.wz, cmd.stale)
+        released(cmd.stale)
         moving = not cmd.stale and (cmd.vx, cmd.vy, cmd.wz) != (0.0, 0.0, 0.0)
         node.status.observe_ms((time.perf_counter() - t0) * 1e3)
 

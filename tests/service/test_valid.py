@@ -258,3 +258,33 @@ def test_the_controller_reads_the_centring_error_in_the_estimates_image_width():
     assert math.isclose(commands(None, 4.0)[2].vy, at_256[2].vy, rel_tol=1e-4)
     forced = commands(768, 12.0, "--image-width", "256")
     assert abs(forced[2].vy) > abs(at_768[2].vy) + 0.05
+
+
+def test_the_controller_says_when_its_watchdog_holds_the_robot_and_when_it_lets_go(caplog):
+    """Stale stops went out every 0.1 s for as long as motion-estimation was gone, with the
+    status 'ok', no count and no log line: an operator could not tell the robot was held."""
+    import logging
+
+    from vistrack.services.fuzzy_controller.service import loop
+
+    caplog.set_level(logging.INFO, logger="vistrack.fuzzy_controller")
+
+    def estimate(seq: int) -> bytes:
+        return Estimate(seq=seq, stamp_ns=time.time_ns(), npi=40, xc=100.0, yc=100.0,
+                        xe=400.0, ye=400.0, dx=2.0 * seq, dy=0.0, scale=1.0, t_ms=1.0,
+                        first=seq == 0, features=[], params_id=0, width=256,
+                        height=256).encode()
+
+    def said(text: str) -> list[str]:
+        return [r.getMessage() for r in caplog.records if text in r.getMessage()]
+
+    with Running("fuzzy_controller", loop, parse("fuzzy-controller")) as node:
+        command_for(node, estimate(0))
+        assert not command_for(node, estimate(1)).stale
+        wait_for(lambda: node.status.extra.get("watchdog_stops", 0) >= 3,
+                 what="the watchdog's stops")
+        assert "held_since" in node.status.as_dict()["extra"]
+        assert len(said("holding the robot stopped")) == 1
+        assert not command_for(node, estimate(2)).stale
+        wait_for(lambda: said("estimates fresh again"), what="the release said")
+        assert "held_since" not in node.status.as_dict()["extra"]

@@ -24,7 +24,7 @@ import time
 
 from ...common.bus import Node
 from ...common.messages import MAX_SIDE, Estimate, encode_cmd_vel
-from ...common.params import BOUNDS
+from ...common.params import BOUNDS, MIN_VALID_NPI
 from ..runtime import (
     NO_ESTIMATE,
     REJECTED_LOG_S,
@@ -253,11 +253,13 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             xc0 = est.xc if est.valid else None
         # the centroid followed through the robust motion of the matched features, not the
         # raw xc, which jumps whenever features are lost or re-detected (Table 1b); an
-        # invalid estimate stops the robot
+        # invalid estimate stops the robot, and so does one that says it is valid with fewer
+        # than MIN_VALID_NPI features (the CONTRACT rules it out; a peer's valid: true, npi: 0
+        # moved the robot of a controller run with --min-npi 0)
         try:
             cmd = ctrl.update((est.xc if xc0 is None else xc0) + est.dx, est.scale,
                               est.stamp_ns * 1e-9, width_of(est), npi=est.npi,
-                              valid=est.valid)
+                              valid=est.valid and est.npi >= MIN_VALID_NPI)
         except ValueError as e:  # out of order or a duplicate: the input's fault, not ours
             reject(node, log, Estimate.KEY, e)
             return

@@ -288,3 +288,24 @@ def test_the_controller_says_when_its_watchdog_holds_the_robot_and_when_it_lets_
         assert not command_for(node, estimate(2)).stale
         wait_for(lambda: said("estimates fresh again"), what="the release said")
         assert "held_since" not in node.status.as_dict()["extra"]
+
+
+def test_the_controller_does_not_move_on_an_estimate_valid_with_too_few_features():
+    """The CONTRACT: valid is false when NPI < 3. A peer's valid: true with npi 0, 1 or 2 moved
+    the robot of a controller run with --min-npi 0 (whose own NPI check then passes)."""
+    from vistrack.services.fuzzy_controller.service import loop
+
+    base = time.time_ns()
+
+    def estimate(seq: int, npi: int) -> bytes:
+        return Estimate(seq=seq, stamp_ns=base + seq * 33_000_000, npi=npi, xc=100.0,
+                        yc=100.0, xe=400.0, ye=400.0, dx=6.0 * seq, dy=0.0, scale=1.0,
+                        t_ms=1.0, first=seq == 0, valid=True, features=[], params_id=0,
+                        width=256, height=256).encode()
+
+    with Running("fuzzy_controller", loop, parse("fuzzy-controller", "--min-npi", "0")) as node:
+        answered = [command_for(node, estimate(seq, npi))
+                    for seq, npi in enumerate((40, 40, 2, 0, 40))]
+    assert [c.stale for c in answered] == [False, False, True, True, False]
+    assert all((c.vx, c.vy, c.wz) == (0.0, 0.0, 0.0) for c in answered[2:4])
+    assert answered[4].vy != 0.0

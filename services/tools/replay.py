@@ -171,21 +171,23 @@ class _Selection:
         self.held_back = False
 
     def __call__(self, key: str) -> bool:
-        if not self._commands and key.endswith("/" + COMMANDS):
-            self.held_back = True
-            return False
-        if not self._exprs:
-            return True
         chosen = self._known.get(key)
         if chosen is None:
-            try:
-                concrete = zenoh.KeyExpr(key)
-            except zenoh.ZError:  # a topic of another program that is no Zenoh key
+            chosen = self._chosen(key)
+            if chosen and not self._commands and key.endswith("/" + COMMANDS):
+                self.held_back = True  # selected (no KEY, a wildcard) but not named
                 chosen = False
-            else:
-                chosen = any(e.intersects(concrete) for e in self._exprs)
             self._known[key] = chosen
         return chosen
+
+    def _chosen(self, key: str) -> bool:
+        if not self._exprs:
+            return True
+        try:
+            concrete = zenoh.KeyExpr(key)
+        except zenoh.ZError:  # a topic of another program that is no Zenoh key
+            return False
+        return any(e.intersects(concrete) for e in self._exprs)
 
 
 class _Acks:

@@ -19,13 +19,7 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
    Gauss-Newton strayed past its pixel (FOLLOW_STRAY_PX). Steps 1 to 4 then run for the others only;
    steps 5 and 6 for all. With steady motion the prediction is good to a few hundredths of
    a pixel, and a search finds what Gauss-Newton from the prediction finds, at several
-   times the cost. No motion is a guess, not a prediction: a feature followed from it (a
-   track's first pair) is searched by steps 1 and 2 as well, and its followed match kept
-   only where the search's agrees within FIRST_AGREE_PX or the search could not run to the
-   end (its window left the image, the minimum was cut short, the frame's work ran out);
-   else the search's match, with its checks, or none (:func:`_first_pair_checked`: a
-   lookalike near the start, on which Gauss-Newton comes to rest and to which its way back
-   returns, taken for a feature moving 8.5 px on real driving footage);
+   times the cost;
 1. **start**: Eq. (1) is searched with the paper's windows at the coarsest level whose pixels
    hold the feature's template, around its prediction: SEARCH_SIZE // 2 px of that level reach
    2^k times as far in the frame, and the correlation window sees 2^k times as much of the
@@ -432,9 +426,6 @@ FOLLOW_STRAY_PX = 2.0
 #: prediction is no motion, not a measurement, and on Urban2's facades Gauss-Newton brought
 #: 2 features to rest near their start while the scene moved 3.5 px
 FOLLOW_NEAR = 0.25
-#: step 0b (:func:`_first_pair_checked`): a track's first pair searches its followed
-#: features too, and keeps a followed match where the search's is within this many px of it
-FIRST_AGREE_PX = 0.5
 #: the wide window's estimate is taken where it disagrees with the correlation window's when
 #: each side of its ring has a mean squared residual at most this many times its centre's
 #: (plus noise's; :func:`_widen`)
@@ -843,21 +834,10 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
     if follow and subpixel and fb_bound > 0.0:
         _follow(pdata, cdata, geo, pts, preds, held, n, wts, fb_bound, scratch, active,
                 out_pos, out_ssd, out_status)
-    # 0b. a match followed from a prediction of no motion (a track's first pair: a guess, not
-    # a measurement) is searched as well (_first_pair_checked)
-    unmeasured = np.zeros(n_feat, np.bool_)
-    guessed = np.empty((n_feat, 3), np.float64)
     for f in range(n_feat):
         followed[f] = not active[f]
-        if followed[f] and preds[f, 0] == pts[f, 0] and preds[f, 1] == pts[f, 1]:
-            unmeasured[f] = True
-            active[f] = True
-            guessed[f, 0] = out_pos[f, 0]
-            guessed[f, 1] = out_pos[f, 1]
-            guessed[f, 2] = out_ssd[f]
     _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, allowance,
            reject_border, subpixel, scratch, seen, out_pos, out_ssd, out_status, budget)
-    _first_pair_checked(unmeasured, guessed, active, followed, out_pos, out_ssd, out_status)
     # each feature's predicted displacement (loops rather than array expressions here and
     # below: each of those compiles into a kernel of its own)
     offset = np.empty((n_feat, 2), np.float64)
@@ -973,47 +953,6 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
         _affine_correction(prev, pts, out_pos, out_status, took, cen, n, wts, uniform,
                            affine_fit, judged, judged_near)
     return found
-
-
-@nb.njit(**NO_NRT)
-def _first_pair_checked(unmeasured, guessed, active, followed, out_pos, out_ssd,
-                        out_status):  # pragma: no cover - numba
-    """Step 0b: the ``unmeasured`` features, followed from a prediction of no motion (a
-    track's first pair) and then searched as well (``guessed``: the followed match, x, y and
-    S). Gauss-Newton from no motion comes to rest on whatever minimum lies nearest the start,
-    and its way back returns there from a lookalike too: on real driving (KITTI), a feature
-    moving 8.5 px was followed to 0.07 px, and on real frames a third of which was moved 6 to
-    12 px, 13 of 1137 features came to rest on a facade's or a stripe's lookalike 1 to 2 px
-    from the start, all of them confirmed, while the search of the same features found
-    every one. So where the search found a match (OK) it is taken, the followed one only
-    where they agree (the two are then the same match), and it goes through the search's
-    checks; where the search's window left the image or cut the minimum short, or the
-    frame's work ran out, the followed match stays (a small object against its background,
-    which the coarse search's window straddles, is found by following); where the search
-    found the texture ambiguous or did not settle, neither is trusted (the guided retry and
-    the checks then decide, as for any searched feature)."""
-    for f in range(unmeasured.shape[0]):
-        if not unmeasured[f]:
-            continue
-        st = out_status[f]
-        if st == OK:
-            dx = out_pos[f, 0] - guessed[f, 0]
-            dy = out_pos[f, 1] - guessed[f, 1]
-            if dx * dx + dy * dy <= FIRST_AGREE_PX * FIRST_AGREE_PX:
-                out_pos[f, 0] = guessed[f, 0]
-                out_pos[f, 1] = guessed[f, 1]
-                out_ssd[f] = guessed[f, 2]
-                active[f] = False  # as followed: its way back was tried
-            else:
-                followed[f] = False
-        elif st == LEFT or st == CUT or st == BORDER or st == OVER:
-            out_pos[f, 0] = guessed[f, 0]
-            out_pos[f, 1] = guessed[f, 1]
-            out_ssd[f] = guessed[f, 2]
-            out_status[f] = OK
-            active[f] = False
-        else:
-            followed[f] = False
 
 
 @nb.njit(cache=True, nogil=True)

@@ -174,16 +174,19 @@ def _pass_on(said: str, read: bool) -> None:
         sys.stderr.flush()
 
 
-_DIGITS = re.compile(r"(\d+(?:\.\d+)?)")
+#: a number in a file name: a time stamp in s with its fraction (9 or more digits before the
+#: point: s since the Unix epoch), else a run of digits (``cam1.10``: 1 and 10, not 1.1)
+_DIGITS = re.compile(r"(\d{9,}\.\d+|\d+)")
 
 
 def name_order(path: str) -> tuple[tuple[tuple[int, Decimal | str], ...], str]:
     """Sort key of the frames of a folder or glob: by name, the numbers in it by their value
     (``f2.png`` before ``f10.png``, as a file browser shows them; ``ffmpeg -i v.mp4 f%d.png``
-    writes such names), zero-padded names in the same order as plain text, and a number with
-    a fraction by its value: frames named by their time stamp (``1700000000.25.png``, as
+    writes such names), zero-padded names in the same order as plain text, and a time stamp
+    with a fraction by its value: frames named by their time stamp (``1700000000.25.png``, as
     exporters write ``str(stamp)``) played .0, .5, .25, .75 when the fraction's digits were
-    read as a whole number."""
+    read as a whole number. Only a number of 9 or more digits before the point is a time
+    stamp: ``cam1.10.png`` comes after ``cam1.9.png``, as it always did."""
     parts = _DIGITS.split(path)
     return tuple((1, Decimal(p)) if i % 2 else (0, p) for i, p in enumerate(parts)), path
 

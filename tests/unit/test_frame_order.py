@@ -72,5 +72,7 @@ def test_time_stamped_names_sort_by_their_time():
     stamps = [1700000000.0 + 0.25 * i for i in range(8)]
     names = [f"{t!r}.png" for t in stamps]
     assert sorted(reversed(names), key=name_order) == names
-    assert sorted(["f2.5.png", "f10.png", "f2.25.png"], key=name_order) == \
-        ["f2.25.png", "f2.5.png", "f10.png"]
+    # short numbers with a point are two numbers, as they always were (a regression probe:
+    # read as 1.1, cam1.10 came before cam1.2)
+    names = [f"cam1.{k}.png" for k in range(1, 13)]
+    assert sorted(reversed(names), key=name_order) == names

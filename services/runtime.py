@@ -17,6 +17,7 @@ import faulthandler
 import gc
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -391,9 +392,11 @@ def dispatch(node: Node, handlers: Mapping[str, Handler], logger: logging.Logger
             faults.failed(key, peek_seq(payload), e)
 
 
-#: Rejections of one kind of input (its key or type) are logged at most once every this, s,
-#: each later line with the count of those not logged since; the status counts every one.
+#: Rejections of one input (its key or type) for one kind of error are logged at most once
+#: every this, s, each later line with the count of those not logged since; the status counts
+#: every one.
 REJECTED_LOG_S = 5.0
+_NUMBERS = re.compile(r"[-+]?\d[\d.]*(?:e[-+]?\d+)?")
 
 
 def reject(node: Node, logger: logging.Logger, what: str, error: BaseException | str) -> None:
@@ -402,7 +405,10 @@ def reject(node: Node, logger: logging.Logger, what: str, error: BaseException |
     sending 3000 bad messages in a second wrote 3000 ERROR lines, and a depth camera on a
     ROS 2 topic 30 a second for as long as it ran)."""
     node.status.reject(error)
-    unsaid = node.status.say(f"rejected {what}", REJECTED_LOG_S)
+    # one window per kind of error (its text, numbers left out): the first of a new kind is
+    # said at once (a flood of one kind hid another: clocks out of step behind a bad version)
+    kind = _NUMBERS.sub("#", str(error))[:80]
+    unsaid = node.status.say(f"rejected {what}: {kind}", REJECTED_LOG_S)
     if unsaid is not None:
         more = f" ({unsaid} more rejected since the last said, each counted in the status)" \
             if unsaid else ""

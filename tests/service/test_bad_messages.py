@@ -750,6 +750,11 @@ def test_a_flood_of_bad_messages_is_counted_in_full_and_logged_once_a_window(
             wait_for(lambda: len(said()) == 2, what="the second line")
             assert "(199 more rejected since the last said, each counted in the status)" \
                 in said()[1]
+            # another kind of error on the same key is said at once, in its own window
+            monkeypatch.setattr(runtime, "REJECTED_LOG_S", 3600.0)
+            node.feed(node.keys.estimate, msgpack.packb({"v": 2, "seq": 1}))
+            wait_for(lambda: len(said()) == 3, what="the new kind said")
+            assert "version" in said()[2] and "more rejected" not in said()[2]
             stamp = time.time_ns()
             node.feed(node.keys.estimate, Estimate(
                 seq=1, stamp_ns=stamp, npi=50, xc=128.0, yc=128.0, xe=400.0, ye=400.0,
@@ -761,4 +766,4 @@ def test_a_flood_of_bad_messages_is_counted_in_full_and_logged_once_a_window(
         finally:
             node.stop.set()
             thread.join(5)
-    assert node.status.rejected == 201
+    assert node.status.rejected == 202

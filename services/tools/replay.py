@@ -157,6 +157,15 @@ def _key_filter(keys: Keys, key: str) -> zenoh.KeyExpr:
     return zenoh.KeyExpr(expr)
 
 
+def names_commands(keys: list[str], exprs: list[zenoh.KeyExpr]) -> bool:
+    """Whether a KEY argument asks for ``control/cmd_vel``: one that selects it and is not a
+    bare wildcard (``**``, ``*/**``: every key, not commands in particular). ``control/**``
+    asked for them, and the replay said no recorded sample matched it."""
+    commands = zenoh.KeyExpr(f"{PREFIX}/*/{COMMANDS}")
+    return any(k.strip("*/") != "" and e.intersects(commands)
+               for k, e in zip(keys, exprs, strict=True))
+
+
 class _Selection:
     """Whether a recorded key is among the KEY arguments (all keys without any), but
     ``control/cmd_vel`` only where a KEY names it (``commands``): replayed with the rest, the
@@ -366,7 +375,7 @@ def replay(session: zenoh.Session, keys: Keys, recording: Recording | McapRecord
            selected: list[zenoh.KeyExpr], args: argparse.Namespace) -> int:
     start = time.monotonic()
     with stop_on_signals() as stop:
-        selection = _Selection(selected, commands=any("cmd_vel" in k for k in args.keys))
+        selection = _Selection(selected, commands=names_commands(args.keys, selected))
         player = _Player(session, args, stop, selection)
         try:
             while player.play(recording.records()) and args.loop:

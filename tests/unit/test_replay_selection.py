@@ -5,13 +5,13 @@ from __future__ import annotations
 
 from vistrack.common.keys import Keys
 from vistrack.services import cli
-from vistrack.services.tools.replay import _key_filter, _Selection
+from vistrack.services.tools.replay import _key_filter, _Selection, names_commands
 
 
 def selection(*keys: str) -> _Selection:
     args = cli.build_parser("replay").parse_args(["replay", "rec.vtr", *keys])
     exprs = [_key_filter(Keys(args.robot), k) for k in args.keys]
-    return _Selection(exprs, commands=any("cmd_vel" in k for k in args.keys))
+    return _Selection(exprs, commands=names_commands(args.keys, exprs))
 
 
 def test_a_replay_publishes_recorded_commands_only_where_a_key_names_them():
@@ -22,7 +22,8 @@ def test_a_replay_publishes_recorded_commands_only_where_a_key_names_them():
     assert every(frame) and not every(cmd) and every.held_back
     wild = selection("**")
     assert wild(frame) and not wild(cmd)
-    for named in ("control/cmd_vel", "cmd_vel", "vistrack/robot/control/cmd_vel"):
+    for named in ("control/cmd_vel", "cmd_vel", "vistrack/robot/control/cmd_vel",
+                  "control/**"):
         chosen = selection(named, "camera/frame")
         assert chosen(cmd) and chosen(frame) and not chosen.held_back, named
     frames_only = selection("camera/frame")  # not asked for: nothing held back, no note

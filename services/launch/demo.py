@@ -374,6 +374,8 @@ def main(args: argparse.Namespace) -> int:
         scenario = load_scenario(args.scenario)
         duration = args.duration if args.duration is not None else scenario.duration_s
         launch = default_launch().with_camera(source=f"sim:{args.scenario}", fps=30.0)
+        # --robot, as vistrack up takes it (the services ran as robot "robot", whatever it said)
+        launch = dataclasses.replace(launch, robot=getattr(args, "robot", launch.robot))
         if args.no_control:
             launch = _with_flags(launch, "camera", "--no-control")
         for name in ("preprocessing", "motion-estimation", "auto-tuner"):

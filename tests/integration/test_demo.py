@@ -100,6 +100,15 @@ def test_demo_with_the_robot_still_does_not_follow_the_target(tmp_path, free_por
     assert still["rms_center_error_px"] > 5 and still["frames"] > 90
 
 
+def test_demo_runs_its_services_under_the_robot_id_it_is_given(tmp_path, free_port):
+    """--robot was accepted and documented, but the services ran as robot "robot": two demos
+    on one network shared keys."""
+    run, summary = demo(tmp_path, free_port, "--duration", "3", "--robot", "demo7")
+    assert summary["frames"] > 60
+    log = (tmp_path / "out" / "services.log").read_text()
+    assert "vistrack/demo7/alive/" in log and "vistrack/robot/" not in log
+
+
 @pytest.mark.parametrize(("flags", "message"), [
     (["--duration", "0"], "--duration 0 is out of range: allowed 1..3600 s"),
     (["--duration", "nan"], "--duration nan is out of range: allowed 1..3600 s"),

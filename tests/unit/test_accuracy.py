@@ -360,3 +360,37 @@ def test_a_retry_that_finds_a_few_more_does_not_replace_the_first_run(monkeypatc
     assert any_gain_pairs > pairs  # the retry did find more: the margin decided
     assert off / pairs <= 0.029 < any_gain_off / any_gain_pairs, (off, pairs, any_gain_off,
                                                                   any_gain_pairs)
+
+
+def test_the_medians_on_the_pairs_both_tracked_are_over_the_same_pairs():
+    """Each tracker's own median is over its own pairs: one that rejects a hard pair the
+    other keeps lowers its median for that alone. The scoreboard also gives both medians
+    over the pairs both tracked: here an occluder hides some features in the second frame
+    (ours rejects them, LK reports them at a wrong place or loses them), and both medians are
+    over exactly the features ours kept and LK found, counted here independently."""
+    image = source_image("RubberWhale")
+    h, w = image.shape
+    shift = np.array([3.0, -2.0])
+    moved = cv2.warpAffine(image, np.float64([[1, 0, shift[0]], [0, 1, shift[1]]]), (w, h),
+                           borderMode=cv2.BORDER_REFLECT)
+    moved[h // 3:2 * h // 3, w // 3:2 * w // 3] = 128  # an occluder, uniform grey
+    frames = [image, moved]
+
+    def truth(points, k):
+        return points + shift
+
+    ours, theirs, _ = run_sequence(frames, truth, TrackerParams())
+    # the same run, counted by hand: the features ours kept, and those LK found
+    tracker = Tracker(TrackerParams())
+    first = tracker.process(image)
+    second = tracker.process(moved)
+    kept = dict(zip(second.ids.tolist(), second.points, strict=True))
+    q, ok = lk(image, moved, first.points)
+    both = [j for j, i in enumerate(first.ids.tolist()) if i in kept and ok[j]]
+    assert 0 < len(both) < min(ours.pairs, theirs.pairs) or ours.pairs != theirs.pairs
+    expected_ours = np.median([np.hypot(*(kept[first.ids[j]] - first.points[j] - shift))
+                               for j in both])
+    expected_lk = np.median([np.hypot(*(q[j] - first.points[j] - shift)) for j in both])
+    assert ours.both_pairs == theirs.both_pairs == len(both)
+    assert ours.both_median == pytest.approx(expected_ours)
+    assert theirs.both_median == pytest.approx(expected_lk)

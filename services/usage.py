@@ -128,6 +128,53 @@ def add_number(parser: Any, *names: str, lo: float, hi: float, integer: bool = F
     return action
 
 
+def check_path(flag: str, value: str, kind: str, example: str) -> str:
+    """``value`` if it names a file or folder; a FlagError naming ``flag`` if it is empty.
+
+    An empty name is no name: ``Path('')`` is the current folder, so ``--out ''`` wrote a
+    demo's files into it and ``vistrack certs ca --dir ''`` the CA's key, and ``if args.out:``
+    took it for "not given" (``vistrack tune --out ''`` wrote no plots and said nothing).
+    ``kind`` is "file" or "folder"; ``example`` a value to suggest (with the flag, for a flag).
+    """
+    if value == "":
+        show = f"{flag.split('/')[0]} {example}" if flag.startswith("-") else example
+        raise FlagError(f"{flag}: empty {kind} name; give a {kind}, e.g. {show}")
+    return value
+
+
+class _Path(argparse.Action):
+    """Stores a file or folder name (one, or a list with ``nargs``), refusing an empty one
+    (:func:`check_path`)."""
+
+    def __init__(self, option_strings: list[str], dest: str, *, kind: str, example: str,
+                 **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, **kwargs)
+        self.kind, self.example = kind, example
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: Any, option_string: str | None = None) -> None:
+        flag = option_string or (self.metavar if isinstance(self.metavar, str) else self.dest)
+        for value in values if isinstance(values, list) else [values]:
+            if value is not None:  # an optional positional left out: its default
+                check_path(flag, value, self.kind, self.example)
+        setattr(namespace, self.dest, values)
+
+
+def add_path(parser: Any, *names: str, kind: str = "file", example: str,
+             **kwargs: Any) -> argparse.Action:
+    """``parser.add_argument(*names, **kwargs)`` for a file (``kind="file"``) or folder
+    (``kind="folder"``) name, which may not be empty: ``--out ''`` is then
+    ``--out: empty folder name; give a folder, e.g. --out tune-report`` (``example`` is
+    ``tune-report``). ``parser`` may be an argument group; ``nargs`` may be given."""
+    if kind not in ("file", "folder"):
+        raise ValueError(f"kind {kind!r} of {names}: allowed file, folder")
+    if "type" in kwargs:
+        raise TypeError("add_path stores the name as given: no type=")
+    action: argparse.Action = parser.add_argument(*names, action=_Path, kind=kind,
+                                                  example=example, **kwargs)
+    return action
+
+
 PARAM_FLAGS = {
     "max_features": ("--max-features", int, "MAX_FEAT_NUM: most feature points"),
     "thres_percent": ("--thres-percent", float,
@@ -208,12 +255,14 @@ def params_from_args(args: argparse.Namespace, base: TrackerParams | None = None
 
 
 def run_checks(module: ModuleType, args: argparse.Namespace) -> None:
-    """The checks after parsing: the Zenoh endpoints (``-e``, ``-l``) if the subcommand takes
-    them, then ``module.check_args(args)`` if it defines one. A ``ValueError`` says, in its
-    message, what is wrong."""
+    """The checks after parsing: the Zenoh endpoints (``-e``, ``-l``) and config file name
+    (``-c``) if the subcommand takes them, then ``module.check_args(args)`` if it defines
+    one. A ``ValueError`` says, in its message, what is wrong."""
     for flag, attr in (("-e/--connect", "connect"), ("-l/--listen", "listen")):
         for endpoint in getattr(args, attr, None) or ():
             check_endpoint(flag, endpoint)
+    if getattr(args, "config", None) is not None:  # add_zenoh_args's (common/ has no usage)
+        check_path("-c/--config", args.config, "file", "zenoh.json5")
     check = getattr(module, "check_args", None)
     if check is not None:
         check(args)

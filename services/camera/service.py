@@ -57,7 +57,7 @@ from ...common.sources import (
     parse_size,
 )
 from ..runtime import Faults, add_service_args, paced, ready, serve, wait_for_consumers
-from ..usage import add_number, print_error, say_on_stderr
+from ..usage import add_number, add_path, print_error, say_on_stderr
 from .ros2cam import default_domain, is_ros2, run_ros2, topic_of
 from .simcam import make_simulator, run_sim
 
@@ -110,8 +110,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "--no-control, its estimate): deterministic runs")
     sim.add_argument("--no-control", action="store_true",
                      help="ignore control/cmd_vel: the robot stands still")
-    sim.add_argument("--texture", metavar="PATH", default=None,
-                     help="target texture image (default: built-in procedural texture)")
+    add_path(sim, "--texture", example="texture.png", metavar="PATH", default=None,
+             help="target texture image (default: built-in procedural texture)")
     add_number(sim, "--noise", lo=0, hi=100, default=0.0, metavar="SIGMA",
                help="Gaussian sensor noise, grey levels, %(allowed)s (default 0)")
     add_number(sim, "--seed", lo=0, hi=2**63 - 1, integer=True, default=0, metavar="N",

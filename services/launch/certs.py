@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..usage import add_number, print_error
+from ..usage import add_number, add_path, print_error
 
 CA_CERT = "ca.pem"
 CA_KEY = "ca.key"
@@ -294,7 +294,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     actions = parser.add_subparsers(dest="action", metavar="ACTION", parser_class=type(parser))
     actions.required = True
     ca = actions.add_parser("ca", help="create the certificate authority (ca.pem, ca.key)")
-    ca.add_argument("--dir", default=DEFAULT_DIR, help=f"where to write (default {DEFAULT_DIR})")
+    add_path(ca, "--dir", kind="folder", example=DEFAULT_DIR, default=DEFAULT_DIR,
+             help=f"where to write (default {DEFAULT_DIR})")
     ca.add_argument("--name", default="vistrack CA", help="the CA's common name")
     add_number(ca, "--days", lo=1, hi=36500, integer=True, default=CA_DAYS, metavar="N",
                help=f"validity in days, %(allowed)s (default {CA_DAYS})")
@@ -302,16 +303,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     iss = actions.add_parser("issue", help="issue NAME.pem and NAME.key signed by the CA")
     iss.add_argument("name", metavar="NAME",
                      help="common name, matched by the access control (e.g. vistrack-robot)")
-    iss.add_argument("--dir", default=DEFAULT_DIR,
-                     help=f"where the CA is and the files go (default {DEFAULT_DIR})")
+    add_path(iss, "--dir", kind="folder", example=DEFAULT_DIR, default=DEFAULT_DIR,
+             help=f"where the CA is and the files go (default {DEFAULT_DIR})")
     iss.add_argument("--host", action="append", default=[], metavar="HOST",
                      help="a DNS name or IP address the host is reached at (repeatable)")
     add_number(iss, "--days", lo=1, hi=36500, integer=True, default=HOST_DAYS, metavar="N",
                help=f"validity in days, %(allowed)s (default {HOST_DAYS})")
     iss.add_argument("--force", action="store_true", help="replace existing files")
     show = actions.add_parser("show", help="print certificates; check them against a CA")
-    show.add_argument("files", nargs="+", metavar="FILE.pem")
-    show.add_argument("--ca", metavar="CA.pem", help="check each certificate was signed by it")
+    add_path(show, "files", example="certs/robot.pem", nargs="+", metavar="FILE.pem")
+    add_path(show, "--ca", example="certs/ca.pem", metavar="CA.pem",
+             help="check each certificate was signed by it")
 
 
 def main(args: argparse.Namespace) -> int:

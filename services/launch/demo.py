@@ -40,7 +40,7 @@ from ...common.bus import BusError, add_zenoh_args
 from ..camera.scenarios import ScenarioError, load_scenario
 from ..camera.sim import Camera, image_truth
 from ..fuzzy_controller.control import ControllerConfig
-from ..usage import add_number, print_error, rewrites_lines
+from ..usage import add_number, add_path, print_error, rewrites_lines
 from .launchfile import LaunchError, LaunchSpec, default_launch
 from .router import listen_endpoints, router_config
 from .supervisor import Launcher, compile_kernels
@@ -58,8 +58,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "lighting) or a scenario YAML file")
     parser.add_argument("--no-control", action="store_true",
                         help="the robot stands still: the same run without the controller")
-    parser.add_argument("--out", default="vistrack-demo", metavar="DIR",
-                        help="output folder (default ./vistrack-demo)")
+    add_path(parser, "--out", kind="folder", example="vistrack-demo", default="vistrack-demo",
+             metavar="DIR", help="output folder (default ./vistrack-demo)")
     add_zenoh_args(parser)
 
 

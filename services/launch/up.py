@@ -64,7 +64,7 @@ from ...common.bus import (
     install_signal_handlers,
 )
 from ...common.sources import MIN_FPS, SourceError, probe_device
-from ..usage import add_number, plural, print_error
+from ..usage import add_number, add_path, plural, print_error
 from .launchfile import (
     LaunchError,
     LaunchSpec,
@@ -83,8 +83,8 @@ from .supervisor import Launcher, compile_kernels
 # -- the command line ------------------------------------------------------------------------
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("launch", nargs="?", metavar="LAUNCH.yaml",
-                        help="launch file (default: deploy/local.yaml)")
+    add_path(parser, "launch", example="deploy/local.yaml", nargs="?", metavar="LAUNCH.yaml",
+             help="launch file (default: deploy/local.yaml)")
     parser.add_argument("--camera", metavar="SOURCE",
                         help="the camera's source: file:PATH, device:N, builtin or "
                              "sim[:SCENARIO]; drops the launch file's --loop. 'none': no "

@@ -52,6 +52,7 @@ from ..auto_tuner.sensitivity import (
 from ..kernels import warm_up_kernels
 from ..usage import (
     add_number,
+    add_path,
     add_search_flag,
     add_tracker_flags,
     params_from_args,
@@ -71,9 +72,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_number(parser, "--seed", lo=0, hi=2**63 - 1, integer=True, default=None, metavar="N",
                help="seed of the design's run order, %(allowed)s (default: a fresh one, "
                     "printed)")
-    parser.add_argument("--out", metavar="DIR", default=None,
-                        help="write the plots (half-normal, main effects, interactions, sweep "
-                             "heat maps) as PNG into DIR")
+    add_path(parser, "--out", kind="folder", example="tune-report", metavar="DIR", default=None,
+             help="write the plots (half-normal, main effects, interactions, sweep heat "
+                  "maps) as PNG into DIR")
     parser.add_argument("--format", choices=("text", "json"), default="text",
                         help="text tables, or the tuner/report fields as JSON (default text)")
     add_number(parser, "--tolerance", lo=TOLERANCE_RANGE[0], hi=TOLERANCE_RANGE[1],

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 from ...common.keys import validate_robot_id
+from ..usage import add_path
 from .mcapio import McapRecording
 from .record import (
     FORMATS,
@@ -36,9 +37,9 @@ PROGRESS_S = 2.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("input", metavar="IN", help="a recording: .vtr or MCAP")
-    parser.add_argument("output", metavar="OUT",
-                        help="file to write (overwritten): MCAP if it ends in .mcap, else .vtr")
+    add_path(parser, "input", example="run.vtr", metavar="IN", help="a recording: .vtr or MCAP")
+    add_path(parser, "output", example="run.mcap", metavar="OUT",
+             help="file to write (overwritten): MCAP if it ends in .mcap, else .vtr")
     parser.add_argument("--format", choices=FORMATS, default=None,
                         help="format of OUT (default: mcap for a .mcap name, else vtr)")
 

@@ -36,7 +36,7 @@ import msgpack
 import zenoh
 
 from ...common.keys import Keys, key_suffix
-from ..usage import add_number, plural
+from ..usage import add_number, add_path, plural
 from .mcapio import McapRecording, McapWriter, is_mcap
 from .shared import (
     Inbox,
@@ -284,7 +284,8 @@ def not_written(writer: Writer, keep: str = "record to .vtr to keep them") -> li
 # -- the command ------------------------------------------------------------------------------
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", metavar="FILE", help="recording to write (overwritten)")
+    add_path(parser, "file", example="run.vtr", metavar="FILE",
+             help="recording to write (overwritten)")
     parser.add_argument("keys", nargs="*", metavar="KEY",
                         help="keys to record: camera/frame, estimate, '**', full keys "
                              "(default: every key of the robot)")

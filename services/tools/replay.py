@@ -49,7 +49,7 @@ import zenoh
 from ...common.bus import SourcedPublisher, congestion
 from ...common.keys import PREFIX, Keys, key_suffix, validate_robot_id
 from ...common.messages import peek_int
-from ..usage import add_number, plural
+from ..usage import add_number, add_path, plural
 from .mcapio import McapRecording, key_of
 from .record import Record, RecordError, Recording, open_recording
 from .shared import (
@@ -84,8 +84,8 @@ COMMANDS = "control/cmd_vel"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", metavar="FILE",
-                        help="a recording made by vistrack record (.vtr or MCAP)")
+    add_path(parser, "file", example="run.vtr", metavar="FILE",
+             help="a recording made by vistrack record (.vtr or MCAP)")
     parser.add_argument("keys", nargs="*", metavar="KEY",
                         help="replay only these keys: camera/frame, estimate, '**', full keys "
                              f"(default: every recorded sample but {COMMANDS}, which only a "

@@ -158,6 +158,16 @@ def test_out_that_is_a_file_is_an_error_before_any_work(tmp_path, capsys):
     assert len(err.strip().splitlines()) == 1
 
 
+def test_an_empty_out_is_an_error_not_a_run_without_plots(tmp_path, monkeypatch, capsys):
+    # `if args.out:` took '' for "no plots": the run went on and said nothing of them
+    monkeypatch.chdir(tmp_path)
+    assert _main(["tune", "builtin", *FAST, "--out", ""]) == 2
+    captured = capsys.readouterr()
+    assert captured.err == ("vistrack tune: error: --out: empty folder name; give a folder, "
+                            "e.g. --out tune-report\n")
+    assert captured.out == "" and list(tmp_path.iterdir()) == []
+
+
 def test_a_single_frame_is_not_enough(tmp_path, capsys):
     import cv2
     import numpy as np

@@ -59,6 +59,46 @@ def test_a_range_is_declared_once_and_checked():
         add_number(argparse.ArgumentParser(), "--x", lo=1, hi=0)
 
 
+@pytest.mark.parametrize(("argv", "message"), [
+    (["tune", "--out", ""], "--out: empty folder name; give a folder, e.g. --out tune-report"),
+    (["tune", "--out="], "--out: empty folder name; give a folder, e.g. --out tune-report"),
+    (["demo", "--out", ""],
+     "--out: empty folder name; give a folder, e.g. --out vistrack-demo"),
+    (["certs", "ca", "--dir", ""], "--dir: empty folder name; give a folder, e.g. --dir certs"),
+    (["certs", "issue", "robot", "--dir", ""],
+     "--dir: empty folder name; give a folder, e.g. --dir certs"),
+    (["certs", "show", "a.pem", ""],
+     "FILE.pem: empty file name; give a file, e.g. certs/robot.pem"),
+    (["certs", "show", "a.pem", "--ca", ""],
+     "--ca: empty file name; give a file, e.g. --ca certs/ca.pem"),
+    (["up", ""], "LAUNCH.yaml: empty file name; give a file, e.g. deploy/local.yaml"),
+    (["camera", "--source", "sim", "--texture", ""],
+     "--texture: empty file name; give a file, e.g. --texture texture.png"),
+    (["record", ""], "FILE: empty file name; give a file, e.g. run.vtr"),
+    (["replay", ""], "FILE: empty file name; give a file, e.g. run.vtr"),
+    (["export", "", "b.mcap"], "IN: empty file name; give a file, e.g. run.vtr"),
+    (["export", "a.vtr", ""], "OUT: empty file name; give a file, e.g. run.mcap"),
+])
+def test_an_empty_file_or_folder_name_is_refused_naming_the_flag(argv, message):
+    # Path('') is the current folder: demo --out '' and certs --dir '' wrote into it, and
+    # tune --out '' and certs show --ca '' took it for "not given"
+    from vistrack.services import cli
+
+    with pytest.raises(FlagError) as e:
+        cli.build_parser(argv[0]).parse_args(argv)
+    assert str(e.value) == message
+
+
+def test_an_empty_zenoh_config_name_is_refused_before_anything_opens(tmp_path, monkeypatch,
+                                                                     capsys):
+    from vistrack.services import cli
+
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["echo", "estimate", "-c", ""]) == 2
+    assert capsys.readouterr().err == ("vistrack echo: error: -c/--config: empty file name; "
+                                       "give a file, e.g. -c zenoh.json5\n")
+
+
 @pytest.mark.parametrize(("endpoint", "ok"), [
     ("tcp/127.0.0.1:7447", True), ("tcp/[::1]:7447", True), ("udp/robot.local:0", True),
     ("tls/host:7447?iface=eth0", True), ("unixsock-stream//tmp/zenoh.sock", True),

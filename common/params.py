@@ -73,6 +73,12 @@ PAPER_TRACKER: dict[str, Any] = {"levels": 1, "subpixel": False, "uniqueness": 0
                                  "guided_retry": False, "refine_size": 0, "follow": False,
                                  "exposure": False}
 
+#: What tells the paper's tracker from the default one, whatever ``--levels``, ``--subpixel``
+#: and ``--refine-size`` (flags of both) set: its tests of a match and what finds a match
+#: again (:meth:`TrackerParams.tracker`).
+_TRACKER_RULES = tuple(k for k in PAPER_TRACKER if k not in ("levels", "subpixel",
+                                                            "refine_size"))
+
 #: The paper's five factors, in Table 2's order (A..E of the 2^(5-1) design).
 FACTORS = ("max_features", "thres_percent", "search_size", "corr_size", "ungroup_size")
 
@@ -268,6 +274,33 @@ class TrackerParams:
         """The paper's tracker (:data:`PAPER_TRACKER`: one level, integer positions, no test
         of a match), with ``changes`` applied: what the factorial design of the paper timed."""
         return cls.from_mapping({**PAPER_TRACKER, **changes})
+
+    @property
+    def tracker(self) -> str:
+        """Which tracker these parameters run: ``"paper"`` where the tests of a match and the
+        retries are the paper's (:data:`PAPER_TRACKER`: none), ``"default"`` where they are
+        this class's defaults, else ``"custom"``. The pyramid, sub-pixel refinement and the
+        windows are said apart (:meth:`tracker_said`): flags set them on either tracker."""
+        if all(getattr(self, k) == PAPER_TRACKER[k] for k in _TRACKER_RULES):
+            return "paper"
+        defaults = TrackerParams()
+        if all(getattr(self, k) == getattr(defaults, k) for k in _TRACKER_RULES):
+            return "default"
+        return "custom"
+
+    def tracker_said(self) -> str:
+        """The tracker in words for a report, so that two reports tell their trackers apart:
+        which one (:attr:`tracker`), its search (single level or coarse to fine over
+        ``levels``), sub-pixel refinement and the SSD search, e.g. ``default (rejection rules
+        on); coarse-to-fine search over 3 levels; sub-pixel on, refine_size 21; pruned SSD
+        search``. Not the windows: a tuning varies them."""
+        kind = {"paper": "paper (no rejection rules)", "default": "default (rejection rules "
+                "on)", "custom": "custom (rejection rules as set)"}[self.tracker]
+        search = ("single-level search" if self.levels == 1 else
+                  f"coarse-to-fine search over {self.levels} levels")
+        subpixel = (f"sub-pixel on, refine_size {self.refine_size}" if self.subpixel
+                    else "sub-pixel off")
+        return f"{kind}; {search}; {subpixel}; {self.search} SSD search"
 
     def factors(self) -> dict[str, float]:
         """The five design factors as a dict (the fields of ``tuner/params``)."""

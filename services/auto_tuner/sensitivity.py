@@ -367,7 +367,10 @@ class TuneResult:
         (whether the optimum met the tolerance, else it is the closest), ``frames`` (run on),
         ``frames_offered``, ``max_megapixels`` (the work budget that chose them), ``size``,
         ``repeats``, ``seconds``, ``search`` (the SSD search the times were measured with),
-        ``replicates`` (independent timings of every design run, 1: unreplicated).
+        ``replicates`` (independent timings of every design run, 1: unreplicated),
+        ``tracker`` (the tracker every run tracked with: ``name``, ``"default"``, ``"paper"``
+        or ``"custom"`` (:attr:`.TrackerParams.tracker`), ``levels``, ``subpixel``,
+        ``refine_size``).
 
         A replicated design (``replicates`` >= 2, ``method`` ``"pure-error"``) keeps the
         contract's shapes: ``responses`` are the per-run means and ``order`` the order in which
@@ -378,6 +381,7 @@ class TuneResult:
         replicate, such as ex and ey, have none and were tested by Lenth's method).
         """
         run = self.run
+        base = self.sweep.base
         names = run.responses[0].as_dict().keys()
         extra: dict[str, Any] = {}
         if self.replicated is not None:
@@ -411,7 +415,9 @@ class TuneResult:
             "size": list(self.size),
             "repeats": self.repeats,
             "seconds": dict(self.seconds),
-            "search": self.sweep.base.search,
+            "search": base.search,
+            "tracker": {"name": base.tracker, "levels": base.levels,
+                        "subpixel": base.subpixel, "refine_size": base.refine_size},
             "replicates": 1 if self.replicated is None else self.replicated.n_replicates,
             **extra,
         }

@@ -68,7 +68,7 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
               f"thres_percent={params.thres_percent:g} search_size={params.search_size} "
               f"corr_size={params.corr_size} ungroup_size={params.ungroup_size} "
               f"subpixel={params.subpixel} search={params.search} levels={params.levels} "
-              f"refine_size={params.refine_size}",
+              f"refine_size={params.refine_size} tracker={params.tracker}",
               file=out)
         print("#   seq  NPI       xc       yc        xe        ye       dx       dy   scale"
               "     t_ms valid", file=out)

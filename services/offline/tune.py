@@ -237,6 +237,8 @@ def print_text(result: TuneResult, what: str, out: TextIO) -> None:
           f"{result.sweep.base.search} SSD search; timing passes {result.repeats}; "
           + (f"{replicates} replicates of every design run; " if replicates > 1 else "")
           + f"{result.seconds['total']:.1f} s", file=out)
+    print(f"# tracker: {result.sweep.base.tracker_said()}; windows: the design's and the "
+          "sweep's", file=out)
 
     gens = ", ".join(f"{k} = {v}" for k, v in d.generators.items())
     order = ("in run order" if replicates == 1 else

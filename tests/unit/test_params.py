@@ -86,6 +86,23 @@ def test_paper_is_the_papers_single_level_tracker():
         TrackerParams.paper(levels=0)
 
 
+def test_the_tracker_is_named_by_its_rules_not_by_the_flags_both_take():
+    """--paper with --levels 3 --subpixel is still the paper's tracker, and the default one
+    with --levels 1 --no-subpixel --refine-size 0 is still the default one."""
+    paper = TrackerParams.paper()
+    like_paper = TrackerParams(levels=1, subpixel=False, refine_size=0)
+    assert (paper.tracker, like_paper.tracker) == ("paper", "default")
+    assert TrackerParams.paper(levels=3, subpixel=True).tracker == "paper"
+    assert TrackerParams(consensus=0.0).tracker == "custom"  # one rule of the paper's only
+    assert paper.tracker_said() == ("paper (no rejection rules); single-level search; "
+                                    "sub-pixel off; pruned SSD search")
+    assert like_paper.tracker_said() == ("default (rejection rules on); single-level search; "
+                                         "sub-pixel off; pruned SSD search")
+    assert TrackerParams(search="exhaustive", refine_size=13).tracker_said() == (
+        "default (rejection rules on); coarse-to-fine search over 3 levels; sub-pixel on, "
+        "refine_size 13; exhaustive SSD search")
+
+
 @pytest.mark.parametrize("paper", [False, True])
 def test_an_even_window_width_acts_as_the_next_odd_one(paper):
     """As the help and the README say (and the paper's code does): search_size 16 searches

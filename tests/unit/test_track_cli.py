@@ -88,6 +88,23 @@ def test_levels_paper_and_subpixel_flags(rubberwhale):
     assert "refine_size=13" in table.splitlines()[0]
 
 
+def test_the_table_names_the_tracker_that_ran(rubberwhale):
+    """The paper's tracker and the default one on the paper's settings printed the same
+    parameter line: it ends with the tracker's name now."""
+    files = [str(rubberwhale / f"frame{i:02d}.png") for i in (10, 11)]
+    first = {}
+    for name, flags in (("paper", ["--paper"]),
+                        ("like", ["--levels", "1", "--no-subpixel", "--refine-size", "0"]),
+                        ("default", [])):
+        first[name] = vistrack("track", *files, *flags, check=True).stdout.splitlines()[0]
+    settings = ("max_features=100 thres_percent=2 search_size=15 corr_size=9 ungroup_size=5 "
+                "subpixel=False search=pruned levels=1 refine_size=0")
+    assert first["paper"].endswith(f"; {settings} tracker=paper")
+    assert first["like"].endswith(f"; {settings} tracker=default")
+    assert first["default"].endswith("subpixel=True search=pruned levels=3 refine_size=21 "
+                                     "tracker=default")
+
+
 def test_video_file_and_builtin(tmp_path):
     from vistrack.common import synthetic
 

@@ -35,6 +35,24 @@ def test_json_prints_the_report_fields():
     assert res.stderr == ""  # no progress line when stderr is not a terminal
 
 
+def test_the_report_names_the_tracker_it_tuned():
+    """A tuning of the paper's tracker and one of the default tracker said nothing of it
+    (only the SSD search): the text's second line and the json's tracker field do."""
+    reports = {}
+    for name, flags in (("default", []), ("paper", ["--paper"]), ("two", ["--levels", "2"])):
+        res = vistrack("tune", "builtin", *FAST, "--seed", "7", *flags, "--format", "json",
+                       check=True)
+        reports[name] = json.loads(res.stdout)["tracker"]
+    assert reports == {
+        "default": {"name": "default", "levels": 3, "subpixel": True, "refine_size": 21},
+        "paper": {"name": "paper", "levels": 1, "subpixel": False, "refine_size": 0},
+        "two": {"name": "default", "levels": 2, "subpixel": True, "refine_size": 21}}
+    text = vistrack("tune", "builtin", *FAST, "--seed", "7", "--paper", check=True).stdout
+    assert text.splitlines()[1] == ("# tracker: paper (no rejection rules); single-level "
+                                    "search; sub-pixel off; pruned SSD search; windows: the "
+                                    "design's and the sweep's")
+
+
 def test_text_sections_progress_and_plots(tmp_path):
     out = tmp_path / "plots"
     res = vistrack("tune", *FAST, "--seed", "3", "--out", str(out), "--progress",

@@ -34,7 +34,7 @@ import dataclasses
 import math
 import numbers
 import sys
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Annotated, Any, ClassVar, Literal, TypeVar
 
@@ -260,8 +260,9 @@ def unpack(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
     try:
         obj = msgpack.unpackb(payload, raw=False, strict_map_key=True, **_UNPACK_LIMITS)
     except _UNPACK_ERRORS as err:
-        raise MessageError(f"payload is not valid msgpack ({len(payload)} bytes): "
-                           f"{type(err).__name__} {err}") from None
+        raise _key_error(payload) or MessageError(
+            f"payload is not valid msgpack ({len(payload)} bytes): {type(err).__name__} "
+            f"{err}") from None
     if not isinstance(obj, dict):
         raise MessageError(f"payload must be a msgpack map, got {type(obj).__name__}")
     if "v" not in obj:
@@ -271,6 +272,69 @@ def unpack(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
         raise MessageError(f"payload: field 'v' is schema version {_short(version)}, this "
                            f"reader supports {SCHEMA_VERSION}", field="v")
     return obj
+
+
+#: msgpack's types by their Python types as msgpack decodes them (arrays as tuples, below).
+_MSGPACK_TYPES = {bool: "bool", int: "int", float: "float", type(None): "nil", tuple: "array"}
+
+
+def _key_error(payload: bytes | bytearray | memoryview) -> MessageError | None:
+    """Why msgpack refused ``payload`` where the reason is a map key that is not a string
+    (the contract's maps have string keys: ``strict_map_key``), naming the key, its type and
+    the top-level field it is in; None when the payload is not valid msgpack anyway.
+
+    msgpack says only ``int is not allowed for map key when strict_map_key=True``, which
+    :func:`unpack` reported as "not valid msgpack", and valid msgpack it is. Run on a refused
+    payload only: a second decode, without the key rule (arrays as tuples, so that an array
+    key is hashable), tells the two apart without reading msgpack's wording.
+    """
+    try:
+        obj = msgpack.unpackb(payload, raw=False, strict_map_key=False, use_list=False,
+                              **_UNPACK_LIMITS)
+    except TypeError:  # unhashable, so not a string: a map, or an array holding one
+        return MessageError("payload: map keys must be strings, got a key holding a map")
+    except _UNPACK_ERRORS:
+        return None
+    found = _non_string_key(obj)
+    if found is None:  # not the keys after all (cannot happen): the decoder's own words
+        return None
+    key, field = found
+    kind = _MSGPACK_TYPES.get(type(key), type(key).__name__)
+    shown = list(key) if isinstance(key, tuple) else key  # an array, as msgpack has it
+    where = "" if field is None else f" in field {field!r}"
+    return MessageError(f"payload: map keys must be strings, got {kind} key {_short(shown)}"
+                        f"{where}", field=field)
+
+
+def _non_string_key(obj: Any) -> tuple[Any, str | None] | None:
+    """The first map key in ``obj`` (decoded msgpack) that is neither str nor bytes, in the
+    order msgpack reads them, with the top-level field it lies in (None: a top-level key)."""
+    # depth first with a stack of generators, not recursion: msgpack nests deeper than
+    # Python's recursion limit
+    stack = [_entries(obj, None, top=True)]
+    while stack:
+        entry = next(stack[-1], None)
+        if entry is None:
+            stack.pop()
+            continue
+        is_key, key, value, field = entry
+        if is_key and not isinstance(key, (str, bytes)):
+            return key, field
+        if isinstance(value, (dict, tuple)):
+            stack.append(_entries(value, field, top=False))
+    return None
+
+
+def _entries(value: Any, field: str | None, *, top: bool
+             ) -> Iterator[tuple[bool, Any, Any, str | None]]:
+    """``(is a map entry, key, value, field)`` of a map's entries or an array's items; the
+    entries of the top-level map are in their own field."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            yield True, k, v, (k if top and isinstance(k, str) else field)
+    else:
+        for v in value:
+            yield False, None, v, field
 
 
 def peek_seq(payload: bytes | bytearray | memoryview) -> int | None:

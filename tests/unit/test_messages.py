@@ -416,6 +416,23 @@ def test_not_a_versioned_map(payload):
         expect_error(cls, payload, None)
 
 
+@pytest.mark.parametrize(("obj", "message", "field"), [
+    ({1: 2, "v": 1}, "payload: map keys must be strings, got int key 1", None),
+    ({"v": 1, None: 0}, "payload: map keys must be strings, got nil key None", None),
+    ({"v": 1, (1, 2): 0}, "payload: map keys must be strings, got array key [1, 2]", None),
+    ({"v": 1, "seq": 0, "features": [{2.5: 0}]},
+     "payload: map keys must be strings, got float key 2.5 in field 'features'", "features"),
+])
+def test_a_map_key_that_is_not_a_string_is_said_not_called_invalid_msgpack(obj, message, field):
+    payload = msgpack.packb(obj)
+    msgpack.unpackb(payload, strict_map_key=False, use_list=False)  # valid msgpack it is
+    for cls in ALL:
+        assert str(expect_error(cls, payload, field)) == message, cls.__name__
+    # a map as a key: Python cannot even hold it in a dict
+    err = expect_error(Frame, b"\x82\xa1v\x01\x81\x81\xa1a\x01\x02\x03", None)
+    assert str(err) == "payload: map keys must be strings, got a key holding a map"
+
+
 def test_non_bytes_payload():
     with pytest.raises(MessageError):
         Frame.decode("a string")  # type: ignore[arg-type]

@@ -42,6 +42,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
+from . import imagelimit
 from .messages import (
     MAX_SIDE,
     CmdVel,
@@ -508,12 +509,14 @@ def grey_of_compressed(obj: Any, grey: Callable[[np.ndarray], np.ndarray] | None
     """The 8-bit grey image of a ``sensor_msgs/msg/CompressedImage`` (JPEG, PNG, any format
     OpenCV's ``imdecode`` reads), made grey exactly as the file camera makes an image file
     grey (``grey``, a stream's ``vision.preprocess.Grey``; else ``to_gray``). ValueError if it
-    does not decode."""
+    does not decode, or its header says more pixels than an image may have
+    (:mod:`.imagelimit`: a few KB can claim 30000x30000 px, which OpenCV then allocated)."""
     data = np.asarray(obj.data, np.uint8).reshape(-1)
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    what = f"compressed image ({obj.format or 'no format'}, {data.size} bytes)"
+    image = imagelimit.decode(what, lambda: cv2.imdecode(data, cv2.IMREAD_UNCHANGED)) \
+        if data.size else None
     if image is None:
-        raise ValueError(f"compressed image ({obj.format or 'no format'}, {data.size} bytes) "
-                         "does not decode")
+        raise ValueError(f"{what} does not decode")
     return _grey_of(image, grey)
 
 

@@ -8,6 +8,7 @@ PNG or TIFF) scaled by the depth of the stream's samples (:class:`.vision.prepro
 
 from __future__ import annotations
 
+import functools
 import glob
 import logging
 import math
@@ -25,7 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from . import synthetic
+from . import imagelimit, synthetic
 from .vision.preprocess import Grey
 
 #: Image files a folder or glob source takes: those cv2.imread reads (OpenEXR is off in
@@ -118,9 +119,12 @@ def read_image(path: str, grey: Grey | None = None) -> np.ndarray:
     if os.path.isdir(path):
         raise SourceError(f"{path}: is a folder, expected an image file")
     if utf8_name(path):
-        img, said = _stderr_of(cv2.imread, path, cv2.IMREAD_UNCHANGED)
+        read = functools.partial(cv2.imread, path, cv2.IMREAD_UNCHANGED)
     else:  # read here, decoded from memory (OpenCV would crash on the name)
-        img, said = _stderr_of(cv2.imdecode, np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
+        read = functools.partial(cv2.imdecode, np.fromfile(path, np.uint8),
+                                 cv2.IMREAD_UNCHANGED)
+    # an image whose header claims more pixels than the limit is refused unread (imagelimit)
+    img, said = _stderr_of(imagelimit.decode, path, read, SourceError)
     if img is not None and "Premature end" in said and path.lower().endswith((".jpg", ".jpeg")):
         raise SourceError(f"{path}: damaged image: the JPEG data ends before the image "
                           "does (cut short?)")

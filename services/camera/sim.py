@@ -69,6 +69,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ...common import imagelimit
 from ...common.synthetic import texture as synthetic_texture
 from ...common.vision.preprocess import Grey
 from .scenarios import Scenario, load_scenario
@@ -373,7 +374,8 @@ def load_texture(path: str | os.PathLike[str]) -> np.ndarray:
         raw = np.fromfile(text, dtype=np.uint8)
     except OSError as exc:
         raise TextureError(f"texture {text}: cannot read: {exc}") from None
-    img = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED) if raw.size else None
+    img = imagelimit.decode(f"texture {text}", lambda: cv2.imdecode(raw, cv2.IMREAD_UNCHANGED),
+                            TextureError) if raw.size else None
     if img is None:
         raise TextureError(f"texture {text}: not an image OpenCV can decode")
     return _as_texture(img, text)

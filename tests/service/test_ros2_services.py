@@ -10,6 +10,7 @@ expressions", "Publishers"), not taken from the code under test.
 from __future__ import annotations
 
 import json
+import re
 import struct
 import threading
 import time
@@ -137,6 +138,43 @@ def test_ros2_camera_takes_compressed_images_on_a_compressed_topic():
     assert (frame.width, frame.height, frame.stamp_ns) == (28, 20, 5 * 10**9 + 7)
     np.testing.assert_array_equal(frame.data, cv2.resize(grey, (28, 20),
                                                          interpolation=cv2.INTER_AREA))
+
+
+def test_ros2_camera_refuses_an_image_larger_than_the_limit_and_goes_on(monkeypatch):
+    """An image over the decode limit (here lowered to 1024 px: a real one is refused by
+    OpenCV from its header, see test_ros2_images) is rejected, counted and said with its
+    size and the limit; the camera takes the next image."""
+    from vistrack.common import imagelimit
+
+    monkeypatch.setattr(imagelimit, "MAX_PIXELS", 1024)
+    header = T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=5, nanosec=7), frame_id="c")
+
+    def cdr(grey: np.ndarray) -> bytes:
+        png = cv2.imencode(".png", grey)[1]
+        return STORE.serialize_cdr(T[r2.COMPRESSED_IMAGE](header=header, format="png",
+                                                         data=png.reshape(-1)),
+                                   r2.COMPRESSED_IMAGE).tobytes()
+    large = np.ascontiguousarray(texture(256, seed=6)[:40, :56])  # 2240 px
+    small = np.ascontiguousarray(large[:24, :32])  # 768 px
+    key = ros_key(3, "/front/image_raw/compressed", r2.COMPRESSED_IMAGE)
+    args = parse("camera", "--source", "ros2:/front/image_raw/compressed", "--domain", "3")
+    with MemoryNode("camera") as node:
+        thread = threading.Thread(target=camera.loop, args=(node, args), daemon=True)
+        thread.start()
+        wait_for(lambda: node.feed(key, cdr(large)), what="the subscription")
+        wait_for(lambda: node.status.rejected == 1, what="the large image rejected")
+        node.feed(key, cdr(small))
+        wait_for(lambda: node.published_on(node.keys.frame), what="the next image's frame")
+        node.stop.set()
+        thread.join(10)
+    assert not thread.is_alive()
+    assert re.fullmatch(r"compressed image \(png, \d+ bytes\) is 56x40 px, more than the 1024 "
+                        r"px \(32x32\) an image may have \(OPENCV_IO_MAX_IMAGE_PIXELS\)",
+                        node.status.last_error), node.status.last_error
+    (frame,) = (Frame.decode(p) for p in node.published_on(node.keys.frame))
+    np.testing.assert_array_equal(frame.data, small)
+    assert node.status.extra["frames"] == 1
 
 
 def test_preprocessing_reads_a_ros2_camera_directly_and_publishes_its_frames():

@@ -9,6 +9,11 @@ camera does with the same picture.
 
 from __future__ import annotations
 
+import struct
+import subprocess
+import sys
+import zlib
+
 import cv2
 import numpy as np
 import pytest
@@ -175,6 +180,70 @@ def test_a_compressed_image_that_does_not_decode_is_refused():
                 r2.COMPRESSED_IMAGE)
     with pytest.raises(ValueError, match="compressed image \\(jpeg, 12 bytes\\) does not decode"):
         r2.frame_of_camera(msg, seq=0)
+
+
+def png_of_black(width: int, height: int) -> bytes:
+    """A grey PNG of ``width`` x ``height`` black pixels, deflated row by row (no image of
+    that size is ever held): a decompression bomb of about a thousandth of its pixels."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data)))
+    deflate, row = zlib.compressobj(9), bytes(1 + width)  # filter byte 0, then the pixels
+    idat = b"".join(deflate.compress(row) for _ in range(height)) + deflate.flush()
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0,
+                                                               0, 0, 0))
+            + chunk(b"IDAT", idat) + chunk(b"IEND", b""))
+
+
+# the camera's process: a fresh interpreter whose first import is the camera's own
+_DECODE_IN_A_CAMERA_PROCESS = """
+import resource, sys
+from vistrack.services.camera import ros2cam
+from vistrack.common import ros2types as r2
+payload = open(sys.argv[1], "rb").read()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+try:
+    frame = ros2cam.frame_of_payload(payload, r2.COMPRESSED_IMAGE, 0, size=(256, 256))
+    said = f"accepted as {frame.width}x{frame.height}"
+except ValueError as e:
+    said = f"refused: {e}"
+grown = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+print(grown // 1024, said)
+"""
+
+
+def test_a_compressed_image_bomb_is_refused_from_its_header_before_it_is_decoded(tmp_path):
+    """146 KB of PNG that decodes to 12000x12000 px (144 MB): refused by OpenCV's own limit,
+    which vistrack sets before OpenCV loads, without the memory (the camera's --size took
+    it and scaled it, after decoding all of it)."""
+    png = png_of_black(12000, 12000)
+    msg = CompressedImage(header=STAMP, format="png", data=np.frombuffer(png, np.uint8))
+    path = tmp_path / "bomb.cdr"
+    path.write_bytes(JAZZY.serialize_cdr(msg, r2.COMPRESSED_IMAGE).tobytes())
+    run = subprocess.run([sys.executable, "-c", _DECODE_IN_A_CAMERA_PROCESS, str(path)],
+                         capture_output=True, text=True, timeout=120, check=True)
+    grown_mb, said = run.stdout.strip().split(" ", 1)
+    assert said == (f"refused: compressed image (png, {len(png)} bytes) decodes to more than "
+                    "the 67108864 px (8192x8192) an image may have (OPENCV_IO_MAX_IMAGE_PIXELS)"
+                    ": refused from its header")
+    assert int(grown_mb) < 32, f"peak RSS grew by {grown_mb} MB"
+
+
+def test_an_image_larger_than_the_limit_decoded_anyway_is_refused_naming_its_size(
+        bgr, monkeypatch):
+    # where OpenCV loaded before vistrack (a program's own import cv2 first), its default
+    # limit is in force and the image decodes: ours is checked then
+    from vistrack.common import imagelimit
+
+    monkeypatch.setattr(imagelimit, "MAX_PIXELS", 1024)
+    ok, png = cv2.imencode(".png", bgr[:40, :56])
+    msg = _wire(CompressedImage(header=STAMP, format="png", data=png.reshape(-1)),
+                r2.COMPRESSED_IMAGE)
+    with pytest.raises(ValueError) as e:
+        r2.frame_of_camera(msg, seq=0)
+    assert str(e.value) == (f"compressed image (png, {png.size} bytes) is 56x40 px, more than "
+                            "the 1024 px (32x32) an image may have "
+                            "(OPENCV_IO_MAX_IMAGE_PIXELS)")
 
 
 @pytest.mark.parametrize("bigendian", [0, 1])

@@ -182,6 +182,23 @@ def test_bad_input_is_one_line_and_exit_2(args, needle):
     assert len(lines) == 1 and needle in lines[0] and "Traceback" not in r.stderr
 
 
+def test_an_image_file_that_decodes_to_too_many_pixels_is_refused_from_its_header(tmp_path):
+    """140 KB of PNG that decodes to 12000x12000 px: one line naming the file and the limit,
+    as the file camera and a simulator texture say it too (was: tracked, 144 MB a frame;
+    past OpenCV's own default, 2^30 px, a traceback)."""
+    from test_ros2_images import png_of_black
+
+    bomb = tmp_path / "bomb.png"
+    bomb.write_bytes(png_of_black(12000, 12000))
+    said = (f"{bomb} decodes to more than the 67108864 px (8192x8192) an image may have "
+            "(OPENCV_IO_MAX_IMAGE_PIXELS): refused from its header")
+    for command, text in ((["track", str(bomb)], said),
+                          (["camera", "--source", "sim", "--texture", str(bomb)],
+                           f"texture {said}")):
+        r = vistrack(*command)
+        assert (r.returncode, r.stderr) == (2, f"vistrack {command[0]}: error: {text}\n")
+
+
 def test_bad_files_are_one_line_and_exit_2(tmp_path):
     (tmp_path / "empty").mkdir()
     (tmp_path / "junk.png").write_bytes(b"not a png")

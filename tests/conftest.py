@@ -16,6 +16,16 @@ settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True
 settings.load_profile("ci" if os.environ.get("CI") else "default")
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Which tests one pytest-xdist worker runs together (``--dist loadgroup``, pyproject's
+    addopts): a test file's tests, so that its module fixtures (a router, a pipeline) are
+    made once; and every benchmark, one after the other on one worker, since a benchmark's
+    figures are of a machine that runs nothing else of ours."""
+    for item in items:
+        group = "bench" if item.get_closest_marker("bench") else item.nodeid.split("::")[0]
+        item.add_marker(pytest.mark.xdist_group(group))
+
+
 @pytest.fixture(scope="session", autouse=True)
 def numba_cache() -> None:
     """Compile the tracker's numba kernels into numba's on-disk cache once, before any test.

@@ -137,7 +137,9 @@ def test_motion_estimation_rehearses_between_frames_at_30_fps(flags):
     told not to, and its estimates are the tracker's own either way."""
     from vistrack.services.motion_estimation.service import loop
 
-    frames = synthetic.sequence(12, size=(128, 128))
+    # 30 frames: a rehearsal due while the machine is busy (the suite's other worker) wakes
+    # late and is skipped, as it should be; of 12, one was rehearsed on a loaded run
+    frames = synthetic.sequence(30, size=(128, 128))
     offline = Tracker(TrackerParams())
     with Running("motion_estimation", loop, parse("motion-estimation", *flags)) as node:
         out = _at_30_fps(node, node.keys.pre_frame, node.keys.estimate,
@@ -147,7 +149,7 @@ def test_motion_estimation_rehearses_between_frames_at_30_fps(flags):
     if flags:
         assert rehearsals is None
     else:
-        assert rehearsals >= 3, rehearsals  # from the 5th frame on, one before each
+        assert rehearsals >= 3, rehearsals  # from the 5th frame on, one before each on time
     for est, image in zip(got, frames, strict=True):
         want = offline.update(preprocess(image, TrackerParams()))
         assert est.npi == want.npi and (est.dx, est.dy, est.scale) == (want.dx, want.dy,
@@ -161,7 +163,7 @@ def test_preprocessing_rehearses_between_frames_at_30_fps():
     filtered as ``preprocess`` filters it."""
     from vistrack.services.preprocessing.service import loop
 
-    frames = synthetic.sequence(10, size=(128, 128))
+    frames = synthetic.sequence(30, size=(128, 128))  # 30: see the test above
     with Running("preprocessing", loop, parse("preprocessing")) as node:
         out = _at_30_fps(node, node.keys.frame, node.keys.pre_frame,
                          [encode_frame(image, seq=seq, stamp_ns=seq + 1)

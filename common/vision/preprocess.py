@@ -104,6 +104,11 @@ def unit_range(gray: np.ndarray) -> bool:
     return float(np.max(gray, where=np.isfinite(gray), initial=-np.inf)) <= 1.0
 
 
+#: :class:`Grey` steps its depth down after this many frames in a row that needed fewer bits
+#: (2 s at 30 fps: a flash, a glitch, a moment of darkness does not change the scale)
+STEP_DOWN_FRAMES = 60
+
+
 class Grey:
     """:func:`to_gray` for the frames of one stream (a camera, a video, a folder of images).
 
@@ -111,8 +116,12 @@ class Grey:
     :func:`sample_bits` of its frames so far (``bits`` gives it instead). Keeping the top byte
     of a 12-bit camera's samples, as OpenCV converts 16-bit images to 8-bit, left grey levels
     0 to 15: a real 12-bit sequence gave 4 features where its 8-bit version gave 100. The
-    depth only grows, so a stream that starts dark steps once, when its first bright frame
-    comes, rather than changing scale with every frame. 8-bit frames pass as they are.
+    depth grows at once, so a stream that starts dark steps once, when its first bright frame
+    comes, rather than changing scale with every frame; it steps down only when each of the
+    last :data:`STEP_DOWN_FRAMES` frames needed fewer bits, to the most they needed. One
+    glitch (a frame of a 12-bit camera with a sample at 65535: a sensor's marker of a bad
+    pixel, a corrupt transfer) had left the stream at grey levels 0 to 15 for good; a dark
+    spell of a few seconds now brings out what texture it has. 8-bit frames pass as they are.
 
     Floating-point frames are 0 to 1 (OpenCV's convention for float images) until a frame
     has a value above 1, and 0 to 255 from then on: like the depth, the range only grows
@@ -124,6 +133,8 @@ class Grey:
             raise ValueError(f"bits={bits} is out of range: allowed 8..16")
         self.fixed = bits
         self.bits = 0  # the depth in use (0: no 16-bit frame yet)
+        self._below = 0  # frames in a row that needed fewer bits than in use
+        self._below_bits = 0  # the most of them needed
         self.unit: bool | None = None  # float frames: 0 to 1 (None: no float frame yet)
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
@@ -132,12 +143,25 @@ class Grey:
         if image.dtype.itemsize != 2 or not np.issubdtype(image.dtype, np.integer):
             return to_gray(image)
         grey16 = _one_channel(image)
-        bits = self.fixed or max(self.bits, sample_bits(grey16))
+        bits = self.fixed or self._depth(sample_bits(grey16))
         if bits != self.bits:
             log.info("16-bit frames with %d significant bits: grey = value >> %d", bits,
                      bits - 8)
             self.bits = bits
         return to_gray(grey16, bits=bits)
+
+    def _depth(self, needed: int) -> int:
+        """The depth to scale a frame by, given the bits it ``needed``: more at once, fewer
+        once :data:`STEP_DOWN_FRAMES` frames in a row needed fewer."""
+        if needed >= self.bits:
+            self._below = 0
+            return needed
+        self._below_bits = needed if self._below == 0 else max(self._below_bits, needed)
+        self._below += 1
+        if self._below < STEP_DOWN_FRAMES:
+            return self.bits
+        self._below = 0
+        return self._below_bits
 
     def _float(self, image: np.ndarray) -> np.ndarray:
         grey = _one_channel(image)

@@ -68,6 +68,34 @@ def test_the_depth_only_grows_so_a_dark_start_steps_once(picture):
     assert grey.bits == 12
 
 
+def test_one_glitch_of_full_scale_does_not_darken_the_stream_for_good(picture):
+    """A 12-bit camera's frame with one sample at 65535 (a bad pixel's marker, a corrupt
+    transfer) stepped the depth to 16 bits, and every frame after it came out at grey levels
+    0 to 15 (almost no texture above the floor), for good. The depth steps down once each of
+    the last STEP_DOWN_FRAMES frames needed fewer bits, and not before."""
+    from vistrack.common.vision.preprocess import STEP_DOWN_FRAMES
+
+    grey = Grey()
+    frame = picture.astype(np.uint16) << 4  # 12 bits
+    np.testing.assert_array_equal(grey(frame), picture)
+    glitch = frame.copy()
+    glitch[10, 10] = 65535
+    grey(glitch)
+    assert grey.bits == 16
+    for _ in range(STEP_DOWN_FRAMES - 1):  # the scale holds through a short spell
+        np.testing.assert_array_equal(grey(frame), picture >> 4)
+    assert grey.bits == 16
+    np.testing.assert_array_equal(grey(frame), picture)  # and then steps down
+    assert grey.bits == 12
+    # a dark spell steps down to the most bits its frames needed
+    darker = (picture // 16).astype(np.uint16) << 4  # below 256: 8 bits
+    dark = (picture // 8).astype(np.uint16) << 4  # below 512: 10 bits
+    assert (sample_bits(darker), sample_bits(dark)) == (8, 10)
+    for k in range(STEP_DOWN_FRAMES):
+        grey(dark if k == 5 else darker)
+    assert grey.bits == 10
+
+
 def test_signed_16_bit_samples_below_zero_are_black_not_white():
     a = np.array([[-300, -1, 0, 4095]], np.int16)
     assert Grey()(a).tolist() == [[0, 0, 0, 255]]

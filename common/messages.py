@@ -371,7 +371,7 @@ def peek_int(payload: bytes | bytearray | memoryview, name: str) -> int | None:
     if name in ("seq", "stamp_ns"):
         try:
             value = getattr(_PEEK.decode(payload), name)
-        except (msgspec.DecodeError, TypeError):
+        except (msgspec.DecodeError, TypeError, RecursionError):  # maps nested 1000 deep
             pass
         else:
             return value if type(value) is int and value >= 0 else None
@@ -457,8 +457,8 @@ class _Message:
         if cls._FAST is not None and isinstance(payload, (bytes, bytearray, memoryview)):
             try:
                 values = cls._from_wire(cls._FAST.decode(payload))
-            except msgspec.DecodeError:  # ValidationError too: the checks below name it
-                values = None
+            except (msgspec.DecodeError, RecursionError):  # ValidationError too: the checks
+                values = None  # below name it; nesting beyond msgspec's stack, unpack's limit
             if values is not None:
                 msg = object.__new__(cls)  # valid: the checks would change nothing
                 msg.__dict__.update(values)

@@ -767,3 +767,43 @@ def test_a_flood_of_bad_messages_is_counted_in_full_and_logged_once_a_window(
             node.stop.set()
             thread.join(5)
     assert node.status.rejected == 202
+
+
+#: a map whose field holds lists nested 1000 deep: 1 KB, within every size limit
+DEEP = b"\x82\xa1v\x01\xa1j" + b"\x91" * 1000 + b"\x81\x01\x01"
+
+
+def test_a_payload_nested_1000_deep_is_rejected_and_the_service_goes_on():
+    """msgspec raises RecursionError, not DecodeError, on nesting beyond its stack: a 1 KB
+    payload on camera/frame ended pre-processing ("failed outside the per-message path:
+    exiting", from the arrival's look at its seq) and every decoder raised it, not
+    MessageError. It is rejected and counted, and the next frame is filtered as ever."""
+    from vistrack.common.messages import PreFrame, peek_seq
+    from vistrack.services.preprocessing.service import loop
+
+    assert peek_seq(DEEP) is None
+    for cls in (Frame, Estimate, CmdVel, PreFrame, Params):
+        with pytest.raises(MessageError):
+            cls.decode(DEEP)
+    image = (np.arange(64 * 64, dtype=np.uint32).reshape(64, 64) * 2654435761 >> 24
+             ).astype(np.uint8)
+    with MemoryNode("preprocessing") as node:
+        thread = threading.Thread(target=loop, args=(node, parse("preprocessing")),
+                                  daemon=True)
+        thread.start()
+        try:
+            deadline = time.monotonic() + 60
+            while not node.feed(node.keys.frame, DEEP):
+                assert time.monotonic() < deadline, "no subscription"
+                time.sleep(0.01)
+            assert node.wait_idle(30)
+            node.feed(node.keys.frame, encode_frame(image, seq=1, stamp_ns=1))
+            assert node.wait_idle(30)
+            out = [PreFrame.decode(p) for p in node.published_on(node.keys.pre_frame)]
+            status = node.status.as_dict()
+        finally:
+            node.stop.set()
+            thread.join(10)
+    assert not thread.is_alive()
+    assert status["rejected"] == 1 and status["failed"] == 0, status
+    assert [m.seq for m in out] == [1]

@@ -20,6 +20,7 @@ OpenCV would have refused.
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Callable
 from typing import TypeVar
 
@@ -32,14 +33,26 @@ VARIABLE = "OPENCV_IO_MAX_IMAGE_PIXELS"
 DEFAULT_PIXELS = 1 << 26
 
 
+#: the suffixes OpenCV's parser of the variable takes (any case), and what each multiplies by
+_SUFFIXES = {"": 1, "kb": 1 << 10, "mb": 1 << 20, "gb": 1 << 30}
+
+
+def parse_limit(given: str) -> int | None:
+    """The pixels a value of ``OPENCV_IO_MAX_IMAGE_PIXELS`` allows, read as OpenCV reads it:
+    a whole number with an optional suffix KB, MB or GB in any case (``100MB`` is 104857600;
+    0 refuses every image); None for what OpenCV does not read (``50M``, ``1e9``: it aborts
+    the process as it loads)."""
+    match = re.fullmatch(r"(\d+)([kKmMgG][bB])?", given.strip())
+    if match is None:
+        return None
+    return int(match[1]) * _SUFFIXES[(match[2] or "").lower()]
+
+
 def _limit() -> int:
     """The limit OpenCV runs with in a process whose OpenCV loads after this: ours, or the
-    environment's own."""
-    given = os.environ.setdefault(VARIABLE, str(DEFAULT_PIXELS))
-    try:
-        return max(1, int(given))
-    except ValueError:  # not a number: OpenCV aborts the process as it loads (stoull)
-        return DEFAULT_PIXELS
+    environment's own (a value OpenCV does not read: ours, though OpenCV will not run)."""
+    given = parse_limit(os.environ.setdefault(VARIABLE, str(DEFAULT_PIXELS)))
+    return DEFAULT_PIXELS if given is None else given
 
 
 MAX_PIXELS = _limit()
@@ -47,6 +60,8 @@ MAX_PIXELS = _limit()
 
 def _side() -> str:
     side = int(MAX_PIXELS ** 0.5)
+    if side == 0:
+        return "none"
     return f"{side}x{side}" if side * side == MAX_PIXELS else f"{MAX_PIXELS / 1e6:.1f} MP"
 
 

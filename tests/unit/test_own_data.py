@@ -92,17 +92,20 @@ def test_a_pair_with_no_ground_truth_where_the_features_are_is_shown_not_counted
     assert out.returncode == 0, out.stderr
     lines = out.stdout.splitlines()
     sparse, = (line for line in lines if line.startswith("Sparse (pair)"))
-    cols = sparse.split()  # pairs, median, >2px, survival, drift, rejected | the same, LK
+    # pairs, median, >2px, survival, drift, rejected | the same, LK | verdict | the pairs
+    # both tracked: pairs, ours, LK, verdict
+    cols = sparse.split()
     assert cols[4:9] == ["0", "-", "-", "-", "-"] and cols[11:] == [
-        "0", "-", "-", "-", "-", "|", "-"], sparse
+        "0", "-", "-", "-", "-", "|", "-", "|", "0", "-", "-", "-"], sparse
     mine, = (line for line in lines if line.startswith("MyCorridor (pair)"))
-    assert mine.split()[-1] == "yes", mine
+    assert mine.split()[-6:-4] == ["yes", "|"] and mine.split()[-1] == "yes", mine
     total, = (line for line in lines if line.startswith("all sequences:"))
     assert "nan" not in total and "0.00 % off" in total, total
     targets, = (line for line in lines if line.startswith("targets:"))
     assert targets.startswith("targets: median <= LK's on every sequence: met (1 without pairs "
-                              "on one side, not counted); pairs off by > 2 px <= 2 % on every "
-                              "sequence: met (worst 0.00 %), over all: met"), targets
+                              "on one side, not counted); on the pairs both tracked: met; pairs "
+                              "off by > 2 px <= 2 % on every sequence: met (worst 0.00 %), over "
+                              "all: met"), targets
 
 
 def _own_run(folder, image: np.ndarray, step: tuple[int, int], first: int) -> None:

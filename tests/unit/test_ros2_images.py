@@ -9,6 +9,7 @@ camera does with the same picture.
 
 from __future__ import annotations
 
+import os
 import struct
 import subprocess
 import sys
@@ -275,3 +276,27 @@ def test_an_image_wider_than_a_frame_carries_is_taken_with_size():
     assert (frame.width, frame.height) == (684, 8)
     with pytest.raises(ValueError, match=r"give --size WxH to scale the images"):
         r2.frame_of_camera(msg, seq=0)
+
+
+@pytest.mark.parametrize("given", ["3000", "1KB", "2kb", "1Mb"])
+def test_a_limit_of_the_user_s_own_is_read_as_opencv_reads_it(given, tmp_path):
+    """OPENCV_IO_MAX_IMAGE_PIXELS=100MB (OpenCV's parser takes KB, MB and GB) was read as no
+    number, so vistrack refused, as over its own 2^26, an image OpenCV had decoded under the
+    user's limit. OpenCV is the judge: in a process given the value, an image of exactly the
+    pixels parse_limit reads decodes, and one of a pixel more is refused."""
+    from vistrack.common.imagelimit import parse_limit
+
+    limit = parse_limit(given)
+    assert limit is not None
+    side = 1 << 10 if limit >= 1 << 20 else 1  # a 1 MiB limit: 1024 rows of 1024
+    for name, width in (("at.png", limit // side), ("over.png", limit // side + 1)):
+        cv2.imwrite(str(tmp_path / name), np.zeros((side, width), np.uint8))
+    code = ("import cv2, sys\nfor f in sys.argv[1:]:\n"
+            "    try: print(cv2.imread(f, -1).shape)\n"
+            "    except cv2.error: print('refused')\n")
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "at.png"),
+                          str(tmp_path / "over.png")], capture_output=True, text=True,
+                         env={**os.environ, "OPENCV_IO_MAX_IMAGE_PIXELS": given}, timeout=60)
+    assert out.stdout.split("\n")[:2] == [str((side, limit // side)), "refused"], out
+    assert parse_limit("50M") is None and parse_limit("1e9") is None  # OpenCV aborts on them
+    assert parse_limit("0") == 0

@@ -251,6 +251,19 @@ iterations' scalar arithmetic), the neighbour search ~9 %, the wide window's rin
 the similarity fits ~4 %, the few features searched coarse to fine (2 to 7 a frame, not
 followed) ~15 %. Tried and not kept: the patches' rows copied 32 bytes at a time, not 16
 (no change, within the rounds' spread).
+
+Then (issue 12, 2026-12-07; old and new compiled side by side in one process, interleaved, best
+of the rounds, the bench's frames): three kernels of steps 6 and 7. The ring fit
+(:func:`_ring_fit`, a quarter of the features) reads the frames from the wide refinement's
+patches, its residuals in 16 bits over the patches' lanes, a row's pad lanes masked, not 21
+rows of views: 543 -> 411 ns a call. The correlation window's centroid, for the matches whose
+wide estimate was not taken (~15 a frame), sums in int32 over a patch's lanes where no sum can
+outgrow it (:func:`_centroid_fast`), vectorised, not in int64 a pixel at a time: 446 -> 197 ns.
+The similarity fit loops over NEIGHBOURS, a constant (:func:`_similarity`): 77 -> 68 ns. A held
+frame pair 277.4 -> 268.0 us, the first pair 343.7 -> 328.2 (LK 1214.9: 0.228x -> 0.221x; 150
+rounds); the same outputs bit for bit (the bench's pairs, and 247,071 values: every id,
+position and estimate of the default, paper's and Gaussian-weight trackers on the five rendered
+sequences, RubberWhale's and Grove2's approach, shake and blur, and the built-in sequence).
 """
 
 from __future__ import annotations
@@ -275,6 +288,7 @@ from .ssd import (
     CUT,
     DISAGREES,
     FB,
+    LANES,
     LEFT,
     MAX_COORD,
     NO_BUDGET,
@@ -285,6 +299,7 @@ from .ssd import (
     RUNAWAY,
     THIRD,
     _parabola,
+    _patch,
     _refine_scratch,
     _refine_with,
     _search_level,
@@ -2007,8 +2022,7 @@ def _widen(prev, curr, pts, n, wide, acc, ok, out_pos, agree, straddle, floor, t
     where the wide estimate was taken, and ``cen`` there its window's centroid
     (:func:`.ssd._refine`)."""
     scratch = _refine_scratch(np.ones((2 * wide + 1, 2 * wide + 1), np.int32), acc)
-    sq = np.empty(2 * wide + 1, np.int32)
-    cols = np.empty((3, 2 * wide + 1), np.int64)
+    masks = _ring_masks(n, wide, scratch[0].shape[0])
     for f in range(pts.shape[0]):
         if not ok[f]:
             continue
@@ -2021,7 +2035,9 @@ def _widen(prev, curr, pts, n, wide, acc, ok, out_pos, agree, straddle, floor, t
             continue
         take = (xw - x) * (xw - x) + (yw - y) * (yw - y) <= agree * agree
         if not take and straddle > 0.0:
-            inner, ring = _ring_fit(prev, curr, ax, ay, xw, yw, n, wide, sq, cols)
+            # frames t and t+1 around the window, as the refinement copied them
+            inner, ring = _ring_fit(scratch[1], scratch[2], int(np.floor(x)), int(np.floor(y)),
+                                    xw, yw, n, wide, masks)
             take = ring <= straddle * inner + floor
         if take:
             out_pos[f, 0] = pts[f, 0] + (xw - ax)
@@ -2086,10 +2102,11 @@ def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform, b
     sb = np.empty(c, np.float64)
     cq = np.zeros((c, 8), np.float64)
     have = np.zeros(c, np.bool_)
+    cs = _centroid_scratch(wts, uniform)
     for a in range(c):
         sa[a], sb[a], _ = _similarity_of(xs, ys, dxs, dys, near, a)
         if (took[idx[a]] or (abs(sa[a]) + abs(sb[a])) * n >= AFFINE_RELEVANT_PX):
-            _centroids_of(prev, pts, took, cen, idx, n, wts, uniform, a, cq, have)
+            _centroids_of(prev, pts, took, cen, idx, n, wts, uniform, a, cq, have, cs)
     ex = np.empty(c, np.float64)
     ey = np.empty(c, np.float64)
     for a in range(c):
@@ -2111,7 +2128,7 @@ def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform, b
             for u in range(NEIGHBOURS):
                 j = near[a, u]
                 if not have[j]:
-                    _centroids_of(prev, pts, took, cen, idx, n, wts, uniform, j, cq, have)
+                    _centroids_of(prev, pts, took, cen, idx, n, wts, uniform, j, cq, have, cs)
                 fit[0, u] = xs[j]
                 fit[1, u] = ys[j]
                 fit[2, u] = dxs[j]
@@ -2135,17 +2152,18 @@ def _affine_correction(prev, pts, out_pos, status, took, cen, n, wts, uniform, b
 
 
 @nb.njit(**NO_NRT)
-def _centroids_of(prev, pts, took, cen, idx, n, wts, uniform, a, cq, have):  # pragma: no cover
+def _centroids_of(prev, pts, took, cen, idx, n, wts, uniform, a, cq, have,
+                  cs):  # pragma: no cover - numba
     """Match a's centroids into ``cq[a]`` (the wide window's where it was taken, else the
-    correlation window's, :func:`_centroid`), ``have[a]`` set."""
+    correlation window's, :func:`_centroid_fast`, its scratch ``cs``), ``have[a]`` set."""
     f = idx[a]
     if took[f]:
         for k in range(8):
             cq[a, k] = cen[f, k]
     else:
         (cq[a, 0], cq[a, 1], cq[a, 2], cq[a, 3], cq[a, 4], cq[a, 5], cq[a, 6],
-         cq[a, 7]) = _centroid(prev, int(np.rint(pts[f, 0])), int(np.rint(pts[f, 1])), n, wts,
-                               uniform)
+         cq[a, 7]) = _centroid_fast(prev, int(np.rint(pts[f, 0])), int(np.rint(pts[f, 1])), n,
+                                    wts, uniform, cs[0], cs[1], cs[2], cs[3])
     have[a] = True
 
 
@@ -2208,11 +2226,13 @@ def _similarity_of(xs, ys, dxs, dys, near, a):  # pragma: no cover - numba
 @nb.njit(**NO_NRT)
 def _similarity(xs, ys, dxs, dys, near):  # pragma: no cover - numba
     """The least-squares similarity of the displacements (dxs, dys) of the points ``near``:
-    d = t + a (p - m) + b R (p - m), R the quarter turn, m their mean. Returns (a, b, the rms
-    of its residuals over the 2 k coordinates); (0, 0, inf) where the points coincide."""
-    k = near.shape[0]
+    d = t + a (p - m) + b R (p - m), R the quarter turn, m their mean: NEIGHBOURS of them, a
+    constant, so that LLVM unrolls the loops (77 -> 68 ns a call on the bench's frames, the
+    same floats). Returns (a, b, the rms of its residuals over the 2 k coordinates); (0, 0,
+    inf) where the points coincide."""
+    k = NEIGHBOURS
     mx = my = mu = mv = 0.0
-    for u in range(k):
+    for u in range(NEIGHBOURS):
         j = near[u]
         mx += xs[j]
         my += ys[j]
@@ -2223,7 +2243,7 @@ def _similarity(xs, ys, dxs, dys, near):  # pragma: no cover - numba
     mu /= k
     mv /= k
     sxx = sa = sb = 0.0
-    for u in range(k):
+    for u in range(NEIGHBOURS):
         j = near[u]
         x = xs[j] - mx
         y = ys[j] - my
@@ -2237,7 +2257,7 @@ def _similarity(xs, ys, dxs, dys, near):  # pragma: no cover - numba
     a = sa / sxx
     b = sb / sxx
     r2 = 0.0
-    for u in range(k):
+    for u in range(NEIGHBOURS):
         j = near[u]
         x = xs[j] - mx
         y = ys[j] - my
@@ -2283,6 +2303,12 @@ def _centroid(img, ax, ay, half, wts, uniform):  # pragma: no cover - numba
             sdy += gxy * i - gyy * j
             shx += gxx * j + gxy * i
             shy += gxy * j + gyy * i
+    return _centroids_from(hxx, hxy, hyy, vx, vy, wx, wy, sdx, sdy, shx, shy)
+
+
+@nb.njit(**NO_NRT)
+def _centroids_from(hxx, hxy, hyy, vx, vy, wx, wy, sdx, sdy, shx, shy):  # pragma: no cover
+    """:func:`_centroid`'s eight centroids from its integer sums (int64)."""
     det = float(hxx) * float(hyy) - float(hxy) * float(hxy)
     if det <= 1e-6 * float(hxx + hyy) * float(hxx + hyy) or det <= 0.0:
         return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
@@ -2296,57 +2322,186 @@ def _centroid(img, ax, ay, half, wts, uniform):  # pragma: no cover - numba
             (float(hxx) * shy - float(hxy) * shx) / det)
 
 
+@nb.njit(cache=True, nogil=True)
+def _centroid_scratch(wts, uniform):  # pragma: no cover - numba
+    """:func:`_centroid_fast`'s scratch for the window of weights ``wts`` (or 1 where
+    ``uniform``): (patch, weights, i, j), the window's pixel (j, i) at lane j (m + 2) + i (its
+    weight, and its i and j from the centre), zero on the lanes between rows; the weights
+    empty where the sums could outgrow int32 (then summed as :func:`_centroid` does)."""
+    m = wts.shape[0]
+    half = m // 2
+    s = m + 2
+    lanes = (m - 1) * s + m
+    patch = np.zeros(s * s + LANES, np.uint8)  # whole vectors of LANES (.ssd._patch)
+    wq = np.zeros(lanes, np.int32)
+    qi = np.zeros(lanes, np.int32)
+    qj = np.zeros(lanes, np.int32)
+    bound = 0.0  # the largest any sum can be: 255^2 |W| (|i| + |j|), or 255^2 |W|
+    for j in range(m):
+        for i in range(m):
+            wt = 1 if uniform else wts[j, i]
+            wq[j * s + i] = wt
+            qi[j * s + i] = i - half
+            qj[j * s + i] = j - half
+            bound += 255.0 * 255.0 * abs(wt) * max(abs(i - half) + abs(j - half), 1)
+    if bound >= 2.0**31:
+        wq = wq[:0]
+    return patch, wq, qi, qj
+
+
 @nb.njit(**NO_NRT)
-def _ring_fit(prev, curr, ax, ay, x, y, n, wide, sq, cols):  # pragma: no cover - numba
-    """Mean squared residuals of the template of frame t centred at (ax, ay), (2 wide + 1)^2,
-    against frame t+1 sampled bilinearly at (x, y): over its central (2 n + 1)^2, and the
-    largest of those over the four sides of the ring around it (left and right: the full
-    height; above and below: the centre's width). A second motion in the window leaves its
-    residual on a side or two, blur all round. The window and its bilinear samples lie
-    inside both frames (the wide Gauss-Newton converged there). ``sq`` (2 wide + 1,) int32
-    and ``cols`` (3, 2 wide + 1) int64: scratch."""
+def _centroid_fast(img, ax, ay, half, wts, uniform, patch, wq, qi, qj):  # pragma: no cover
+    """:func:`_centroid`, the same sums (exact integers) in int32 over the lanes of a patch
+    of ``img`` (``patch``, ``wq``, ``qi``, ``qj``: :func:`_centroid_scratch`; where its
+    weights are empty, :func:`_centroid` itself), which LLVM vectorises: on the bench's
+    frames 446 -> 197 ns a 9 x 9 window (int64 a pixel at a time before), the same
+    outputs."""
+    h, w = img.shape
+    if ax - half - 1 < 0 or ay - half - 1 < 0 or ax + half + 1 >= w or ay + half + 1 >= h:
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    if wq.shape[0] == 0:
+        return _centroid(img, ax, ay, half, wts, uniform)
+    s = 2 * half + 3
+    _patch(img, ax - half - 1, ay - half - 1, s, s, patch, s)
+    # the window's pixel at lane q is patch[q + s + 1]; its neighbours around it (offsets in
+    # slices, the index the loop's own: see .ssd._refine). numba types int32 * int32 as int64:
+    # the casts keep the arithmetic in int32, which LLVM then narrows
+    right = patch[s + 2:]
+    left = patch[s:]
+    down = patch[2 * s + 1:]
+    up = patch[1:]
+    i32 = np.int32
+    hxx = hxy = hyy = vx = vy = wx = wy = sdx = sdy = shx = shy = i32(0)
+    for q in range(wq.shape[0]):
+        gx = i32(i32(right[q]) - i32(left[q]))
+        gy = i32(i32(down[q]) - i32(up[q]))
+        wt = wq[q]
+        gxx = i32(wt * i32(gx * gx))
+        gxy = i32(wt * i32(gx * gy))
+        gyy = i32(wt * i32(gy * gy))
+        i = qi[q]
+        j = qj[q]
+        hxx = i32(hxx + gxx)
+        hxy = i32(hxy + gxy)
+        hyy = i32(hyy + gyy)
+        vx = i32(vx + i32(i32(gxx * i) + i32(gxy * j)))
+        vy = i32(vy + i32(i32(gxy * i) + i32(gyy * j)))
+        wx = i32(wx + i32(i32(gxy * i) - i32(gxx * j)))
+        wy = i32(wy + i32(i32(gyy * i) - i32(gxy * j)))
+        sdx = i32(sdx + i32(i32(gxx * i) - i32(gxy * j)))
+        sdy = i32(sdy + i32(i32(gxy * i) - i32(gyy * j)))
+        shx = i32(shx + i32(i32(gxx * j) + i32(gxy * i)))
+        shy = i32(shy + i32(i32(gxy * j) + i32(gyy * i)))
+    return _centroids_from(np.int64(hxx), np.int64(hxy), np.int64(hyy), np.int64(vx),
+                           np.int64(vy), np.int64(wx), np.int64(wy), np.int64(sdx),
+                           np.int64(sdy), np.int64(shx), np.int64(shy))
+
+
+@nb.njit(cache=True, nogil=True)
+def _ring_masks(n, wide, size):  # pragma: no cover - numba
+    """(3, size) int32: -1 on the lanes of the wide window's pixels left of the centre's
+    columns, in them and right of them (pixel (j, i) of the window at lane j * (2 wide + 5) + i,
+    the layout of :func:`.ssd._refine`'s patches), 0 on the lanes between rows: what
+    :func:`_ring_fit` sums by."""
+    stride = 2 * wide + 5
+    masks = np.zeros((3, size), np.int32)
+    for j in range(2 * wide + 1):
+        for i in range(2 * wide + 1):
+            masks[0 if i < wide - n else 2 if i > wide + n else 1, j * stride + i] = -1
+    return masks
+
+
+@nb.njit(**NO_NRT)
+def _ring_rows(tp, cp, t0, c0, stride, w00, w01, w10, w11, masks, lo, hi):  # pragma: no cover
+    """:func:`_ring_fit`'s squared residuals of the lanes lo to hi (whole rows of the window:
+    the template's pixel at tp[t0 + lane], frame t+1's at cp[c0 + lane] and its neighbours)
+    summed left of, in and right of the centre's columns (``masks``): int64, exact."""
+    left = centre = right = np.int64(0)
+    one = np.int16(BILINEAR_ONE)
+    ml = masks[0, lo:hi]
+    mc = masks[1, lo:hi]
+    mr = masks[2, lo:hi]
+    # offsets in slices, the index the loop's own (see .ssd._refine)
+    a = tp[t0 + lo:]
+    b0 = cp[c0 + lo:]
+    b1 = cp[c0 + lo + 1:]
+    b2 = cp[c0 + lo + stride:]
+    b3 = cp[c0 + lo + stride + 1:]
+    for q in range(hi - lo):
+        # in 16 bits (numba types int16 * int16 as int64, hence the casts, which LLVM then
+        # narrows): each product and the bilinear sample at most BILINEAR_ONE * 255 (the
+        # weights sum to BILINEAR_ONE), the residual within +-BILINEAR_ONE * 255
+        d = np.int16(np.int16(np.int16(np.int16(w00 * np.int16(b0[q]))
+                                       + np.int16(w01 * np.int16(b1[q])))
+                              + np.int16(np.int16(w10 * np.int16(b2[q]))
+                                         + np.int16(w11 * np.int16(b3[q]))))
+                     - np.int16(one * np.int16(a[q])))
+        sq = np.int32(np.int32(d) * np.int32(d))  # < 2^31
+        left += np.int64(sq & ml[q])
+        centre += np.int64(sq & mc[q])
+        right += np.int64(sq & mr[q])
+    return left, centre, right
+
+
+@nb.njit(**NO_NRT)
+def _ring_fit(tp, cp, ix, iy, x, y, n, wide, masks):  # pragma: no cover - numba
+    """Mean squared residuals of the template of frame t, (2 wide + 1)^2, against frame t+1
+    sampled bilinearly at (x, y): over its central (2 n + 1)^2, and the largest of those over
+    the four sides of the ring around it (left and right: the full height; above and below:
+    the centre's width). A second motion in the window leaves its residual on a side or two,
+    blur all round. The frames are read from the patches of the wide window's Gauss-Newton
+    refinement (:func:`.ssd._refine`: ``tp`` frame t around the template, ``cp`` frame t+1
+    around its start, whose whole pixel is (ix, iy)), which converged at (x, y), within a
+    pixel of that start: the window and its bilinear samples lie inside both patches (and
+    both frames). ``masks``: :func:`_ring_masks`.
+
+    As 21 rows of 22 pixels (views of the frames, a row's residuals vectorised, added into
+    its band's column sums) this took 543 ns a call on the bench's frames; over the patches'
+    lanes, a row's pad lanes masked, in 16 bits, 411 (the same sums)."""
+    stride = 2 * wide + 5
     bx = int(np.floor(x))
     by = int(np.floor(y))
     fx = x - bx
     fy = y - by
     # the bilinear weights in 1/BILINEAR_ONE, summing to it exactly: integer sums (exact, the
     # same on every machine) of residuals in 1/BILINEAR_ONE grey levels
-    w01 = np.int32(np.rint(fx * (1.0 - fy) * BILINEAR_ONE))
-    w10 = np.int32(np.rint((1.0 - fx) * fy * BILINEAR_ONE))
-    w11 = np.int32(np.rint(fx * fy * BILINEAR_ONE))
-    w00 = np.int32(BILINEAR_ONE - w01 - w10 - w11)
-    # each row's squared residuals (one loop, vectorised) added into its band's column sums:
-    # 0 above the centre, 1 beside it, 2 below
-    big = 2 * wide + 1
-    cols[:] = 0
-    one = np.int32(BILINEAR_ONE)
-    for j in range(-wide, wide + 1):
-        cr0 = curr[by + j, bx - wide:bx + wide + 2]
-        cr1 = curr[by + j + 1, bx - wide:bx + wide + 2]
-        pr = prev[ay + j, ax - wide:ax + wide + 1]
-        for i in range(big):
-            d = (w00 * np.int32(cr0[i]) + w01 * np.int32(cr0[i + 1]) + w10 * np.int32(cr1[i])
-                 + w11 * np.int32(cr1[i + 1]) - one * np.int32(pr[i]))
-            sq[i] = d * d
-        band = cols[0 if j < -n else 2 if j > n else 1]
-        for i in range(big):
-            band[i] += sq[i]
-    inner = left = right = top = bottom = 0
-    for i in range(big):
-        full = cols[0, i] + cols[1, i] + cols[2, i]
-        if i < wide - n:
-            left += full
-        elif i > wide + n:
-            right += full
-        else:
-            top += cols[0, i]
-            inner += cols[1, i]
-            bottom += cols[2, i]
+    w01 = np.int16(np.rint(fx * (1.0 - fy) * BILINEAR_ONE))
+    w10 = np.int16(np.rint((1.0 - fx) * fy * BILINEAR_ONE))
+    w11 = np.int16(np.rint(fx * fy * BILINEAR_ONE))
+    w00 = np.int16(BILINEAR_ONE - w01 - w10 - w11)
+    # the window's pixel (j, i), 0 to 2 wide, at lane j * stride + i: the template's at
+    # tp[t0 + lane] (its patch has a 2 px margin), frame t+1's (by - wide + j, bx - wide + i)
+    # at cp[c0 + lane] (its patch starts a pixel before (ix - wide, iy - wide))
+    t0 = 2 * stride + 2
+    c0 = (by - iy + 1) * stride + (bx - ix + 1)
+    above = (wide - n) * stride  # the lanes of the rows above the centre's, and to its end
+    within = (wide + n + 1) * stride
+    end = 2 * wide * stride + 2 * wide + 1
+    l1, top, r1 = _ring_rows(tp, cp, t0, c0, stride, w00, w01, w10, w11, masks, 0, above)
+    l2, inner, r2 = _ring_rows(tp, cp, t0, c0, stride, w00, w01, w10, w11, masks, above,
+                               within)
+    l3, bottom, r3 = _ring_rows(tp, cp, t0, c0, stride, w00, w01, w10, w11, masks, within, end)
+    left = l1 + l2 + l3
+    right = r1 + r2 + r3
     m = 2 * n + 1
     side = float(2 * wide + 1) * (wide - n) * BILINEAR_ONE * BILINEAR_ONE
     cap = float(m) * (wide - n) * BILINEAR_ONE * BILINEAR_ONE
     return (inner / (float(m * m) * BILINEAR_ONE * BILINEAR_ONE),
             max(left / side, right / side, top / cap, bottom / cap))
+
+
+@nb.njit(cache=True, nogil=True)
+def _ring_fit_at(prev, curr, ax, ay, x, y, n, wide):  # pragma: no cover - numba
+    """:func:`_ring_fit` from the frames: the patches copied here as the wide window's
+    refinement copies them, from Gauss-Newton's start (x, y) (a test's)."""
+    m = 2 * wide + 1
+    wpad, tp, cp, _, _, _, _ = _refine_scratch(np.ones((m, m), np.int32),
+                                               np.empty(0, np.int32))
+    ix = int(np.floor(x))
+    iy = int(np.floor(y))
+    _patch(prev, ax - wide - 2, ay - wide - 2, m + 4, m + 4, tp, m + 4)
+    _patch(curr, ix - wide - 1, iy - wide - 1, m + 3, m + 3, cp, m + 4)
+    return _ring_fit(tp, cp, ix, iy, x, y, n, wide, _ring_masks(n, wide, wpad.shape[0]))
 
 
 def agreement(noise: float) -> float:

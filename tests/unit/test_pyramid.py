@@ -648,25 +648,79 @@ def test_ring_fit_finds_a_second_motion_on_one_side_and_blur_all_round(real_imag
     above the centre's; blur leaves residuals like the centre's on every side. The side test
     (STRADDLE times the centre's, plus 2 sigma^2 at the default noise of 2 grey levels) takes
     the wide estimate under the blur, not across the second motion."""
-    from vistrack.common.vision.pyramid import BILINEAR_ONE, STRADDLE, _ring_fit
+    from vistrack.common.vision.pyramid import BILINEAR_ONE, STRADDLE, _ring_fit_at
     floor = 2.0 * TrackerParams().noise_sigma ** 2
     n, wide = 4, 10
-    sq = np.empty(2 * wide + 1, np.int32)
-    cols = np.empty((3, 2 * wide + 1), np.int64)
     prev = np.ascontiguousarray(real_image[40:120, 40:120])
     curr = np.ascontiguousarray(np.roll(prev, (1, 2), axis=(0, 1)))
     ax = ay = 40
-    assert _ring_fit(prev, curr, ax, ay, ax + 2.0, ay + 1.0, n, wide, sq, cols) == (0.0, 0.0)
+    assert _ring_fit_at(prev, curr, ax, ay, ax + 2.0, ay + 1.0, n, wide) == (0.0, 0.0)
     # the same half a pixel off: bilinear samples, weights in 1/BILINEAR_ONE
-    inner, ring = _ring_fit(prev, curr, ax, ay, ax + 2.5, ay + 1.0, n, wide, sq, cols)
+    inner, ring = _ring_fit_at(prev, curr, ax, ay, ax + 2.5, ay + 1.0, n, wide)
     assert 0 < inner and 0 < ring and BILINEAR_ONE == 128
     split = curr.copy()
     split[:, ax + 2 + n + 3:] = np.roll(curr, 5, axis=0)[:, ax + 2 + n + 3:]  # right: 5 px down
-    inner, ring = _ring_fit(prev, split, ax, ay, ax + 2.0, ay + 1.0, n, wide, sq, cols)
+    inner, ring = _ring_fit_at(prev, split, ax, ay, ax + 2.0, ay + 1.0, n, wide)
     assert inner == 0.0 and ring > 100.0 and ring > STRADDLE * inner + floor
     blurred = cv2.blur(curr, (5, 1))
-    inner, ring = _ring_fit(prev, blurred, ax, ay, ax + 2.0, ay + 1.0, n, wide, sq, cols)
+    inner, ring = _ring_fit_at(prev, blurred, ax, ay, ax + 2.0, ay + 1.0, n, wide)
     assert inner > 0.0 and ring <= STRADDLE * inner + floor
+
+
+def test_ring_fit_sums_exactly_what_its_definition_does(real_image):
+    """_ring_fit's sums (16-bit residuals over the refinement's patches, masked lanes) equal
+    the definition's, summed in int64 by numpy: the bilinear sample in 1/BILINEAR_ONE less
+    the template, squared, over the centre and each side of the ring."""
+    from vistrack.common.vision.pyramid import BILINEAR_ONE as ONE
+    from vistrack.common.vision.pyramid import _ring_fit_at
+    img = np.ascontiguousarray(real_image)
+    curr = np.ascontiguousarray(np.roll(cv2.GaussianBlur(img, (3, 3), 0.8), (2, -1), (0, 1)))
+    rng = np.random.default_rng(3)
+    for n, wide in ((4, 10), (3, 7), (4, 12)):
+        m, big = 2 * n + 1, 2 * wide + 1
+        for _ in range(40):
+            ax, ay = (int(v) for v in rng.integers(wide + 3, 250 - wide, 2))
+            x, y = ax + rng.uniform(-2.0, 2.0), ay + rng.uniform(-2.0, 2.0)
+            bx, by = int(np.floor(x)), int(np.floor(y))
+            fx, fy = x - bx, y - by
+            w01 = int(np.rint(fx * (1 - fy) * ONE))
+            w10 = int(np.rint((1 - fx) * fy * ONE))
+            w11 = int(np.rint(fx * fy * ONE))
+            w00 = ONE - w01 - w10 - w11
+            c = curr.astype(np.int64)
+            sample = (w00 * c[by - wide:by + wide + 1, bx - wide:bx + wide + 1]
+                      + w01 * c[by - wide:by + wide + 1, bx - wide + 1:bx + wide + 2]
+                      + w10 * c[by - wide + 1:by + wide + 2, bx - wide:bx + wide + 1]
+                      + w11 * c[by - wide + 1:by + wide + 2, bx - wide + 1:bx + wide + 2])
+            t = img[ay - wide:ay + wide + 1, ax - wide:ax + wide + 1].astype(np.int64)
+            sq = (sample - ONE * t) ** 2
+            lo, hi = wide - n, wide + n + 1
+            side = float(big * (wide - n) * ONE * ONE)
+            cap = float(m * (wide - n) * ONE * ONE)
+            want = (sq[lo:hi, lo:hi].sum() / float(m * m * ONE * ONE),
+                    max(sq[:, :lo].sum() / side, sq[:, hi:].sum() / side,
+                        sq[:lo, lo:hi].sum() / cap, sq[hi:, lo:hi].sum() / cap))
+            assert _ring_fit_at(img, curr, ax, ay, x, y, n, wide) == want
+
+
+@pytest.mark.parametrize(("kind", "half"), [("uniform", 4), ("gaussian", 4), ("uniform", 7),
+                                            ("gaussian", 12), ("uniform", 32)])
+def test_the_fast_centroid_is_the_centroid(real_image, kind, half):
+    """_centroid_fast (int32 sums over a patch's lanes) gives _centroid's floats bit for bit,
+    where its sums fit int32 and, through _centroid itself, where they may not (a 25 px
+    Gaussian window, a 65 px one); zeros where the window leaves the frame."""
+    from vistrack.common.vision.pyramid import _centroid, _centroid_fast, _centroid_scratch
+    img = np.ascontiguousarray(real_image)
+    wts = np.ascontiguousarray(window_weights(kind, half), np.int32)
+    uniform = kind == "uniform"
+    cs = _centroid_scratch(wts, uniform)
+    if kind == "uniform":  # which of the two ways the sums go
+        assert (cs[1].shape[0] > 0) == (half <= 7)
+    h, w = img.shape
+    for ax, ay in ((60, 70), (128, 128), (190, 40), (half + 1, half + 1), (w - half - 2, 90),
+                   (half, 50), (3, 3), (w - 1, h - 1)):
+        assert _centroid_fast(img, ax, ay, half, wts, uniform, *cs) == \
+            _centroid(img, ax, ay, half, wts, uniform)
 
 
 @pytest.mark.parametrize("search", ["pruned", "exhaustive"])

@@ -264,6 +264,16 @@ frame pair 277.4 -> 268.0 us, the first pair 343.7 -> 328.2 (LK 1214.9: 0.228x -
 rounds); the same outputs bit for bit (the bench's pairs, and 247,071 values: every id,
 position and estimate of the default, paper's and Gaussian-weight trackers on the five rendered
 sequences, RubberWhale's and Grove2's approach, shake and blur, and the built-in sequence).
+
+Then (the same day): the features searched on a held frame (2 to 7 of ~95: the way back of
+their follow failed) cost ~18 us each (the held frames 269.9 us, 210.6 with those features
+left out). Part of it was fixed: :func:`_match` and :func:`_back_check` made every feature's
+anchor and centre at each level (four divisions a feature), though a few were searched;
+now the active ones' only (the others' are never read): a call with none active 3.03 ->
+1.69 us, with one 8.89 -> 7.53; and step 5b no longer takes the frame's median where no
+searched match is left to test. Still ~5 us a feature and level searched (one at level 0
+alone ~6 us, three ~15: the row sums of its reach, the bounds, the search, the uniqueness
+test), the exhaustive search no cheaper for one (6 against 6.5 us, the same results).
 """
 
 from __future__ import annotations
@@ -726,9 +736,13 @@ def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, 
         curr = _level(cdata, geo, k)
         scale = 2.0 ** k
         for f in range(n_feat):
-            for c in range(2):
-                anchors[f, c] = int(np.rint(pts[f, c] / scale))
-                centers[f, c] = int(np.rint(preds[f, c] / scale))
+            # the active features' only (the others' are never read): on a frame whose
+            # features follow, a few of ~100, and this loop over all of them was most of
+            # a call's ~3 us (one a frame, and one for each retry and way back)
+            if active[f]:
+                for c in range(2):
+                    anchors[f, c] = int(np.rint(pts[f, c] / scale))
+                    centers[f, c] = int(np.rint(preds[f, c] / scale))
         starting = _starting(anchors, pending, n, prev.shape, k)
         # refine the matches of the level above, their displacement doubled
         for f in range(n_feat):
@@ -1330,9 +1344,10 @@ def _back_check(pdata, cdata, geo, pts, back, mirrored, check, n, s, wts, exhaus
             break
         scale = 2.0 ** k
         for f in range(n_feat):
-            for c in range(2):
-                anchors[f, c] = int(np.rint(back[f, c] / scale))
-                centers[f, c] = int(np.rint(mirrored[f, c] / scale))
+            if pending[f]:  # the others' are never read (see _match)
+                for c in range(2):
+                    anchors[f, c] = int(np.rint(back[f, c] / scale))
+                    centers[f, c] = int(np.rint(mirrored[f, c] / scale))
         if _starting(anchors, pending, n, (geo[k, 1], geo[k, 2]), k) == 0:
             continue
         _search_level(_level(cdata, geo, k), _level(pdata, geo, k), anchors, centers, pending,
@@ -1441,9 +1456,11 @@ def _dominant_alternative(pdata, cdata, geo, pts, pos, ssd, status, searched, n,
     (:func:`_alternative_holds`)."""
     n_feat = pts.shape[0]
     found = 0
+    tested = 0  # the searched matches, the only ones tested
     for f in range(n_feat):
         found += status[f] == OK
-    if found < MIN_GUIDES:
+        tested += status[f] == OK and searched[f]
+    if found < MIN_GUIDES or tested == 0:  # (the frame's median costs ~1 us: not for none)
         return
     gx, gy = _dominant(pts, pos, status)
     prev = _level(pdata, geo, 0)

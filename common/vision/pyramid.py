@@ -274,6 +274,28 @@ now the active ones' only (the others' are never read): a call with none active 
 searched match is left to test. Still ~5 us a feature and level searched (one at level 0
 alone ~6 us, three ~15: the row sums of its reach, the bounds, the search, the uniqueness
 test), the exhaustive search no cheaper for one (6 against 6.5 us, the same results).
+
+Measured the same day and not changed. The wide window's Gauss-Newton from the correlation
+window's estimate (median 0.028 px apart, a quarter more than 0.1 px): 632 ns a feature, from
+its own converged estimate 542: its 2 to 3 iterations ~90 ns, the rest its sums (the third
+differences' ~40 ns, the centroid's ~130); summing its centre from the 9 x 9 refinement's
+sums would save at most 81/441 of 18 of its 42 sums, the two windows' patches in layouts
+of their own. The way back of a followed feature runs for ~20 % of them (FOLLOW_NEAR), a 9
+x 9 refinement each, ~4 us a frame at most. A frame's kernels' allocations and scratch: the
+wide window's scratch ~1.1 us, the correlation window's ~0.5, a call of the tracker with no
+feature 6.3 us (2.2 of them the kernel's call, its 36 arguments; the rest plan.track's checks
+and arrays). Tried and dropped: the ring fit's sums in float64 (exact: integers below 2^53),
+3x slower (no fastmath: a float reduction is not reordered, so not vectorised), and its
+residuals in int32 rather than 16 bits (no change).
+
+Where a held frame pair's time goes now (the steps turned off one by one, in one process,
+interleaved, best of 60 rounds, a loaded machine: 267.0 us in all): the 2 to 7
+features searched 63 us (their own inputs left out), the wide window 88 (its refinement ~630
+ns a feature alone, the ring fit ~410 for a quarter of them), step 7 31 (two similarity fits
+a match, ~68 ns each; two affine fits, ~110 ns, for each of the ~45 matches no similarity
+fits; ~15 correlation-window centroids), the consensus 22 (its neighbour search ~130 ns a
+match alone), following ~88 features 54 (a 9 x 9 refinement, ~255 ns alone, S at the match,
+a fifth of them their way back), plan.track's call 7.
 """
 
 from __future__ import annotations

@@ -123,6 +123,9 @@ def launch_from_args(args: argparse.Namespace) -> LaunchSpec:
         camera = overridden.service("camera")
         assert camera is not None
         problem = check_service_flags("camera", list(camera.flags))
+        if problem and args.camera is not None and problem.startswith("--source "):
+            # the camera's flag, given as up's: name the one the user typed
+            problem = "--camera " + problem.removeprefix("--source ")
         if problem:
             raise LaunchError(problem)
     launch = overridden

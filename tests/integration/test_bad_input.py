@@ -205,6 +205,9 @@ CASES = {
          "--name '' is 0 characters long: a common name has 1 to 64"),
     ],
     "up": [
+        # the camera's own flag was named, not the --camera the user typed
+        (["--camera", "file:", "-l", "tcp/127.0.0.1:1"],
+         "--camera 'file:' names no file: give file:PATH (a video, an image folder or a glob)"),
         # every service tried to listen on 7447, all but one found it taken
         (["-m", "router"], "-m router: the services cannot all be routers (the embedded "
                            "router, or -e ROUTER, routes for them): allowed peer (the default) "

@@ -1,5 +1,5 @@
 """A new user's first `vistrack demo` against a second one (deselected by default: ``pytest
--m bench -s -n 0``; two to three minutes).
+-m bench -s``; two to three minutes).
 
 The first run starts with numba's and the user's caches empty (``NUMBA_CACHE_DIR`` and
 ``XDG_CACHE_HOME`` on empty folders): it compiles the tracker's kernels and builds the fuzzy

@@ -850,7 +850,8 @@ def test_listen_and_connect_together_is_a_usage_error(capsys):
     (["--fps", "-1"], "--fps -1 is out of range: allowed 0 or 0.1..1000"),
     (["--size", "5000x5000"], "--size 5000x5000 is out of range: width and height must be "
                               "8..4096"),
-    (["--camera", "sim:nowhere"], "--source sim:nowhere: 'nowhere' is neither a built-in "
+    # the flag the user typed, not the camera's own --source (683ae19)
+    (["--camera", "sim:nowhere"], "--camera sim:nowhere: 'nowhere' is neither a built-in "
      "scenario (allowed: default, sideways, approach, steps, still, lighting) nor an existing "
      "YAML file"),
     (["--camera", "device:-1"], "'device:-1': device index -1 is out of range: allowed 0..99"),

@@ -672,8 +672,12 @@ def rubberwhale_buffer() -> list[np.ndarray]:
 @pytest.fixture(scope="module")
 def rubberwhale_cycle(rubberwhale_buffer):
     """One tuning cycle on the RubberWhale buffer, of the paper's tracker (its single-level
-    search of Eq. (1), pruned): the paper's study, which the tests below reproduce."""
-    return tune(rubberwhale_buffer, seed=2024, base=TrackerParams.paper())
+    search of Eq. (1), pruned): the paper's study, which the tests below reproduce. Its times
+    the minima of SWEEP_REPEATS passes, not the auto-tuner's 3: this machine has slow spells
+    of a few seconds, and with 3 the corr-size effect's t fell to 2.6 and 2.9 in 2 of 8
+    quiet cycles (5.4 to 14 in the others; t > 3 is asserted below)."""
+    return tune(rubberwhale_buffer, seed=2024, base=TrackerParams.paper(),
+                repeats=SWEEP_REPEATS)
 
 
 #: Timing passes of the exhaustive sweep, whose interaction is tested: with the default 3 its

@@ -17,10 +17,12 @@ settings.load_profile("ci" if os.environ.get("CI") else "default")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Which tests one pytest-xdist worker runs together (``--dist loadgroup``, pyproject's
-    addopts): a test file's tests, so that its module fixtures (a router, a pipeline) are
-    made once; and every benchmark, one after the other on one worker, since a benchmark's
-    figures are of a machine that runs nothing else of ours."""
+    """Which tests one pytest-xdist worker runs together where it is installed (the dev
+    extra; ``-n 4 --dist loadgroup``): a test file's tests, so that its module fixtures (a
+    router, a pipeline) are made once; and every benchmark, one after the other on one
+    worker, since a benchmark's figures are of a machine that runs nothing else of ours."""
+    if not config.pluginmanager.hasplugin("xdist"):
+        return
     for item in items:
         group = "bench" if item.get_closest_marker("bench") else item.nodeid.split("::")[0]
         item.add_marker(pytest.mark.xdist_group(group))

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import os
 import socket
+import subprocess
+import sys
+from collections.abc import Iterator
 
 import pytest
 from hypothesis import settings
@@ -28,8 +31,21 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         item.add_marker(pytest.mark.xdist_group(group))
 
 
+#: The kernels of windows whose sub-pixel sums take int64 (a set of their own,
+#: ``tracker._kernel_set``), compiled in a process of their own: that set alone, which the
+#: session's warm-up does not load (ours, not a service's start-up: see :func:`numba_cache`)
+_INT64_SET = ("from vistrack.common.params import TrackerParams; "
+              "from vistrack.common.vision import tracker; "
+              "p = TrackerParams(corr_size=64); "
+              "assert tracker._kernel_set(p)[-1] == 'int64'; "
+              "tracker._START_UP_KEYS[tracker._kernel_set(p)] = p; "
+              "tracker.warm_up()")
+#: that process, while it runs
+_BACKGROUND: list[subprocess.Popen[bytes]] = []
+
+
 @pytest.fixture(scope="session", autouse=True)
-def numba_cache() -> None:
+def numba_cache() -> Iterator[None]:
     """Compile the tracker's numba kernels into numba's on-disk cache once, before any test.
 
     The integration tests start several services at once; on a fresh clone each would compile
@@ -38,10 +54,35 @@ def numba_cache() -> None:
     process alone, not split over two as a first run does (services/kernels.py): the split's
     own kernels would then be in the cache before test_kernels checks that they are the
     tracker's.
+
+    Then a process at the lowest priority (nice 19: about 1.5 % of a core against a test's
+    process that wants it) compiles the int64 set (:data:`_INT64_SET`) in the time the tests
+    leave idle, waiting for their processes. The tests that run those kernels
+    (:func:`int64_kernels`) then load them: a cold compile of 30 to 85 s inside one test
+    took a tenth of the suite's budget. It starts once the start-up kernels are in the cache,
+    so that no two processes compile the same kernel's signatures at once (numba's index
+    of them is rewritten without a lock).
     """
     from vistrack.common.vision import warm_up
 
     warm_up()
+    _BACKGROUND.append(subprocess.Popen(
+        [sys.executable, "-c", _INT64_SET], stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL, preexec_fn=lambda: os.nice(19)))
+    yield
+    for proc in _BACKGROUND:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+
+
+@pytest.fixture
+def int64_kernels() -> None:
+    """Wait for the int64 set's compile (:func:`numba_cache`), if it still runs: a test that
+    runs those kernels, or reads numba's index of them, then finds it whole."""
+    for proc in _BACKGROUND:
+        assert proc.wait(timeout=900) == 0, \
+            f"the int64 set's compile failed (exit {proc.returncode}): python -c \"{_INT64_SET}\""
 
 
 @pytest.fixture

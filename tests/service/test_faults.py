@@ -186,6 +186,7 @@ def test_motion_estimation_survives_a_featureless_8x8_frame_and_tracks_again():
     assert node.status.rejected == 0
 
 
+@pytest.mark.usefixtures("int64_kernels")  # compiled beside the tests (conftest)
 def test_parameters_with_kernels_of_their_own_wait_for_them_beside_the_loop(monkeypatch):
     """A 64 px correlation window sums in int64: kernels the start-up warm-up does not load,
     which a cold cache compiled for ~27 s inside the loop (the launcher killed the service
@@ -220,7 +221,8 @@ def test_parameters_with_kernels_of_their_own_wait_for_them_beside_the_loop(monk
         assert node.status.extra.get("params_pending") == 7
         assert node.status.params["params_id"] == 0
         seq = 2
-        # on a cold cache the second process compiles the int64 set: ~30 s, 80 s when busy
+        # the second process loads the int64 set from the cache conftest filled (a cold
+        # cache: it compiles it, ~30 s, 80 s when busy)
         deadline = time.monotonic() + 300.0
         while estimates()[-1].params_id != 7:
             assert time.monotonic() < deadline and thread.is_alive(), \
@@ -242,6 +244,7 @@ def test_parameters_with_kernels_of_their_own_wait_for_them_beside_the_loop(monk
     assert node.status.failed == 0 and node.status.rejected == 0
 
 
+@pytest.mark.usefixtures("int64_kernels")  # compiled beside the tests (conftest)
 def test_parameters_whose_kernels_were_pending_come_in_force_without_a_frame(monkeypatch):
     """A set pending its kernels came in force only with the next frame: on a pipeline with
     no camera (vistrack up --camera none) params set waited its 180 s, then said the set may
@@ -259,7 +262,8 @@ def test_parameters_whose_kernels_were_pending_come_in_force_without_a_frame(mon
             big, seq=0, stamp_ns=time.time_ns(), params_id=7, source="user",
             reason="test").encode()), timeout=60, what="the subscription")
         wait_for(lambda: node.status.extra.get("params_pending") == 7, what="pending")
-        # on a cold cache the second process compiles the int64 set: ~30 s, 80 s when busy
+        # the second process loads the int64 set from the cache conftest filled (a cold
+        # cache: it compiles it, ~30 s, 80 s when busy)
         wait_for(lambda: node.status.params["params_id"] == 7, timeout=300,
                  what="the set in force, no frame fed")
         node.stop.set()
@@ -268,6 +272,7 @@ def test_parameters_whose_kernels_were_pending_come_in_force_without_a_frame(mon
     assert node.published_on(node.keys.estimate) == []
 
 
+@pytest.mark.usefixtures("int64_kernels")  # compiled beside the tests (conftest)
 def test_parameters_whose_kernels_fail_are_dropped_and_the_old_ones_stay(monkeypatch, caplog):
     """Should their kernels fail to build (a compiler error), a pending update is dropped with
     an error in the status and the log, once: the parameters in force stay, and the loop does

@@ -23,6 +23,9 @@ from vistrack.services import kernels
 from vistrack.services.kernels import LOCK_NAME, warm_up_kernels
 from vistrack.services.usage import say_on_stderr
 
+# the cache's index of the kernels is read here: whole, with the int64 set's (conftest)
+pytestmark = pytest.mark.usefixtures("int64_kernels")
+
 
 def test_a_compile_is_said_once_when_it_starts():
     said = []

@@ -108,7 +108,8 @@ def _writable(folder: Path) -> bool:
 
 def warm_up_kernels(say: Callable[[str], None], *, helper: bool = True,
                     on_turn: Callable[[], None] | None = None,
-                    params: TrackerParams | None = None) -> bool:
+                    params: TrackerParams | None = None,
+                    load: Callable[[], object] | None = None) -> bool:
     """:func:`~vistrack.common.vision.warm_up`, calling ``say`` with a line when the kernels
     start compiling and another when they are done; silent when they come from the cache.
 
@@ -120,6 +121,10 @@ def warm_up_kernels(say: Callable[[str], None], *, helper: bool = True,
         anything: what it starts then (the services) waits for the kernels, not with them.
     params : the tracker parameters in force, whose kernels are warmed too (``--paper``'s
         single-level search; see :func:`~vistrack.common.vision.warm_up`).
+    load : where the kernels are in the cache, what loads those this process runs, instead
+        of every kernel of the tracker (~0.9 s of a process's start, most of a second core's
+        while a launch's processes start): pre-processing's, or nothing for the launcher,
+        which runs none. On a cold cache everything is compiled, as without it.
 
     Returns
     -------
@@ -131,7 +136,7 @@ def warm_up_kernels(say: Callable[[str], None], *, helper: bool = True,
         early = _start_helper() if helper and not cached else None
         if on_turn is not None:
             on_turn()
-        return _warm_up(say, helper, early, params)
+        return _warm_up(say, helper, early, params, load if cached else None)
 
 
 def _search_cached() -> bool:
@@ -209,7 +214,8 @@ def _turn() -> Iterator[bool]:
 
 def _warm_up(say: Callable[[str], None], helper: bool,
              early: subprocess.Popen[bytes] | None = None,
-             params: TrackerParams | None = None) -> bool:
+             params: TrackerParams | None = None,
+             load: Callable[[], object] | None = None) -> bool:
     from ..common.vision import kernel_cache_dir, warm_up
     from ..common.vision.tracker import compile_watch
 
@@ -219,19 +225,22 @@ def _warm_up(say: Callable[[str], None], helper: bool,
     def on_compile() -> None:
         say(f"compiling the tracker's kernels (first run; {COLD_COMPILE}, cached in "
             f"{kernel_cache_dir()})")
-        if helper and not helpers:
+        if helper and not helpers and load is None:
             helpers.append(_start_helper())
 
     try:
         with compile_watch(on_compile) as watch:
-            if helper:
+            if load is not None:  # the search is in the cache: the rest is, as a rule
+                load()
+            elif helper:
                 _compile_first_frame()  # a cold cache shows here (the helper, if not yet)
             for proc in helpers:
                 try:
                     proc.wait(HELPER_TIMEOUT_S)
                 except subprocess.TimeoutExpired:
                     pass  # warm_up compiles what it did not
-            warm_up(params=params)
+            if load is None:
+                warm_up(params=params)
     finally:
         for proc in helpers:
             if proc.poll() is None:

@@ -862,7 +862,9 @@ def compile_kernels(command: str = "up", start: Callable[[], None] | None = None
     from ..kernels import warm_up_kernels
     from ..usage import say_on_stderr
 
-    warm_up_kernels(say_on_stderr(command), on_turn=start)
+    # it runs no kernel: from the cache, nothing to load (~0.9 s of a core the services'
+    # start-up wants)
+    warm_up_kernels(say_on_stderr(command), on_turn=start, load=lambda: None)
     # What the compiler leaves behind lives as long as this process (the launcher, the demo's
     # recorder): freeze it out of the garbage collector, whose full collections over it paused
     # the demo's recorder for 100 ms and more (p99 capture-to-command 208 ms on a first run,

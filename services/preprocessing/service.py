@@ -47,6 +47,8 @@ from ...common.messages import (
     encode_pre_done,
     encode_pre_frame,
 )
+from ...common.params import TrackerParams
+from ...common.synthetic import sequence
 from ...common.vision import preprocess
 from ...common.vision.preprocess import Grey, gaussian_filter
 from ..camera import ros2cam
@@ -100,10 +102,19 @@ def check_args(args: argparse.Namespace) -> None:
         ros2cam.topic_of(args.source)
 
 
+def _load_kernels(params: TrackerParams) -> None:
+    """Load the kernels this service runs (pre-processing's, from numba's cache) before the
+    first frame: those of a textured frame, read-only as decoded frames are."""
+    (frame,) = sequence(1, size=(64, 64), seed=1)
+    frame.flags.writeable = False
+    preprocess(frame, params)
+
+
 def loop(node: Node, args: argparse.Namespace) -> None:
     state = ParamsInForce.from_args(args)
     state.publish_status(node)
-    warm_up_kernels(log.info)  # a first run's compile is logged, a cache load is not
+    # a first run's compile is logged, a cache load is not; from the cache, its own kernels
+    warm_up_kernels(log.info, load=lambda: _load_kernels(state.params))
     always = getattr(args, "candidates", "always") == "always"
     wanted = True  # until motion-estimation says otherwise
     node.subscribe(node.keys.params, latest=False)

@@ -566,14 +566,17 @@ class ParamsInForce:
                                 "source": self.source, "reason": self.reason})
 
 
-def paced(node: Node, next_t: float, period: float) -> float:
+def paced(node: Node, next_t: float, period: float,
+          wait: Callable[[float], object] | None = None) -> float:
     """Wait until ``next_t + period`` (``time.perf_counter``) or ``node.stop``; return that
     time, the frame's slot. A frame more than half a period late (a wake-up the machine
     delayed, a process stopped) moves the slots after it: the next frame comes a period
-    later, not at once (frames 416 and 0.2 ms apart after a wake-up 0.3 s late)."""
+    later, not at once (frames 416 and 0.2 ms apart after a wake-up 0.3 s late). ``wait``
+    (seconds): how to wait, if not asleep (``node.sleep``): a loop with input to take
+    meanwhile takes it."""
     next_t += period
     delay = next_t - time.perf_counter()
     if delay > 0:
-        node.sleep(delay)
+        (node.sleep if wait is None else wait)(delay)
     now = time.perf_counter()
     return now if now - next_t > period / 2 else next_t

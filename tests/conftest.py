@@ -44,16 +44,21 @@ _INT64_SET = ("from vistrack.common.params import TrackerParams; "
 _BACKGROUND: list[subprocess.Popen[bytes]] = []
 
 
+#: numba's cached versions of each kernel of the tracker's modules (their dispatchers), as the
+#: session's warm-up left them: before any test or the int64 set's compile added any
+START_UP_SIGNATURES: dict[object, set[object]] = {}
+
+
 @pytest.fixture(scope="session", autouse=True)
 def numba_cache() -> Iterator[None]:
     """Compile the tracker's numba kernels into numba's on-disk cache once, before any test.
 
     The integration tests start several services at once; on a fresh clone each would compile
-    the kernels itself (~25 s alone, far more three at a time on two cores) and miss its
-    ready timeout. With the cache filled they load in under a second. It compiles in this
-    process alone, not split over two as a first run does (services/kernels.py): the split's
-    own kernels would then be in the cache before test_kernels checks that they are the
-    tracker's.
+    the kernels itself and miss its ready timeout. With the cache filled they load in under a
+    second. It compiles as a first run does (services/kernels.py: split over two processes,
+    52 s against 104 s in one on this 2-core machine, the same 97 kernels' versions alike);
+    what it left is kept in :data:`START_UP_SIGNATURES` for test_kernels, which checks that
+    the split compiled only versions the tracker runs.
 
     Then a process at the lowest priority (nice 19: about 1.5 % of a core against a test's
     process that wants it) compiles the int64 set (:data:`_INT64_SET`) in the time the tests
@@ -64,8 +69,11 @@ def numba_cache() -> Iterator[None]:
     of them is rewritten without a lock).
     """
     from vistrack.common.vision import warm_up
+    from vistrack.services.kernels import warm_up_kernels
 
-    warm_up()
+    warm_up_kernels(lambda line: None)
+    warm_up()  # loaded already: nothing to do
+    START_UP_SIGNATURES.update(_cached_signatures())
     _BACKGROUND.append(subprocess.Popen(
         [sys.executable, "-c", _INT64_SET], stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL, preexec_fn=lambda: os.nice(19)))
@@ -74,6 +82,32 @@ def numba_cache() -> Iterator[None]:
         if proc.poll() is None:
             proc.kill()
         proc.wait()
+
+
+def _cached_signatures() -> dict[object, set[object]]:
+    """Every cached kernel of the tracker's modules: its cached versions' argument types."""
+    import numba
+
+    from vistrack.services.kernels import cached_signatures
+
+    found: dict[object, set[object]] = {}
+    for name, module in list(sys.modules.items()):
+        if name.startswith("vistrack.common.vision."):
+            for kernel in vars(module).values():
+                if isinstance(kernel, numba.core.registry.CPUDispatcher):
+                    try:
+                        found[kernel] = cached_signatures(kernel)
+                    except AttributeError:  # a kernel numba does not cache
+                        pass
+    return found
+
+
+@pytest.fixture
+def start_up_signatures() -> dict[object, set[object]]:
+    """:data:`START_UP_SIGNATURES`: each cached kernel's versions, as the session's warm-up
+    left them."""
+    assert START_UP_SIGNATURES, "the session's warm-up has not run"
+    return START_UP_SIGNATURES
 
 
 @pytest.fixture

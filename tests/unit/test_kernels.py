@@ -76,11 +76,14 @@ def test_warm_ups_take_turns():
     assert out.splitlines() == ["turn", "False"]  # its turn, then everything from the cache
 
 
-def test_the_compile_split_compiles_only_what_the_tracker_calls():
+def test_the_compile_split_compiles_only_what_the_tracker_calls(start_up_signatures):
     # a cold warm-up's two processes each compile kernels the other then loads from the cache
     # (the second one's single-level search, this one's refinement): with types of their own,
     # each would compile a version nobody uses, and the tracker's search its own besides.
-    # The session's warm-up compiled (or loaded) exactly what the tracker calls.
+    # The tracker runs one version of each of those kernels (a warm-up in one process, the
+    # tracker's alone, compiled exactly one of each: 2026-12-07, and the same versions of
+    # all 97 kernels as the split): the session's warm-up, split as a first run's
+    # (conftest), left one of each, so the split compiled none of its own.
     # The kernels compiled ahead by their types (not run) must also have the parameters
     # those types were written for, else the second process compiles them after all.
     ahead = kernels._search_tail_signatures() + kernels._match_signatures()
@@ -89,6 +92,9 @@ def test_the_compile_split_compiles_only_what_the_tracker_calls():
             kernels._AHEAD_PARAMS[kernel.__name__], kernel.__name__  # else see there
     split = (ssd._search_level, ssd._refine_with, ssd._parabola, pyramid._consensus,
              pyramid._widen, *{kernel for kernel, _ in ahead})
+    assert {k.__name__: len(start_up_signatures[k]) for k in split} == \
+        {k.__name__: 1 for k in split}
+    # and the split's calls, made again, compile nothing the cache does not hold
     before = [kernels.cached_signatures(k) for k in split]
     assert all(before)
     assert kernels._single_level_call() is not None  # else its parameters changed: see there

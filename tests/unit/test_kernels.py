@@ -389,3 +389,32 @@ def test_no_writable_cache_folder_falls_back_to_one_of_the_users(tmp_path, monke
     os.chmod(folder, 0o777)
     other = kernels.cache_folder_fallback([blocker / "a"])
     assert other != folder and os.path.dirname(other) == str(tmp_path / "tmp")
+
+
+LOAD_ONLY = """
+import importlib
+import numpy as np
+from vistrack.common.messages import Frame
+from vistrack.common.params import TrackerParams
+from vistrack.common.vision import preprocess, pyramid
+from vistrack.services.kernels import warm_up_kernels
+from vistrack.services.preprocessing.service import _load_kernels
+
+pre = importlib.import_module("vistrack.common.vision.preprocess")  # the module
+print(warm_up_kernels(print, load=lambda: _load_kernels(TrackerParams())))
+print(len(pyramid._track_frame.signatures), len(pre._blur_fixed.signatures))
+image = np.random.default_rng(0).integers(0, 256, (96, 128), dtype=np.uint8)
+frame = Frame.decode(Frame(seq=0, stamp_ns=1, width=128, height=96, data=image).encode())
+preprocess(frame.data, TrackerParams())  # a decoded frame, as the service's come
+print(len(pre._blur_fixed.signatures))
+"""
+
+
+def test_a_process_that_runs_pre_processing_alone_loads_only_its_kernels():
+    """With the kernels in the cache, every warm-up loaded all of the tracker's (~0.9 s of a
+    process's start): pre-processing, which runs its filter's, and the launcher, which runs
+    none, while the services around them started on the same cores. ``load`` loads what the
+    process runs instead, and a decoded frame then runs what it loaded."""
+    out = subprocess.run([sys.executable, "-c", LOAD_ONLY], capture_output=True, text=True,
+                         check=True, timeout=300).stdout.split()
+    assert out == ["False", "0", "1", "1"]  # from the cache; no search; the filter, once

@@ -92,8 +92,9 @@ def test_the_compile_split_compiles_only_what_the_tracker_calls(start_up_signatu
             kernels._AHEAD_PARAMS[kernel.__name__], kernel.__name__  # else see there
     split = (ssd._search_level, ssd._refine_with, ssd._parabola, pyramid._consensus,
              pyramid._widen, *{kernel for kernel, _ in ahead})
-    assert {k.__name__: len(start_up_signatures[k]) for k in split} == \
-        {k.__name__: 1 for k in split}
+    if start_up_signatures is not None:  # the session compiled them (CI, a first run)
+        assert {k.__name__: len(start_up_signatures[k]) for k in split} == \
+            {k.__name__: 1 for k in split}
     # and the split's calls, made again, compile nothing the cache does not hold
     before = [kernels.cached_signatures(k) for k in split]
     assert all(before)

@@ -102,6 +102,25 @@ def _cached_signatures() -> dict[object, set[object]]:
     return found
 
 
+#: what the processes a test starts inherit and that says where they read or write: a value a
+#: test leaves behind misleads every later test's processes (a NUMBA_CACHE_DIR left set sent
+#: them to compile into an empty cache, 45 s in one test, where CI sets none)
+_KEPT = ("NUMBA_CACHE_DIR", "HOME", "XDG_CACHE_HOME", "TMPDIR", "VISTRACK_DATA", "PYTHONPATH")
+
+
+@pytest.fixture(autouse=True)
+def environment_kept() -> Iterator[None]:
+    """Fail a test that leaves :data:`_KEPT` or the temporary folder changed (torn down after
+    ``monkeypatch``, whose undo it checks: a ``delenv(raising=False)`` of a variable that is
+    not set records nothing to restore)."""
+    import tempfile
+
+    before = ({k: os.environ.get(k) for k in _KEPT}, tempfile.gettempdir())
+    yield
+    after = ({k: os.environ.get(k) for k in _KEPT}, tempfile.gettempdir())
+    assert after == before, f"the test left the environment changed: {before} -> {after}"
+
+
 @pytest.fixture
 def start_up_signatures() -> dict[object, set[object]] | None:
     """:data:`START_UP_SIGNATURES`: each cached kernel's versions, as the session's warm-up

@@ -374,7 +374,11 @@ def test_no_writable_cache_folder_falls_back_to_one_of_the_users(tmp_path, monke
     under a regular file cannot be made, by root either: the folders numba would try."""
     blocker = tmp_path / "file"
     blocker.write_text("")
-    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    # set, then deleted: monkeypatch restores what was there before (a delenv of a variable
+    # not set records nothing, and the later delenv's undo left the fallback set for every
+    # later test's processes, where CI sets none)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", "")
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
     monkeypatch.setattr(kernels.tempfile, "tempdir", str(tmp_path / "tmp"))
     (tmp_path / "tmp").mkdir()
     folder = kernels.cache_folder_fallback([blocker / "a", blocker / "b"])

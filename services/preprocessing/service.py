@@ -104,10 +104,15 @@ def check_args(args: argparse.Namespace) -> None:
 
 def _load_kernels(params: TrackerParams) -> None:
     """Load the kernels this service runs (pre-processing's, from numba's cache) before the
-    first frame: those of a textured frame, read-only as decoded frames are."""
+    first frame: those of a textured frame, read-only as decoded frames are, its candidates
+    read as a frame that motion-estimation wants them for. Left to the first frame, the
+    candidates' load (22 ms) had the next frame of a 30 fps camera overwritten at this
+    service's latest-only input, beside a busy core."""
     (frame,) = sequence(1, size=(64, 64), seed=1)
     frame.flags.writeable = False
-    preprocess(frame, params)
+    pre = preprocess(frame, params)
+    encode_pre_frame(seq=0, stamp_ns=0, data=pre.filtered, candidates=pre.candidates,
+                     strength=pre.strength, params_id=0)
 
 
 def loop(node: Node, args: argparse.Namespace) -> None:

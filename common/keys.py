@@ -18,7 +18,8 @@ attribute           key suffix                      message (common.messages)
 ==================  ==============================  ==========================
 
 Each service also declares the liveliness token ``vistrack/<robot>/alive/<service>`` and answers
-queries on ``vistrack/<robot>/<service>/status``.
+queries on ``vistrack/<robot>/<service>/status``; a ``vistrack up`` that joins a router declares
+``vistrack/<robot>/launcher/<zid>``.
 """
 
 from __future__ import annotations
@@ -124,6 +125,17 @@ class Keys:
     def alive_any(self) -> str:
         """Key expression matching every liveliness token of this robot."""
         return f"{self.root}/alive/*"
+
+    def launcher(self, zid: str) -> str:
+        """Liveliness token key of the ``vistrack up`` that runs this robot's services
+        through a router it joins, by its Zenoh session id: ``vistrack/<robot>/launcher/<zid>``
+        (two launchers of one robot id started at once see each other by it, before either
+        has a service alive)."""
+        return f"{self.root}/launcher/{validate_service_name(zid)}"
+
+    def launcher_any(self) -> str:
+        """Key expression matching every launcher token of this robot."""
+        return f"{self.root}/launcher/*"
 
     def status_any(self) -> str:
         """Key expression matching every status queryable of this robot."""

@@ -70,6 +70,10 @@ TICK_S = 0.1
 PR_SET_PDEATHSIG = 1
 #: How long the launcher asks the router it joins for services of its robot already there, s
 ALIVE_QUERY_S = 1.0
+#: How long a launcher that saw another launcher of its robot id, and has the smaller Zenoh
+#: id of the two, waits for the other to give way before it asks again, s
+#: (:meth:`Supervisor._claim_robot`)
+CLAIM_SETTLE_S = 1.0
 #: How often each running service is asked for its status (hang detection), s.
 STATUS_PERIOD_S = 1.0
 #: A gap between two of the launcher's looks at its services longer than this, s, is the
@@ -222,6 +226,7 @@ class Launcher:
         self._children = [_Child(s) for s in sorted(launch.services, key=lambda s: order[s.name])]
         self._session: zenoh.Session | None = None
         self._token_sub: Any = None
+        self._claim: Any = None  # this launcher's token on a router it joins
         self._probes: dict[str, zenoh.Publisher] = {}  # never put: matching status only
         self._gate_deadline = 0.0
         self._end_code: int | None = None
@@ -389,11 +394,43 @@ class Launcher:
         session = open_session(config_from_args(args))
         self._log(f"connected to {', '.join(self._connect)}")
         try:
-            self._check_robot_free(session)
+            self._claim_robot(session)
         except LaunchError:
             session.close()
             raise
         return session
+
+    def _claim_robot(self, session: zenoh.Session) -> None:
+        """Declare this launcher's token (:meth:`.Keys.launcher`), then refuse to start where
+        the robot id is taken on the router: its services live there
+        (:meth:`_check_robot_free`), or another launcher's token is there.
+
+        Two launchers of one robot id started at once both found no service alive (theirs
+        start after the kernels' warm-up) and both ran, every key doubled. Each declares its
+        token before it looks, and a token reaches the router before the query that follows
+        it on the same link: of two, at least the later sees the earlier. One that sees
+        another gives way, unless its Zenoh id is the smaller: then the other, which sees it
+        too or runs, is given :data:`CLAIM_SETTLE_S` to go, and it starts only if the other
+        has gone."""
+        me = str(session.info.zid())
+        self._claim = session.liveliness().declare_token(self.keys.launcher(me))
+        self._check_robot_free(session)
+        others = self._launchers(session, me)
+        if others and min(others) > me:
+            time.sleep(CLAIM_SETTLE_S)  # the other sees this one too and gives way, or runs
+            others = self._launchers(session, me)
+        if others:
+            raise LaunchError(f"robot {self.launch.robot!r} is being launched by another "
+                              f"vistrack up at {', '.join(self._connect or [])} (no service "
+                              "of it live yet); give another --robot (or robot: in the "
+                              "launch file), or stop it first")
+
+    def _launchers(self, session: zenoh.Session, me: str) -> set[str]:
+        """The Zenoh ids of the other launchers of this robot id on the router."""
+        return {str(reply.ok.key_expr).rsplit("/", 1)[-1]
+                for reply in session.liveliness().get(self.keys.launcher_any(),
+                                                      timeout=ALIVE_QUERY_S)
+                if reply.ok is not None} - {me}
 
     def _check_robot_free(self, session: zenoh.Session) -> None:
         """Refuse to start where services of this robot id already live on the router: a
@@ -428,8 +465,11 @@ class Launcher:
         try:
             if self._token_sub is not None:
                 self._token_sub.undeclare()
+            if self._claim is not None:
+                self._claim.undeclare()
         except zenoh.ZError:
             pass  # the session is closing anyway
+        self._claim = None
         session.close()
 
     # -- supervision -------------------------------------------------------------------------

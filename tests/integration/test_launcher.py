@@ -655,11 +655,9 @@ def test_a_router_outage_is_no_service_s_hang(procs, tmp_path, free_port):
     assert "is hung" not in up.output and "exited with" not in up.output, up.output
 
 
-def test_a_robot_id_already_live_on_the_router_is_refused(procs, tmp_path, free_port):
-    """A second vistrack up with a robot id whose services already live on the router it
-    joins: it doubled that robot's every key (estimates at 118 Hz), and each launcher killed
-    the other's services as hung. It is now refused before it starts anything, naming them;
-    the first goes on."""
+def _two_services_on_a_router(procs, tmp_path, free_port) -> tuple[Path, str, str]:
+    """A launch file of pre-processing and motion-estimation, a router of its own started on
+    ``free_port``, and a fresh robot id: (the launch file, the router's endpoint, the id)."""
     launch = write_launch(tmp_path / "two.yaml", """\
         services:
           - {name: preprocessing}
@@ -670,6 +668,15 @@ def test_a_robot_id_already_live_on_the_router_is_refused(procs, tmp_path, free_
     procs.append(router)
     router.wait_line(r"^vistrack router: ready", 20)
     robot = f"t{uuid.uuid4().hex[:8]}"
+    return launch, endpoint, robot
+
+
+def test_a_robot_id_already_live_on_the_router_is_refused(procs, tmp_path, free_port):
+    """A second vistrack up with a robot id whose services already live on the router it
+    joins: it doubled that robot's every key (estimates at 118 Hz), and each launcher killed
+    the other's services as hung. It is now refused before it starts anything, naming them;
+    the first goes on."""
+    launch, endpoint, robot = _two_services_on_a_router(procs, tmp_path, free_port)
     first = Proc("up", str(launch), "-e", endpoint, "--robot", robot)
     procs.append(first)
     first.wait_line(r"^vistrack up: ready", READY_S)
@@ -680,6 +687,25 @@ def test_a_robot_id_already_live_on_the_router_is_refused(procs, tmp_path, free_
             "motion_estimation, preprocessing; give another --robot") in second.output
     assert "started" not in second.output
     assert first.proc.poll() is None, first.output
+
+
+def test_two_launchers_of_one_robot_id_started_at_once_run_it_once(procs, tmp_path,
+                                                                    free_port):
+    """Two vistrack up of one robot id started together on one router: each found no service
+    of it alive (theirs start after the kernels' warm-up), and both ran, every key doubled.
+    Now one runs and the other is refused, saying why, before it starts anything."""
+    launch, endpoint, robot = _two_services_on_a_router(procs, tmp_path, free_port)
+    both = [Proc("up", str(launch), "-e", endpoint, "--robot", robot) for _ in range(2)]
+    procs.extend(both)
+    loser = wait_for(lambda: next((p for p in both if p.proc.poll() is not None), None), 60,
+                     "one launcher to give way")
+    assert loser.proc.returncode == 1, loser.output
+    (winner,) = (p for p in both if p is not loser)
+    loser.wait_line(rf"^vistrack up: error: robot '{robot}' (is being launched by another "
+                    rf"vistrack up|already has live services) at {re.escape(endpoint)}", 5)
+    assert "started" not in loser.output
+    winner.wait_line(r"^vistrack up: ready", READY_S)
+    assert winner.proc.poll() is None, winner.output
 
 
 def test_a_restart_that_never_becomes_ready_is_killed_and_tried_again(procs, tmp_path,

@@ -152,3 +152,21 @@ def test_a_tool_given_none_of_vistracks_keys_says_so(given, warned, capsys):
         assert "is a queryable" in err and "vistrack status" in err
     if given.startswith("alive/"):
         assert "is a liveliness token" in err
+
+
+def test_launcher_tokens_are_apart_from_the_services():
+    """A launcher's token (its Zenoh session id) is found by launcher_any, and by none of the
+    services' wildcards: `vistrack status` lists no launcher as a service."""
+    keys = Keys("scout-7")
+    quiet = zenoh.Config.from_json5('{scouting: {multicast: {enabled: false}}}')
+    with zenoh.open(quiet) as session:
+        zid = str(session.info.zid())
+    token = keys.launcher(zid)
+    assert token == f"vistrack/scout-7/launcher/{zid}"
+    assert str(zenoh.KeyExpr(token)) == token
+    assert zenoh.KeyExpr(keys.launcher_any()).intersects(token)
+    assert not zenoh.KeyExpr(Keys("other").launcher_any()).intersects(token)
+    for wildcard in (keys.alive_any(), keys.status_any()):
+        assert not zenoh.KeyExpr(wildcard).intersects(token)
+    for service in SERVICES:
+        assert not zenoh.KeyExpr(keys.launcher_any()).intersects(keys.alive(service))

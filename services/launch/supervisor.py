@@ -396,6 +396,7 @@ class Launcher:
         try:
             self._claim_robot(session)
         except LaunchError:
+            self._claim = None  # its token goes with the session
             session.close()
             raise
         return session

@@ -1428,8 +1428,12 @@ def service_status(session: zenoh.Session, keys: Keys, service: str, timeout: fl
 
 def alive_services(session: zenoh.Session, keys: Keys, timeout: float = 1.0) -> list[str]:
     """Names of the services of ``keys.robot`` whose liveliness token is present, sorted."""
-    names = set()
-    for reply in session.liveliness().get(keys.alive_any(), timeout=timeout):
-        if reply.ok is not None:
-            names.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
-    return sorted(names)
+    return sorted(token_names(session, keys.alive_any(), timeout))
+
+
+def token_names(session: zenoh.Session, expr: str, timeout: float = 1.0) -> set[str]:
+    """The last chunk of every liveliness token present under ``expr`` (a service's name, a
+    launcher's Zenoh id)."""
+    return {str(reply.ok.key_expr).rsplit("/", 1)[-1]
+            for reply in session.liveliness().get(expr, timeout=timeout)
+            if reply.ok is not None}

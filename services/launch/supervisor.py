@@ -30,8 +30,10 @@ from typing import IO, Any
 import zenoh
 
 from ...common.bus import (
+    alive_services,
     config_from_args,
     open_session,
+    token_names,
 )
 from ...common.keys import Keys
 from ...common.messages import MessageError, unpack
@@ -428,19 +430,13 @@ class Launcher:
 
     def _launchers(self, session: zenoh.Session, me: str) -> set[str]:
         """The Zenoh ids of the other launchers of this robot id on the router."""
-        return {str(reply.ok.key_expr).rsplit("/", 1)[-1]
-                for reply in session.liveliness().get(self.keys.launcher_any(),
-                                                      timeout=ALIVE_QUERY_S)
-                if reply.ok is not None} - {me}
+        return token_names(session, self.keys.launcher_any(), ALIVE_QUERY_S) - {me}
 
     def _check_robot_free(self, session: zenoh.Session) -> None:
         """Refuse to start where services of this robot id already live on the router: a
         second vistrack up with a robot's id doubled its every key (estimates at 118 Hz), and
         each launcher killed the other's services as hung."""
-        live = sorted({str(reply.ok.key_expr).rsplit("/", 1)[-1]
-                       for reply in session.liveliness().get(self.keys.alive_any(),
-                                                             timeout=ALIVE_QUERY_S)
-                       if reply.ok is not None})
+        live = alive_services(session, self.keys, ALIVE_QUERY_S)
         if live:
             raise LaunchError(f"robot {self.launch.robot!r} already has live services at "
                               f"{', '.join(self._connect or [])}: {', '.join(live)}; give "

@@ -307,7 +307,7 @@ def _refinement_calls() -> list[tuple[Callable[..., object], tuple]]:
             (ssd._parabola, (flat, flat, 64, 64, 32, 32, 32, 32, 2, wts, uniform, 0.0)),
             (pyramid._consensus, (pts, pts.copy(), np.full(1, ssd.LEFT, np.int8), 2.0)),
             (pyramid._widen, (frame, frame, pts, 2, 10, acc, np.zeros(1, np.bool_),
-                              pts.copy(), 0.1, 2.0, 8.0, np.zeros(1, np.bool_), pts.copy())),
+                              pts.copy(), 2.0, 1.25, 8.0, np.zeros(1, np.bool_), pts.copy())),
             (pyramid._affine_correction, (frame, pts, pts.copy(),
                                           np.full(1, ssd.LEFT, np.int8), np.zeros(1, np.bool_),
                                           pts.copy(), 2, wts, uniform, 0.2,

@@ -112,23 +112,27 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
    interval kept 0.47 of its features, not 0.27 (LK 0.72), and Urban2's 0.69, not 0.51
    (LK 0.87);
 6. **wide sub-pixel window**: Gauss-Newton again over a wider window (21 px by default), whose
-   estimate is taken where it agrees with the correlation window's (:func:`_widen`) to within
-   a bound that grows with the camera's noise (:func:`agreement`), or where each side of its
-   ring fits frame t+1 about as well as its centre (a mean squared residual at most STRADDLE
-   times the centre's, plus noise's; :func:`_ring_fit`): motion blur that changes from frame
-   to frame moves the small window's estimate by more than the bound and spreads its
-   residual all round the wide window, where a second motion leaves it on a side or two. On
-   the rendered sequences blurred by a shutter open half and all of the frame interval
-   (:func:`.rendered.motion_blurred`), taking the wide estimate only where the two agreed
-   left ours 0.96 to 1.19 and 1.61 to 2.20 times LK's median error; with the side test 0.91
-   to 0.97 and 0.97 to 1.01. Every scoreboard row stays within its targets; the pairs with
-   motion boundaries pay a little: Grove2's 0.094 -> 0.105 px (LK 0.161), Urban2's 0.084 ->
-   0.086 (LK 0.087). STRADDLE 1.5 to 5 gave the same on the pairs; the whole ring's residual
-   instead of each side's, Grove2's 0.129. Its cost: on the bench's real frames a quarter of
-   the features disagree by more than the bound (21 to 27 of ~80) and are tested, +11 to 13
-   us a frame (4 %; old and new side by side in one process, best of 300 rounds), its sums
-   in integers, a row's residuals in one vectorised loop (as three loops, one a side, the
-   rows' 6 to 9 pixels vectorised badly: +28 us);
+   estimate is taken where the wide window's neighbourhood moves as the correlation window's
+   centre does (:func:`_widen`): at the correlation window's estimate, each side of its ring
+   fits frame t+1 about as well as its centre (a mean squared residual at most STRADDLE
+   times the centre's, plus noise's; :func:`_ring_fit`), or, failing that, at the wide
+   estimate every side fits at most EVEN times as badly as the centre. A surface at another
+   depth, or a motion boundary, in the wide window leaves a side that does not fit the
+   centre's motion; noise, and motion blur that changes from frame to frame (it moves the
+   small window's estimate), leave the residual all round. Until 2026-12-07 the wide estimate
+   was taken where it agreed with the correlation window's to within 0.1 px (more with
+   noise), or where the ring fitted the wide estimate within STRADDLE times the centre: on
+   real scenes with depth that took the neighbourhood's average (with up to 500 features
+   Grove2's and Urban2's median 0.077 and 0.072 px, now 0.063 and 0.067; held out, with 100,
+   Grove3 0.249 -> 0.196, Urban3 0.062 -> 0.048). On the rendered sequences blurred by a
+   shutter open half and all of the frame interval (:func:`.rendered.motion_blurred`) ours is
+   0.79 to 0.91 and 0.96 to 1.08 times LK's median error (0.94 to 1.05 before; with the side
+   test at the small window's estimate alone up to 1.13; without the wide window 1.26 to 1.63
+   and 1.79 to 2.27). Its cost: the ring fit (~0.4 us) for every match the wide window
+   refines (before, for the quarter that disagreed by more than the bound), and a second
+   where a side does not fit: a held frame of the bench's +20 to +34 us (old and new in
+   turn, three processes each, best of 150 rounds: 371 to 411 -> 404 to 439 us with the
+   pre-processing);
 7. **the window's centroid** (with sub-pixel refinement; AFFINE_FIT_PX, 0: off): a
    translation estimated over a window whose neighbourhood also scales or turns (an approach,
    a roll) is the motion at the window's texture-weighted centroids (the turn's differs from
@@ -311,8 +315,6 @@ import numpy as np
 from ..params import SEARCH_KINDS
 from .motion import _median_small
 from .ssd import (
-    AGREE_NOISE,
-    AGREE_PX,
     AMBIGUOUS,
     BIG,
     BORDER,
@@ -477,6 +479,9 @@ FOLLOW_NEAR = 0.25
 #: each side of its ring has a mean squared residual at most this many times its centre's
 #: (plus noise's; :func:`_widen`)
 STRADDLE = 2.0
+#: ... and where a side does not, it is still taken where each side fits the wide estimate
+#: at most this many times as badly as its centre (plus noise's; :func:`_widen`)
+EVEN = 1.25
 #: :func:`_ring_fit`'s bilinear weights are in 1/BILINEAR_ONE (a residual of 255 grey
 #: levels, squared, still fits int32: (128 * 255)^2 < 2^31)
 BILINEAR_ONE = 128
@@ -850,7 +855,7 @@ def _match(pdata, cdata, geo, pts, preds, active, n, s, wts, exhaustive, ratio, 
 def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wts, exhaustive,
                  ratio, allowance, reject_border, guided_retry, fb_bound, consensus, dominant,
                  dominant_follow, reach, depart, arbiter, affine_fit, rescue_fit, rescue_near,
-                 subpixel, wide, acc, agree, straddle, floor, budget, out_pos, out_ssd,
+                 subpixel, wide, acc, straddle, even, floor, budget, out_pos, out_ssd,
                  out_status):  # pragma: no cover - numba
     """The whole of :func:`track_pyramid` (steps 0 to 7 of the module notes), returning how
     many were found; ``acc``: the integer type of the sub-pixel sums
@@ -997,7 +1002,7 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
     took = np.zeros(n_feat, np.bool_)
     cen = np.empty((n_feat, 8), np.float64)
     if subpixel and wide > n:
-        _widen(prev, curr, pts, n, wide, acc, ok, out_pos, agree, straddle, floor, took, cen)
+        _widen(prev, curr, pts, n, wide, acc, ok, out_pos, straddle, even, floor, took, cen)
     # 7. each estimate is of the motion at its window's centroid: corrected to the feature's
     # point by its neighbourhood's scale and rotation
     if subpixel and affine_fit > 0.0:
@@ -2045,19 +2050,22 @@ def _exchange(a, b):  # pragma: no cover - numba
 
 
 @nb.njit(cache=True, nogil=True)
-def _widen(prev, curr, pts, n, wide, acc, ok, out_pos, agree, straddle, floor, took,
+def _widen(prev, curr, pts, n, wide, acc, ok, out_pos, straddle, even, floor, took,
            cen):  # pragma: no cover - numba
     """The wide window's estimate (:func:`.ssd._refine` over (2 wide + 1)^2, uniform weights)
-    from the correlation window's, taken where the two agree to within ``agree`` px: there the
-    neighbourhood moves as one and more pixels make it more precise; near a motion boundary
-    the wide window straddles two motions and the correlation window's estimate is kept.
-
-    Where they disagree by more, the wide estimate is still taken when the wide window fits
-    as well around the correlation window as inside it (``straddle`` > 0): the mean squared
-    residual of each side of its ring at most ``straddle`` times that of its centre plus
-    ``floor`` (what noise alone leaves). Motion blur that changes from frame to frame moves
-    the small window's estimate, not the wide one's, and leaves a residual all round the
-    window; a second motion leaves it on a side or two (:func:`_ring_fit`). ``took``: set
+    from the correlation window's, taken where the wide window's neighbourhood moves as its
+    centre does (:func:`_ring_fit`): at the correlation window's estimate, the mean squared
+    residual of each side of its ring at most ``straddle`` times its centre's plus ``floor``
+    (what noise alone leaves). There more pixels make the estimate more precise, and average
+    out the motion blur that changes from frame to frame (it moves the small window's
+    estimate and leaves a residual all round). A second motion in the wide window (a surface
+    at another depth, a motion boundary) leaves a side that does not fit the centre's motion:
+    the correlation window's estimate is kept. Where a side does not fit, the wide estimate
+    is still taken where, at that estimate, every side fits about as well as its centre (at
+    most ``even`` times its residual plus ``floor``; 0: not tried): strong blur biases the
+    small window's estimate, so that the sides fit it worse, but leaves the residual at the
+    wide estimate even all round, where a second motion leaves it on a side or two.
+    ``straddle`` 0: no test, the wide estimate taken wherever it converges. ``took``: set
     where the wide estimate was taken, and ``cen`` there its window's centroid
     (:func:`.ssd._refine`)."""
     scratch = _refine_scratch(np.ones((2 * wide + 1, 2 * wide + 1), np.int32), acc)
@@ -2072,18 +2080,23 @@ def _widen(prev, curr, pts, n, wide, acc, ok, out_pos, agree, straddle, floor, t
         good, xw, yw = _refine_with(prev, curr, ax, ay, x, y, wide, scratch, CENTROID)
         if not good:
             continue
-        take = (xw - x) * (xw - x) + (yw - y) * (yw - y) <= agree * agree
-        if not take and straddle > 0.0:
-            # frames t and t+1 around the window, as the refinement copied them
-            inner, ring = _ring_fit(scratch[1], scratch[2], int(np.floor(x)), int(np.floor(y)),
-                                    xw, yw, n, wide, masks)
-            take = ring <= straddle * inner + floor
-        if take:
-            out_pos[f, 0] = pts[f, 0] + (xw - ax)
-            out_pos[f, 1] = pts[f, 1] + (yw - ay)
-            took[f] = True
-            for k in range(8):
-                cen[f, k] = scratch[5][k]
+        if straddle > 0.0:
+            # frames t and t+1 around the window, as the refinement copied them from its
+            # start (x, y), which it sampled: the ring's bilinear samples there lie in both
+            ix = int(np.floor(x))
+            iy = int(np.floor(y))
+            inner, ring = _ring_fit(scratch[1], scratch[2], ix, iy, x, y, n, wide, masks)
+            if ring > straddle * inner + floor:
+                if even <= 0.0:
+                    continue
+                inner, ring = _ring_fit(scratch[1], scratch[2], ix, iy, xw, yw, n, wide, masks)
+                if ring > even * inner + floor:
+                    continue
+        out_pos[f, 0] = pts[f, 0] + (xw - ax)
+        out_pos[f, 1] = pts[f, 1] + (yw - ay)
+        took[f] = True
+        for k in range(8):
+            cen[f, k] = scratch[5][k]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -2529,47 +2542,41 @@ def _ring_fit(tp, cp, ix, iy, x, y, n, wide, masks):  # pragma: no cover - numba
             max(left / side, right / side, top / cap, bottom / cap))
 
 
-@nb.njit(cache=True, nogil=True)
-def _ring_fit_at(prev, curr, ax, ay, x, y, n, wide):  # pragma: no cover - numba
-    """:func:`_ring_fit` from the frames: the patches copied here as the wide window's
-    refinement copies them, from Gauss-Newton's start (x, y) (a test's)."""
+@nb.njit(**NO_NRT)
+def _ring_fit_from(prev, curr, ax, ay, x, y, n, wide, tp, cp, masks):  # pragma: no cover
+    """:func:`_ring_fit` of the template at (ax, ay) of frame t (``prev``) against frame t+1
+    (``curr``) at (x, y), the patches copied into ``tp`` and ``cp`` as the wide window's
+    refinement copies them from a start at (x, y) (:func:`.ssd._refine`)."""
     m = 2 * wide + 1
-    wpad, tp, cp, _, _, _, _ = _refine_scratch(np.ones((m, m), np.int32),
-                                               np.empty(0, np.int32))
     ix = int(np.floor(x))
     iy = int(np.floor(y))
     _patch(prev, ax - wide - 2, ay - wide - 2, m + 4, m + 4, tp, m + 4)
     _patch(curr, ix - wide - 1, iy - wide - 1, m + 3, m + 3, cp, m + 4)
-    return _ring_fit(tp, cp, ix, iy, x, y, n, wide, _ring_masks(n, wide, wpad.shape[0]))
+    return _ring_fit(tp, cp, ix, iy, x, y, n, wide, masks)
 
 
-def agreement(noise: float) -> float:
-    """The bound, px, within which the wide window's sub-pixel estimate must agree with the
-    correlation window's to be taken, for a camera noise of ``noise`` grey levels.
-
-    The two disagree for two reasons: the wide window straddles two motions (a motion
-    boundary: keep the correlation window's), or noise moves the correlation window's estimate,
-    which the wide window, with 5 times the pixels, averages out (take the wide window's).
-    :data:`.ssd.AGREE_PX` (0.1 px) was chosen at AGREE_NOISE grey levels; the scatter of the
-    correlation window's estimate grows in proportion to the noise, and so does the bound
-    above that. On the rendered sequences with 3 and 6 grey levels of noise added, a fixed
-    0.1 px left the median error at up to 1.1 and 1.4 times LK's; 0.2 px at every noise level
-    took Urban2's boundaries for noise (its pair's median error above LK's)."""
-    return AGREE_PX * max(1.0, noise / AGREE_NOISE)
+@nb.njit(cache=True, nogil=True)
+def _ring_fit_at(prev, curr, ax, ay, x, y, n, wide):  # pragma: no cover - numba
+    """:func:`_ring_fit_from` with scratch of its own (a test's)."""
+    m = 2 * wide + 1
+    wpad, tp, cp, _, _, _, _ = _refine_scratch(np.ones((m, m), np.int32),
+                                               np.empty(0, np.int32))
+    return _ring_fit_from(prev, curr, ax, ay, x, y, n, wide, tp, cp,
+                          _ring_masks(n, wide, wpad.shape[0]))
 
 
 class WideTests(TypedDict):
     """:func:`wide_tests`' keyword arguments of :func:`track_pyramid`."""
 
-    agree: float
     straddle: float
+    even: float
     floor: float
 
 
 def wide_tests(noise: float) -> WideTests:
-    """:func:`track_pyramid`'s ``agree``, ``straddle`` and ``floor`` (the wide window's tests,
+    """:func:`track_pyramid`'s ``straddle``, ``even`` and ``floor`` (the wide window's tests,
     step 6 of the module notes) for a camera noise of ``noise`` grey levels."""
-    return {"agree": agreement(noise), "straddle": STRADDLE, "floor": 2.0 * noise * noise}
+    return {"straddle": STRADDLE, "even": EVEN, "floor": 2.0 * noise * noise}
 
 
 @functools.lru_cache(maxsize=16)
@@ -2600,8 +2607,8 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
                   subpixel: bool = False, search: str = "pruned", uniqueness: float = 0.0,
                   allowance: float = 0.0, reject_border: bool = False,
                   guided_retry: bool = False, max_fb_error: float = 0.0,
-                  consensus: float = 0.0, wide_half: int = 0, agree: float = AGREE_PX,
-                  straddle: float = 0.0, floor: float = 0.0,
+                  consensus: float = 0.0, wide_half: int = 0,
+                  straddle: float = 0.0, even: float = 0.0, floor: float = 0.0,
                   held: np.ndarray | None = None, follow: bool = False,
                   followed: np.ndarray | None = None, work: int = FRAME_WORK
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -2626,12 +2633,11 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
     consensus : a match whose displacement departs from its nearest neighbours' by more than
         this, px, is rejected (see :func:`_consensus`); 0 turns the check off.
     wide_half : half-width of the wide sub-pixel window (0: the correlation window only).
-    agree : the wide window's estimate is taken where it is within this of the correlation
-        window's, px (:data:`.ssd.AGREE_PX` for a camera noise of AGREE_NOISE grey levels; the
-        tracker scales it with the noise, :func:`agreement`).
-    straddle, floor : where the two disagree by more, the wide estimate is still taken when
-        the mean squared residual of the wide window's ring is at most ``straddle`` times that
-        of its centre plus ``floor`` (grey levels^2; see :func:`_widen`); ``straddle`` 0: never.
+    straddle, even, floor : the wide window's estimate is taken where, at the correlation
+        window's estimate, the mean squared residual of each side of its ring is at most
+        ``straddle`` times that of its centre plus ``floor`` (grey levels^2), or else, at the
+        wide estimate, at most ``even`` times its centre's plus ``floor`` (see :func:`_widen`);
+        ``straddle`` 0: wherever it converges; ``even`` 0: no second test.
     held : (N,) bool, the features to follow first (step 0; the tracker: all); None: none.
     follow : follow the held features from their prediction by Gauss-Newton first (step 0 of
         the module notes); needs ``subpixel`` and ``max_fb_error`` > 0.
@@ -2653,7 +2659,7 @@ def track_pyramid(prev: Pyramid, curr: Pyramid, points: np.ndarray, predictions:
                      subpixel=subpixel, search=search, uniqueness=uniqueness,
                      allowance=allowance, reject_border=reject_border,
                      guided_retry=guided_retry, max_fb_error=max_fb_error, consensus=consensus,
-                     wide_half=wide_half, agree=agree, straddle=straddle, floor=floor,
+                     wide_half=wide_half, straddle=straddle, even=even, floor=floor,
                      follow=follow)
     return plan.track(prev, curr, points, predictions, held=held, followed=followed, work=work)
 
@@ -2671,8 +2677,9 @@ class TrackPlan:
                  subpixel: bool = False, search: str = "pruned", uniqueness: float = 0.0,
                  allowance: float = 0.0, reject_border: bool = False,
                  guided_retry: bool = False, max_fb_error: float = 0.0,
-                 consensus: float = 0.0, wide_half: int = 0, agree: float = AGREE_PX,
-                 straddle: float = 0.0, floor: float = 0.0, follow: bool = False) -> None:
+                 consensus: float = 0.0, wide_half: int = 0,
+                 straddle: float = 0.0, even: float = 0.0, floor: float = 0.0,
+                 follow: bool = False) -> None:
         if search not in SEARCH_KINDS:
             raise ValueError(f"search={search!r} is not allowed: use one of "
                              f"{', '.join(SEARCH_KINDS)}")
@@ -2690,7 +2697,7 @@ class TrackPlan:
             int(PERIOD_REACH), float(PERIOD_DEPART_PX),
             int(wide_half) if WIDE_ARBITER and subpixel else 0, float(AFFINE_FIT_PX),
             float(RESCUE_FIT_PX), int(RESCUE_AFFINE_NEAR), bool(subpixel), int(wide_half), acc,
-            float(agree), float(straddle), float(floor))
+            float(straddle), float(even), float(floor))
         self._guided_retry = bool(guided_retry)
         self._search_half = float(search_half)
         self._follow = bool(follow)

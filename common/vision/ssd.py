@@ -1221,12 +1221,6 @@ def _track(prev, curr, anchors, centers, n, s, wts, subpixel, exhaustive, acc, w
     return 0
 
 
-#: the sub-pixel estimate of the wide window is taken where it agrees with the correlation
-#: window's to within this, px (see :func:`_subpixel`)
-AGREE_PX = 0.1
-#: the camera noise, grey levels, AGREE_PX was chosen at (the default ``noise_sigma``); the
-#: tracker scales the bound with the noise (:func:`.pyramid.agreement`)
-AGREE_NOISE = 2.0
 #: Gauss-Newton stops once a step is below this, px, or after GN_ITERATIONS
 GN_STEP_PX = 1e-3
 #: :func:`_refine`'s ``third``: the refinement corrects the interpolation's third-order term

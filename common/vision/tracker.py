@@ -190,7 +190,7 @@ class Tracker:
         self._turn = self._turn_before = np.nan
         self._frame = 0
         # the camera's noise, grey levels, estimated from the frames (see .noise), and the
-        # frame it was estimated on: the wide sub-pixel window's agreement bound scales with it
+        # frame it was estimated on: the wide sub-pixel window's side test allows for it
         self.noise = 0.0
         self._noise_at = -NOISE_EVERY
         # a frame whose noise is yet to be read, and its pre-filter's blur_sigma (see settle)

@@ -79,15 +79,16 @@ def _shaken(image: np.ndarray, name: str):
 
 def test_a_shaking_wide_angle_camera_is_tracked(sources):
     """The scoreboard's shake through the lens (k 0.25), every source: median error at most
-    LK's (0.039 to 0.058 px; LK 0.081 to 0.127), none off by more than 2 px (LK up to
-    0.59 %), and at least half of LK's survival (0.55 to 0.87 times)."""
+    LK's (0.039 to 0.057 px; LK 0.081 to 0.129), at most 0.15 % of the pairs off by more
+    than 2 px (1 of Venus's 1936, none elsewhere; LK up to 0.59 %), and at least half of
+    LK's survival (0.55 to 0.87 times)."""
     for name, image in sources:
-        assert_holds_lk(name, *_shaken(image, name), gross=0.0025)
+        assert_holds_lk(name, *_shaken(image, name), gross=0.0015)
 
 
 def test_without_the_period_test_the_knit_is_matched_a_period_off(sources, monkeypatch):
     """The test above can tell: with step 5b's period test off (``PERIOD_REACH`` 0),
-    RubberWhale's knit has 12 pairs off by more than 2 px (0.61 %)."""
+    RubberWhale's knit has 4 pairs of 2028 off by more than 2 px (0.20 %; with it, none)."""
     monkeypatch.setattr(pyramid, "PERIOD_REACH", 0)
     ours, _ = _shaken(dict(sources)["RubberWhale"], "RubberWhale")
-    assert ours.gross > 0.0025, ours.gross
+    assert ours.gross > 0.0015, ours.gross

@@ -126,7 +126,7 @@ pixel (x, y) lies at (2^k x, 2^k y) of the frame) and each feature is tracked co
    Grove2's and Urban2's median 0.077 and 0.072 px, now 0.063 and 0.067; held out, with 100,
    Grove3 0.249 -> 0.196, Urban3 0.062 -> 0.048). On the rendered sequences blurred by a
    shutter open half and all of the frame interval (:func:`.rendered.motion_blurred`) ours is
-   0.79 to 0.91 and 0.96 to 1.08 times LK's median error (0.94 to 1.05 before; with the side
+   0.79 to 0.91 and 0.96 to 1.08 times LK's median error (0.93 to 1.05 before; with the side
    test at the small window's estimate alone up to 1.13; without the wide window 1.26 to 1.63
    and 1.79 to 2.27). Its cost: the ring fit (~0.4 us) for every match the wide window
    refines (before, for the quarter that disagreed by more than the bound), and a second

@@ -2542,27 +2542,18 @@ def _ring_fit(tp, cp, ix, iy, x, y, n, wide, masks):  # pragma: no cover - numba
             max(left / side, right / side, top / cap, bottom / cap))
 
 
-@nb.njit(**NO_NRT)
-def _ring_fit_from(prev, curr, ax, ay, x, y, n, wide, tp, cp, masks):  # pragma: no cover
-    """:func:`_ring_fit` of the template at (ax, ay) of frame t (``prev``) against frame t+1
-    (``curr``) at (x, y), the patches copied into ``tp`` and ``cp`` as the wide window's
-    refinement copies them from a start at (x, y) (:func:`.ssd._refine`)."""
+@nb.njit(cache=True, nogil=True)
+def _ring_fit_at(prev, curr, ax, ay, x, y, n, wide):  # pragma: no cover - numba
+    """:func:`_ring_fit` from the frames: the patches copied here as the wide window's
+    refinement copies them, from Gauss-Newton's start (x, y) (a test's)."""
     m = 2 * wide + 1
+    wpad, tp, cp, _, _, _, _ = _refine_scratch(np.ones((m, m), np.int32),
+                                               np.empty(0, np.int32))
     ix = int(np.floor(x))
     iy = int(np.floor(y))
     _patch(prev, ax - wide - 2, ay - wide - 2, m + 4, m + 4, tp, m + 4)
     _patch(curr, ix - wide - 1, iy - wide - 1, m + 3, m + 3, cp, m + 4)
-    return _ring_fit(tp, cp, ix, iy, x, y, n, wide, masks)
-
-
-@nb.njit(cache=True, nogil=True)
-def _ring_fit_at(prev, curr, ax, ay, x, y, n, wide):  # pragma: no cover - numba
-    """:func:`_ring_fit_from` with scratch of its own (a test's)."""
-    m = 2 * wide + 1
-    wpad, tp, cp, _, _, _, _ = _refine_scratch(np.ones((m, m), np.int32),
-                                               np.empty(0, np.int32))
-    return _ring_fit_from(prev, curr, ax, ay, x, y, n, wide, tp, cp,
-                          _ring_masks(n, wide, wpad.shape[0]))
+    return _ring_fit(tp, cp, ix, iy, x, y, n, wide, _ring_masks(n, wide, wpad.shape[0]))
 
 
 class WideTests(TypedDict):

@@ -475,9 +475,9 @@ FOLLOW_STRAY_PX = 2.0
 #: prediction is no motion, not a measurement, and on Urban2's facades Gauss-Newton brought
 #: 2 features to rest near their start while the scene moved 3.5 px
 FOLLOW_NEAR = 0.25
-#: the wide window's estimate is taken where it disagrees with the correlation window's when
-#: each side of its ring has a mean squared residual at most this many times its centre's
-#: (plus noise's; :func:`_widen`)
+#: the wide window's estimate is taken where, at the correlation window's estimate, each side
+#: of its ring has a mean squared residual at most this many times its centre's (plus
+#: noise's; :func:`_widen`)
 STRADDLE = 2.0
 #: ... and where a side does not, it is still taken where each side fits the wide estimate
 #: at most this many times as badly as its centre (plus noise's; :func:`_widen`)
@@ -989,7 +989,7 @@ def _track_frame(pdata, cdata, geo, pts, preds, held, follow, followed, n, s, wt
     if rescue_fit > 0.0 and fb_bound > 0.0 and consensus > 0.0 and subpixel:
         _rescue(pdata, cdata, geo, pts, out_pos, out_ssd, out_status, n, wts, scratch,
                 fb_bound, rescue_fit, rescue_near)
-    # 6. the wide window's sub-pixel estimate, where it agrees
+    # 6. the wide window's sub-pixel estimate, where its neighbourhood moves as its centre
     ok = np.empty(n_feat, np.bool_)
     found = 0
     for f in range(n_feat):
@@ -2503,9 +2503,9 @@ def _ring_fit(tp, cp, ix, iy, x, y, n, wide, masks):  # pragma: no cover - numba
     the centre's width). A second motion in the window leaves its residual on a side or two,
     blur all round. The frames are read from the patches of the wide window's Gauss-Newton
     refinement (:func:`.ssd._refine`: ``tp`` frame t around the template, ``cp`` frame t+1
-    around its start, whose whole pixel is (ix, iy)), which converged at (x, y), within a
-    pixel of that start: the window and its bilinear samples lie inside both patches (and
-    both frames). ``masks``: :func:`_ring_masks`.
+    around its start, whose whole pixel is (ix, iy)), which converged: (x, y) is that start,
+    or where it converged, within a pixel of it; the window and its bilinear samples lie
+    inside both patches (and both frames). ``masks``: :func:`_ring_masks`.
 
     As 21 rows of 22 pixels (views of the frames, a row's residuals vectorised, added into
     its band's column sums) this took 543 ns a call on the bench's frames; over the patches'

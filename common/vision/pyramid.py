@@ -300,6 +300,16 @@ a match, ~68 ns each; two affine fits, ~110 ns, for each of the ~45 matches no s
 fits; ~15 correlation-window centroids), the consensus 22 (its neighbour search ~130 ns a
 match alone), following ~88 features 54 (a 9 x 9 refinement, ~255 ns alone, S at the match,
 a fifth of them their way back), plan.track's call 7.
+
+Later that day step 6 tested the ring at the correlation window's estimate, so the ring fit ran
+for every match the wide window refined (1 to 1.3 calls each), not a quarter of them: the wide
+window's step took 111 to 117 us on the bench's frames (92 features), 63 to 80 without its
+tests. The ring fit's sums then went the way of the refinement's (:func:`.ssd._masked_squares`):
+in plain LLVM vector code, 32 residuals a vector, each masked per sum and squared in the pairs
+of a 16-bit multiply-add, two vectors' pairs added in 32 bits before they are widened to 64,
+where numba's loop ran 8 lanes a step and widened each square to 64 bits: 353 to 360 -> 138
+to 153 ns a call, the wide window's step 111 to 117 -> 91 us; the same outputs bit for bit
+(every position, id and estimate on the shared and held-out pairs, 100 and 500 features).
 """
 
 from __future__ import annotations
@@ -321,6 +331,7 @@ from .ssd import (
     CENTROID,
     CUT,
     DISAGREES,
+    DOT_LANES,
     FB,
     LANES,
     LEFT,
@@ -330,8 +341,10 @@ from .ssd import (
     NO_THIRD,
     OK,
     OVER,
+    RING_MASKS,
     RUNAWAY,
     THIRD,
+    _masked_squares,
     _parabola,
     _patch,
     _refine_scratch,
@@ -2451,48 +2464,23 @@ def _centroid_fast(img, ax, ay, half, wts, uniform, patch, wq, qi, qj):  # pragm
 
 @nb.njit(cache=True, nogil=True)
 def _ring_masks(n, wide, size):  # pragma: no cover - numba
-    """(3, size) int32: -1 on the lanes of the wide window's pixels left of the centre's
-    columns, in them and right of them (pixel (j, i) of the window at lane j * (2 wide + 5) + i,
-    the layout of :func:`.ssd._refine`'s patches), 0 on the lanes between rows: what
-    :func:`_ring_fit` sums by."""
+    """(RING_MASKS, size) int16: -1 on the lanes of the wide window's pixels left of the
+    centre's columns, right of them, and in them above, within and below the centre's rows
+    (pixel (j, i) of the window at lane j * (2 wide + 5) + i, the layout of
+    :func:`.ssd._refine`'s patches), 0 elsewhere (the lanes between rows and after the
+    window): what :func:`_ring_fit` sums by."""
     stride = 2 * wide + 5
-    masks = np.zeros((3, size), np.int32)
+    masks = np.zeros((RING_MASKS, size), np.int16)
     for j in range(2 * wide + 1):
         for i in range(2 * wide + 1):
-            masks[0 if i < wide - n else 2 if i > wide + n else 1, j * stride + i] = -1
+            if i < wide - n:
+                k = 0
+            elif i > wide + n:
+                k = 1
+            else:
+                k = 2 if j < wide - n else 4 if j > wide + n else 3
+            masks[k, j * stride + i] = -1
     return masks
-
-
-@nb.njit(**NO_NRT)
-def _ring_rows(tp, cp, t0, c0, stride, w00, w01, w10, w11, masks, lo, hi):  # pragma: no cover
-    """:func:`_ring_fit`'s squared residuals of the lanes lo to hi (whole rows of the window:
-    the template's pixel at tp[t0 + lane], frame t+1's at cp[c0 + lane] and its neighbours)
-    summed left of, in and right of the centre's columns (``masks``): int64, exact."""
-    left = centre = right = np.int64(0)
-    one = np.int16(BILINEAR_ONE)
-    ml = masks[0, lo:hi]
-    mc = masks[1, lo:hi]
-    mr = masks[2, lo:hi]
-    # offsets in slices, the index the loop's own (see .ssd._refine)
-    a = tp[t0 + lo:]
-    b0 = cp[c0 + lo:]
-    b1 = cp[c0 + lo + 1:]
-    b2 = cp[c0 + lo + stride:]
-    b3 = cp[c0 + lo + stride + 1:]
-    for q in range(hi - lo):
-        # in 16 bits (numba types int16 * int16 as int64, hence the casts, which LLVM then
-        # narrows): each product and the bilinear sample at most BILINEAR_ONE * 255 (the
-        # weights sum to BILINEAR_ONE), the residual within +-BILINEAR_ONE * 255
-        d = np.int16(np.int16(np.int16(np.int16(w00 * np.int16(b0[q]))
-                                       + np.int16(w01 * np.int16(b1[q])))
-                              + np.int16(np.int16(w10 * np.int16(b2[q]))
-                                         + np.int16(w11 * np.int16(b3[q]))))
-                     - np.int16(one * np.int16(a[q])))
-        sq = np.int32(np.int32(d) * np.int32(d))  # < 2^31
-        left += np.int64(sq & ml[q])
-        centre += np.int64(sq & mc[q])
-        right += np.int64(sq & mr[q])
-    return left, centre, right
 
 
 @nb.njit(**NO_NRT)
@@ -2507,34 +2495,30 @@ def _ring_fit(tp, cp, ix, iy, x, y, n, wide, masks):  # pragma: no cover - numba
     or where it converged, within a pixel of it; the window and its bilinear samples lie
     inside both patches (and both frames). ``masks``: :func:`_ring_masks`.
 
-    As 21 rows of 22 pixels (views of the frames, a row's residuals vectorised, added into
-    its band's column sums) this took 543 ns a call on the bench's frames; over the patches'
-    lanes, a row's pad lanes masked, in 16 bits, 411 (the same sums)."""
+    The residuals in 1/BILINEAR_ONE grey levels, their squares summed exactly in integers
+    (the same on every machine), as 16-bit multiply-adds (:func:`.ssd._masked_squares`):
+    138 to 153 ns a 21 px window, where numba's loop over the same lanes took 353 to 360."""
     stride = 2 * wide + 5
     bx = int(np.floor(x))
     by = int(np.floor(y))
     fx = x - bx
     fy = y - by
-    # the bilinear weights in 1/BILINEAR_ONE, summing to it exactly: integer sums (exact, the
-    # same on every machine) of residuals in 1/BILINEAR_ONE grey levels
+    # the bilinear weights in 1/BILINEAR_ONE, summing to it exactly
     w01 = np.int16(np.rint(fx * (1.0 - fy) * BILINEAR_ONE))
     w10 = np.int16(np.rint((1.0 - fx) * fy * BILINEAR_ONE))
     w11 = np.int16(np.rint(fx * fy * BILINEAR_ONE))
     w00 = np.int16(BILINEAR_ONE - w01 - w10 - w11)
     # the window's pixel (j, i), 0 to 2 wide, at lane j * stride + i: the template's at
     # tp[t0 + lane] (its patch has a 2 px margin), frame t+1's (by - wide + j, bx - wide + i)
-    # at cp[c0 + lane] (its patch starts a pixel before (ix - wide, iy - wide))
+    # at cp[c0 + lane] (its patch starts a pixel before (ix - wide, iy - wide)); the lanes up
+    # to the window's last pixel, in whole steps of 2 DOT_LANES (the masks zero after it;
+    # within the patches' and masks' length, a multiple of ssd.VEC, 128)
     t0 = 2 * stride + 2
     c0 = (by - iy + 1) * stride + (bx - ix + 1)
-    above = (wide - n) * stride  # the lanes of the rows above the centre's, and to its end
-    within = (wide + n + 1) * stride
-    end = 2 * wide * stride + 2 * wide + 1
-    l1, top, r1 = _ring_rows(tp, cp, t0, c0, stride, w00, w01, w10, w11, masks, 0, above)
-    l2, inner, r2 = _ring_rows(tp, cp, t0, c0, stride, w00, w01, w10, w11, masks, above,
-                               within)
-    l3, bottom, r3 = _ring_rows(tp, cp, t0, c0, stride, w00, w01, w10, w11, masks, within, end)
-    left = l1 + l2 + l3
-    right = r1 + r2 + r3
+    step = 2 * DOT_LANES
+    used = (2 * wide * stride + 2 * wide + 1 + step - 1) // step * step
+    left, right, top, inner, bottom = _masked_squares(tp, t0, cp, c0, stride,
+                                                      (w00, w01, w10, w11), masks, used)
     m = 2 * n + 1
     side = float(2 * wide + 1) * (wide - n) * BILINEAR_ONE * BILINEAR_ONE
     cap = float(m) * (wide - n) * BILINEAR_ONE * BILINEAR_ONE

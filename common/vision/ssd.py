@@ -608,6 +608,107 @@ def _scaled_dots(typingctx, gx, gy, scale, pix, offsets, size):  # pragma: no co
         context, builder, signature, args, True)
 
 
+#: the sums of :func:`_masked_squares`, one a mask
+RING_MASKS = 5
+
+
+@intrinsic
+def _masked_squares(typingctx, tp, t0, cp, c0, stride, weights, masks,
+                    size):  # pragma: no cover - numba
+    """``(sum_q masks[k, q] & r[q]^2 for k < RING_MASKS)``, int64, over q < ``size`` (a
+    multiple of DOT_LANES), of the residual of a window of frame t against frame t+1 sampled
+    bilinearly, in 1/BILINEAR_ONE grey levels: ``r[q] = w00 cp[c0 + q] + w01 cp[c0 + q + 1]
+    + w10 cp[c0 + q + stride] + w11 cp[c0 + q + stride + 1] - (w00 + .. + w11) tp[t0 + q]``
+    (``weights`` (w00, w01, w10, w11), int16, summing to at most 128: every partial sum fits
+    int16) and ``size`` a multiple of 2 DOT_LANES. ``tp``, ``cp`` 1-D C uint8, ``masks``
+    (RING_MASKS, L) C int16 (0 or -1 a lane), read inside them (unchecked).
+    :func:`.pyramid._ring_fit`'s sums.
+
+    A residual squared is up to 2^30: a 16-bit multiply-add (vpmaddwd, the pattern of
+    :func:`_pixel_dots`) of the masked residuals with the residuals puts two of them in a
+    32-bit lane (at most 2 * 32640^2 < 2^31), then added into 64-bit lanes. The loop numba
+    made of it ran 8 lanes a step, each square widened to 64 bits (int32 sums of residuals
+    rounded to 1/8 grey level were no faster): 353 to 360 ns a 21 px window, against 138 to
+    153 here, with two vectors' pairs added in 32 bits (unsigned: below 2^32) before they
+    are widened (one vector a step: 173 to 207)."""
+    if not (all(isinstance(a, types.Array) and a.layout == "C" for a in (tp, cp, masks))
+            and tp.ndim == 1 and cp.ndim == 1 and masks.ndim == 2
+            and tp.dtype == types.uint8 and cp.dtype == types.uint8
+            and masks.dtype == types.int16
+            and isinstance(weights, types.UniTuple) and weights.count == 4
+            and weights.dtype == types.int16
+            and all(isinstance(t, types.Integer) for t in (t0, c0, stride, size))):
+        return None
+    sig = types.UniTuple(types.int64, RING_MASKS)(tp, t0, cp, c0, stride, weights, masks, size)
+
+    def codegen(context, builder, signature, args):
+        tys = signature.args
+        lanes = DOT_LANES
+        i16 = ir.IntType(16)
+        short = ir.VectorType(i16, lanes)
+        wide = ir.VectorType(ir.IntType(32), lanes)
+        half = ir.VectorType(ir.IntType(64), lanes // 2)
+        narrow = ir.VectorType(ir.IntType(8), lanes).as_pointer()
+        intp = context.get_value_type(types.intp)
+        zero = context.get_constant(types.intp, 0)
+
+        def at(j):
+            return context.cast(builder, args[j], tys[j], types.intp)
+        t0, c0, stride, size = at(1), at(3), at(4), at(7)
+        tbase = _flat_at(context, builder, tys[0], args[0], zero)
+        cbase = _flat_at(context, builder, tys[2], args[2], zero)
+        mbase = _flat_at(context, builder, tys[6], args[6], zero)
+        width = builder.extract_value(context.make_array(tys[6])(context, builder, args[6])
+                                      .shape, 1)
+
+        def splat(v):
+            return builder.shuffle_vector(
+                builder.insert_element(ir.Constant(short, None), v, ir.Constant(i16, 0)),
+                ir.Constant(short, None), ir.Constant(wide, [0] * lanes))
+        ws = [splat(builder.extract_value(args[5], k)) for k in range(4)]
+        one = builder.add(builder.add(builder.extract_value(args[5], 0),
+                                      builder.extract_value(args[5], 1)),
+                          builder.add(builder.extract_value(args[5], 2),
+                                      builder.extract_value(args[5], 3)))
+        ones = splat(one)
+        sums = [cgutils.alloca_once_value(builder, ir.Constant(half, None))
+                for _ in range(RING_MASKS)]
+
+        def residual(q):
+            def pixels(base, off):
+                ptr = builder.bitcast(builder.gep(base, [builder.add(off, q)]), narrow)
+                return builder.zext(builder.load(ptr, align=1), short)
+            b = [pixels(cbase, off) for off in (c0, builder.add(c0, ir.Constant(intp, 1)),
+                                                  builder.add(c0, stride),
+                                                  builder.add(builder.add(c0, stride),
+                                                              ir.Constant(intp, 1)))]
+            sample = builder.add(builder.add(builder.mul(ws[0], b[0]), builder.mul(ws[1], b[1])),
+                                 builder.add(builder.mul(ws[2], b[2]), builder.mul(ws[3], b[3])))
+            return builder.sub(sample, builder.mul(ones, pixels(tbase, t0)))
+
+        def squares(q, r, k):  # the pairs of masked squares, each < 2^31
+            mptr = builder.gep(mbase, [builder.add(builder.mul(ir.Constant(intp, k), width), q)])
+            m = builder.load(builder.bitcast(mptr, short.as_pointer()), align=2)
+            return _add_pairs(builder, builder.mul(builder.sext(builder.and_(r, m), wide),
+                                                   builder.sext(r, wide)))
+        step = ir.Constant(intp, 2 * lanes)
+        with cgutils.for_range_slice(builder, zero, size, step) as (q, _):
+            # two vectors a step: their pairs added in 32 bits (unsigned, < 2^32), then
+            # widened to 64 once
+            q2 = builder.add(q, ir.Constant(intp, lanes))
+            r1, r2 = residual(q), residual(q2)
+            for k, slot in enumerate(sums):
+                both = builder.add(squares(q, r1, k), squares(q2, r2, k))
+                builder.store(builder.add(builder.load(slot), builder.zext(both, half)), slot)
+        fn = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.IntType(64), [half]),
+            f"llvm.vector.reduce.add.v{lanes // 2}i64")
+        return context.make_tuple(builder, signature.return_type,
+                                  [builder.call(fn, [builder.load(slot)]) for slot in sums])
+
+    return sig, codegen
+
+
 #: window rows summed (:func:`_rows_squares`) between two tests of a sum against its bound
 #: (fewer tests against rows summed in vain: 2, 3, 5 and 9 rows measured the same to within
 #: the rounds' spread, 3 at the front)

@@ -734,6 +734,21 @@ def test_ring_fit_sums_exactly_what_its_definition_does(real_image):
             assert _ring_fit_at(img, curr, ax, ay, x, y, n, wide) == want
 
 
+@pytest.mark.parametrize(("x", "y"), [(40.0, 40.0), (40.5, 39.5), (41.25, 40.75)])
+def test_ring_fit_sums_the_largest_residuals_without_overflow(x, y):
+    """The ring fit's sums at their limit: a white template against a black frame, every
+    residual 255 grey levels (BILINEAR_ONE * 255 in its units, its square ~2^30; two of them
+    in a 32-bit lane, two lanes added before they are widened to 64 bits). Each mean squared
+    residual is 255^2 exactly, whatever the bilinear weights; a wrapped sum would be far
+    off or negative."""
+    from vistrack.common.vision.pyramid import _ring_fit_at
+    white = np.full((80, 80), 255, np.uint8)
+    black = np.zeros((80, 80), np.uint8)
+    for n, wide in ((4, 10), (3, 7), (4, 12), (7, 15)):
+        assert _ring_fit_at(white, black, 40, 40, x, y, n, wide) == (255.0 ** 2, 255.0 ** 2)
+        assert _ring_fit_at(black, white, 40, 40, x, y, n, wide) == (255.0 ** 2, 255.0 ** 2)
+
+
 @pytest.mark.parametrize(("kind", "half"), [("uniform", 4), ("gaussian", 4), ("uniform", 7),
                                             ("gaussian", 12), ("uniform", 32)])
 def test_the_fast_centroid_is_the_centroid(real_image, kind, half):

@@ -136,9 +136,9 @@ def _row_sums(curr, n, s, centers, out, bufs):  # pragma: no cover - numba
     span = 2 * s + LANES
     if centers.shape[0] * (2 * s + m) * (span + m) * 4 < total:
         # few searches (the few features of a frame that do not follow their prediction):
-        # their own entries only, a sliding sum along the flat frame each. Blocks of whole
-        # rows cost ~4 us a call at 256x256 for a single search, zeroing the rest as much
-        # again; this, ~2 us
+        # their own entries only. Blocks of whole rows cost ~4 us a call at 256x256 for a
+        # single search, zeroing the rest as much again; a sliding sum along the flat frame
+        # a row, ~1 us (one dependent chain); LANES sums at once, ~0.25 us
         out[total:] = 0
         for f in range(centers.shape[0]):
             cx = centers[f, 0]
@@ -149,13 +149,21 @@ def _row_sums(curr, n, s, centers, out, bufs):  # pragma: no cover - numba
                 q1 = min(q0 + span, last)
                 if q1 <= q0:
                     continue
-                acc = np.int32(0)
-                for i in range(m):
-                    acc += np.int32(flat[q0 + i])
-                for q in range(q0, q1 - 1):
-                    out[q] = acc
-                    acc += np.int32(flat[q + m]) - np.int32(flat[q])
-                out[q1 - 1] = acc
+                # LANES sums at once where their windows lie inside the frame (the lanes
+                # past q1 that this writes are true sums too, of windows no search here
+                # reads); the rest, near the frame's end, a sliding sum
+                q = q0
+                while q < q1 and q + LANES + m - 1 <= total:
+                    _window_sums(out, q, flat, q, m)
+                    q += LANES
+                if q < q1:
+                    acc = np.int32(0)
+                    for i in range(m):
+                        acc += np.int32(flat[q + i])
+                    for r in range(q, q1 - 1):
+                        out[r] = acc
+                        acc += np.int32(flat[r + m]) - np.int32(flat[r])
+                    out[q1 - 1] = acc
                 out[q1:q0 + span] = 0  # past the last full window
         return
     rows = max(ROW_BLOCK // w, 1)
@@ -500,6 +508,36 @@ def _copy_lanes(typingctx, dst, doff, src, soff):  # pragma: no cover - numba
         dptr, sptr = _lanes_at(context, builder, signature, args)
         item = context.get_abi_sizeof(context.get_data_type(dty.dtype))
         cgutils.raw_memcpy(builder, dptr, sptr, context.get_constant(types.intp, LANES), item)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def _window_sums(typingctx, dst, doff, src, soff, m):  # pragma: no cover - numba
+    """``dst[doff + k] = sum_{i < m} src[soff + k + i]`` for k < LANES: ``dst`` 1-D C int16,
+    ``src`` 1-D C uint8, the ranges inside them (unchecked), the sums within int16 (m at most
+    128). LANES window sums at once, m vector loads each added to all of them (a sliding sum
+    is one long dependent chain; :func:`_row_sums`' few-searches path)."""
+    if not (_lanes_typed(dst, doff, src, soff) and dst.dtype == types.int16
+            and src.dtype == types.uint8 and isinstance(m, types.Integer)):
+        return None
+    sig = types.void(dst, doff, src, soff, m)
+
+    def codegen(context, builder, signature, args):
+        tys = signature.args
+        short = ir.VectorType(ir.IntType(16), LANES)
+        narrow = ir.VectorType(ir.IntType(8), LANES).as_pointer()
+        intp = context.get_value_type(types.intp)
+        dptr = _flat_at(context, builder, tys[0], args[0], args[1])
+        sptr = _flat_at(context, builder, tys[2], args[2], args[3])
+        count = context.cast(builder, args[4], tys[4], types.intp)
+        total = cgutils.alloca_once_value(builder, ir.Constant(short, None))
+        with cgutils.for_range(builder, count, intp=intp) as loop:
+            at = builder.bitcast(builder.gep(sptr, [loop.index]), narrow)
+            pix = builder.zext(builder.load(at, align=1), short)
+            builder.store(builder.add(builder.load(total), pix), total)
+        builder.store(builder.load(total), builder.bitcast(dptr, short.as_pointer()), align=2)
         return context.get_dummy_value()
 
     return sig, codegen

@@ -371,11 +371,14 @@ def test_a_few_searches_equal_the_exhaustive_one(real_image, shape):
 
 @pytest.mark.parametrize("corr_size", [3, 5, 9, 15, 21])
 @pytest.mark.parametrize("searches", [2, 60])
-def test_row_sums_are_the_window_rows_sums(corr_size, searches):
+@pytest.mark.parametrize("corner", [False, True])
+def test_row_sums_are_the_window_rows_sums(corr_size, searches, corner):
     """The row sums behind the search's bounds (:func:`ssd._row_sums`), by either path (a few
-    searches: their own entries; many: blocks of whole rows) and either scheme (doubling, or
-    sums of 3 for a window of 3b px), equal a plain sum over each window row that a search
-    reads, on a random frame whose sums reach the int16 range's top (all-255 rows)."""
+    searches: their own entries, LANES at a time and, near the frame's end, one at a time;
+    many: blocks of whole rows) and either scheme (doubling, or sums of 3 for a window of 3b
+    px), equal a plain sum over each window row that a search reads, on a random frame whose
+    sums reach the int16 range's top (all-255 rows); with ``corner``, the last search centred
+    on the frame's last pixel."""
     from vistrack.common.vision import ssd
 
     rng = np.random.default_rng(corr_size)
@@ -385,6 +388,8 @@ def test_row_sums_are_the_window_rows_sums(corr_size, searches):
     n, s = corr_size // 2, 5
     m = 2 * n + 1
     centers = np.stack([rng.integers(0, w, searches), rng.integers(0, h, searches)], axis=1)
+    if corner:
+        centers[-1] = (w - 1, h - 1)
     out = np.empty(h * w + w + ssd.VEC, np.int16)
     bufs = np.empty((2, ssd.ROW_BLOCK + w + 2 * m), np.int16)
     ssd._row_sums(frame, n, s, centers.astype(np.int64), out, bufs)

@@ -52,10 +52,13 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from ..common.params import TrackerParams
 
-#: How long a cold compile takes on the reference machine (2 cores: 42 s measured for the
-#: default coarse-to-fine tracker on a quiet machine, 80 s with other work taking the cores),
-#: for the line that announces it.
-COLD_COMPILE = "about half a minute on two cores"
+#: How long a cold compile takes on the reference machines (2 cores: 23 to 59 s measured
+#: for the default coarse-to-fine tracker on an AMD EPYC core, 72 to 119 s on an Intel Xeon
+#: one, 2026-12-07), for the line that announces it.
+COLD_COMPILE = "half a minute to two minutes on two cores"
+#: Seconds between the lines that say a cold compile is still going: a minute or two of
+#: silence after the first line reads as a hang (and is ended with Ctrl-C).
+COMPILE_HEARTBEAT_S = 15.0
 #: The warm-up lock's file, in numba's cache folder.
 LOCK_NAME = "vistrack-warm-up.lock"
 #: Longest wait for the second process; beyond, this one compiles what is left itself.
@@ -221,15 +224,17 @@ def _warm_up(say: Callable[[str], None], helper: bool,
 
     t0 = time.monotonic()
     helpers = [early] if early is not None else []
+    beat = _Heartbeat(say, t0)
 
     def on_compile() -> None:
         say(f"compiling the tracker's kernels (first run; {COLD_COMPILE}, cached in "
             f"{kernel_cache_dir()})")
+        beat.start()
         if helper and not helpers and load is None:
             helpers.append(_start_helper())
 
     try:
-        with compile_watch(on_compile) as watch:
+        with beat, compile_watch(on_compile) as watch:
             if load is not None:  # the search is in the cache: the rest is, as a rule
                 load()
             elif helper:
@@ -250,6 +255,39 @@ def _warm_up(say: Callable[[str], None], helper: bool,
         say(f"compiled the tracker's kernels in {time.monotonic() - t0:.0f} s; later starts "
             "load them from the cache")
     return watch.compiled
+
+
+class _Heartbeat:
+    """Once started, ``say`` a line every ``every`` s from a thread of its own, "still
+    compiling the tracker's kernels (N s)" (N from ``t0``, a ``time.monotonic()``), until the
+    ``with`` block it is the context of ends. Not started (nothing compiled): nothing said."""
+
+    def __init__(self, say: Callable[[str], None], t0: float,
+                 every: float = COMPILE_HEARTBEAT_S) -> None:
+        self._say = say
+        self._t0 = t0
+        self._every = every
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="compile-heartbeat",
+                                            daemon=True)
+            self._thread.start()
+
+    def _run(self) -> None:
+        while not self._done.wait(self._every):
+            self._say(f"still compiling the tracker's kernels "
+                      f"({time.monotonic() - self._t0:.0f} s)")
+
+    def __enter__(self) -> _Heartbeat:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join()
 
 
 def _compile_first_frame() -> None:

@@ -16,8 +16,8 @@ strictly and every error names the file, the line, the key and what is allowed.
   the camera starts once every other token is up and their inputs have subscribers, so no
   frame is sent before its consumers can take it. ``vistrack up: ready (N services)`` is
   printed when all N tokens are up. On a first run the tracker's kernels are compiled here
-  first (said on stderr; about half a minute), the services starting meanwhile and loading them
-  from the cache once they are compiled.
+  first (said on stderr, then every 15 s until done; half a minute to two minutes), the
+  services starting meanwhile and loading them from the cache once they are compiled.
 * Each child's stdout and stderr are printed line by line, prefixed ``[service-name]``.
 * A child that exits is restarted by its policy (``never``, ``on-failure``, ``always``) with
   exponential back-off, reset once it has run ``reset_after`` seconds. A service that hangs

@@ -11,8 +11,10 @@ import fcntl
 import inspect
 import json
 import os
+import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numba as nb
@@ -42,6 +44,25 @@ def test_nothing_is_said_when_everything_is_cached():
     said: list[str] = []
     assert warm_up_kernels(said.append) is False
     assert said == []
+
+
+def test_a_long_compile_says_it_is_still_going_until_it_ends():
+    """A cold compile takes a minute or two on a slow machine: after its first line, a line
+    every COMPILE_HEARTBEAT_S (here 0.05 s) with the seconds since it began, and none once
+    it has ended; a heartbeat never started (nothing compiled) says nothing."""
+    said: list[str] = []
+    with kernels._Heartbeat(said.append, time.monotonic() - 12.0, every=0.05) as beat:
+        beat.start()
+        beat.start()  # a second compile event: still one thread
+        time.sleep(0.3)
+    lines = len(said)
+    time.sleep(0.2)
+    assert len(said) == lines and 2 <= lines <= 6, said
+    assert all(re.fullmatch(r"still compiling the tracker's kernels \(1[23] s\)", line)
+               for line in said), said
+    with kernels._Heartbeat(said.append, time.monotonic(), every=0.01):
+        time.sleep(0.1)
+    assert len(said) == lines
 
 
 def test_say_on_stderr_names_the_command(capsys):

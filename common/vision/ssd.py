@@ -653,9 +653,9 @@ RING_MASKS = 5
 @intrinsic
 def _masked_squares(typingctx, tp, t0, cp, c0, stride, weights, masks,
                     size):  # pragma: no cover - numba
-    """``(sum_q masks[k, q] & r[q]^2 for k < RING_MASKS)``, int64, over q < ``size`` (a
-    multiple of DOT_LANES), of the residual of a window of frame t against frame t+1 sampled
-    bilinearly, in 1/BILINEAR_ONE grey levels: ``r[q] = w00 cp[c0 + q] + w01 cp[c0 + q + 1]
+    """``(sum_q masks[k, q] & r[q]^2 for k < RING_MASKS)``, int64, over q < ``size``, of the
+    residual of a window of frame t against frame t+1 sampled bilinearly, in 1/BILINEAR_ONE
+    grey levels: ``r[q] = w00 cp[c0 + q] + w01 cp[c0 + q + 1]
     + w10 cp[c0 + q + stride] + w11 cp[c0 + q + stride + 1] - (w00 + .. + w11) tp[t0 + q]``
     (``weights`` (w00, w01, w10, w11), int16, summing to at most 128: every partial sum fits
     int16) and ``size`` a multiple of 2 DOT_LANES. ``tp``, ``cp`` 1-D C uint8, ``masks``

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 
 import cv2
 import msgpack
@@ -76,8 +77,17 @@ def test_a_paced_camera_reads_every_estimate_and_counts_no_drop(rubberwhale, fre
         try:
             cam.wait_for("ready", timeout=60)
             est.wait(lambda items: len(items) >= 30, timeout=60)
-            replies = [r.ok for r in session.get("vistrack/robot/camera/status", timeout=2.0)
-                       if r.ok is not None]
+            # the camera counts an estimate when its loop takes it, which may be a moment
+            # after this test's subscriber had it (once 29 of 30 here): asked again until
+            # it has counted 30, for at most 10 s
+            deadline = time.monotonic() + 10.0
+            while True:
+                replies = [r.ok for r in session.get("vistrack/robot/camera/status",
+                                                     timeout=2.0) if r.ok is not None]
+                if len(replies) != 1 or time.monotonic() > deadline or \
+                        msgpack.unpackb(replies[0].payload.to_bytes())["received"] >= 30:
+                    break
+                time.sleep(0.05)
         finally:
             cam.stop()
     assert len(replies) == 1

@@ -730,11 +730,27 @@ def frame_noise(filtered: np.ndarray, params: TrackerParams) -> float:
 def candidates_of(filtered: np.ndarray, params: TrackerParams) -> tuple[np.ndarray, np.ndarray]:
     """The THRES_PERCENT candidates of a filtered frame and their strengths: the gradient
     strength, threshold and texture floor steps of :func:`preprocess`."""
-    grad = STRENGTHS[params.strength](filtered)
+    grad, floor = strength_of(filtered, params)
+    return candidates_above(grad, floor, params)
+
+
+def strength_of(filtered: np.ndarray, params: TrackerParams) -> tuple[np.ndarray, float]:
+    """The gradient strength of a filtered frame, (H, W) float32, and the texture floor its
+    candidates must exceed: what :func:`candidates_of` computes before it thresholds, the same
+    for every THRES_PERCENT and CORR_SIZE (the auto-tuner's experiment computes it once a
+    frame for all of them)."""
+    return (STRENGTHS[params.strength](filtered),
+            texture_floor(params, frame_noise(filtered, params)))
+
+
+def candidates_above(grad: np.ndarray, floor: float, params: TrackerParams
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The candidates of a frame of strength ``grad`` and texture floor ``floor``
+    (:func:`strength_of`) for ``params``' THRES_PERCENT, CORR_SIZE and quality level, and their
+    strengths; ``grad`` is not written to."""
     # a candidate must hold a correlation window plus one pixel for the Sobel support, and
     # exceed the texture floor (strictly, so that a frame without texture, strength 0
     # everywhere, has none even with a floor of 0)
-    floor = texture_floor(params, frame_noise(filtered, params))
     cands, strength = threshold_candidates(grad, params.thres_percent,
                                            margin=params.corr_half + 1, floor=floor)
     if len(strength):

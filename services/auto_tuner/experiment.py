@@ -50,6 +50,16 @@ Measurement choices (why)
   of the run are charged for them. A run whose features stay below the re-detection
   threshold pays on every frame, as the pipeline does (pre-processing computes them for
   every frame then, ``motion/demand``).
+* **The filter and the strength once a buffer.** The filtered frame depends on the filter
+  alone (``blur_sigma``, no factor of the design), and so do each frame's gradient strength
+  and texture floor (not THRES_PERCENT nor the margin, which only threshold them): each is
+  computed once for every pre-processing of the cycle, timed frame by frame, and the
+  strength charged with each pre-processing's candidates. Computed per pre-processing, they
+  were 13 copies of the same frames (360 MB at 1280x720) and 13 strengths of each frame, 14 %
+  of a cycle's CPU there. The image pyramids the tracker builds are not shared: built once
+  and read from memory a run later, they made the tracking itself 1.2 to 1.9 times slower at
+  1280x720 (its reads no longer from the cache the build had just filled), a tf the pipeline
+  never sees.
 * **Noise: per-frame minimum over repeated, interleaved, shuffled passes** (of the tracking;
   pre-processing: above). A run is
   deterministic, so frame i does the same work in every repeat and any extra time is
@@ -97,6 +107,7 @@ Pure numpy/scipy (through :mod:`.anova`): no Zenoh, no msgpack.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -107,6 +118,7 @@ import numpy as np
 from vistrack.common import groundtruth
 from vistrack.common.params import MIN_VALID_NPI, TrackerParams
 from vistrack.common.vision import Preprocessed, Tracker, preprocess, warm_up
+from vistrack.common.vision.preprocess import candidates_above, strength_of
 from vistrack.services.auto_tuner import anova as anova_mod
 from vistrack.services.auto_tuner.design import Design, number_label
 
@@ -225,9 +237,9 @@ class Experiment:
     ground_truth : optional :class:`GroundTruth` of the buffer.
     reference : (SEARCH_SIZE, CORR_SIZE) of the reference runs.
 
-    It keeps every run's motion and times and every distinct pre-processing of the buffer
-    (about 2 MB each for 30 frames of 256x256, 28 MB at 1280x720; a tuning cycle makes 13):
-    drop it when done.
+    It keeps every run's motion and times, the buffer filtered (2 MB for 30 frames of
+    256x256, 28 MB at 1280x720) once for every run, and the candidates of each distinct
+    pre-processing (a tuning cycle makes 13): drop it when done.
     """
 
     def __init__(self, frames: Sequence[np.ndarray], *, repeats: int = DEFAULT_REPEATS,
@@ -253,6 +265,8 @@ class Experiment:
         self.reference = (int(reference[0]), int(reference[1]))
         TrackerParams(search_size=self.reference[0], corr_size=self.reference[1])  # validate
         self._runs: dict[tuple, _Run] = {}
+        # the buffer filtered (blur_sigma): its frames and (n_frames,) ms of each, once
+        self._filtered: dict[float, tuple[list[np.ndarray], np.ndarray]] = {}
         self._pre: dict[tuple, list[Preprocessed]] = {}
         self._pre_times: dict[tuple, np.ndarray] = {}  # (n_frames,) ms of each, once
         # (n_frames,) ms of each frame's candidates (gradient strength, THRES_PERCENT, floors),
@@ -326,6 +340,7 @@ class Experiment:
             todo = [todo[0]] + [[t[j] for j in rng.permutation(len(t))] for t in todo[1:]]
         missing_refs = [k for k in refs if k not in self._runs and k not in keys]
         tick = _ticker(progress, phase, sum(len(t) for t in todo) + len(missing_refs))
+        self._prepare([*points, *refs.values()])
         for r in range(self.repeats):
             for i in todo[r]:
                 self._run(points[i], keys[i])
@@ -466,26 +481,55 @@ class Experiment:
         return t_pre, np.array([e.t_ms for e in estimates])
 
     def _preprocessed(self, params: TrackerParams) -> list[Preprocessed]:
-        """The buffer pre-processed for ``params``: once per distinct pre-processing, timed
-        frame by frame, the filter and the candidates apart (the pipeline computes the
-        candidates only for the frames whose features are selected)."""
-        key = _pre_key(params)
-        if key not in self._pre:
+        """The buffer pre-processed for ``params`` (:meth:`_prepare`)."""
+        self._prepare([params])
+        return self._pre[_pre_key(params)]
+
+    def _prepare(self, points: Sequence[TrackerParams]) -> None:
+        """Every distinct pre-processing of ``points`` not made yet, timed frame by frame,
+        the filter (once per filter, :meth:`_filtered_of`) and the candidates apart (the
+        pipeline computes the candidates only for the frames whose features are selected).
+        A frame's gradient strength and texture floor (:func:`strength_of`), the same for every
+        THRES_PERCENT and margin, are computed once for all of them, and each is charged
+        their time and its own threshold's (:func:`candidates_above`): computed once for each,
+        they were 13 strengths of each frame a cycle, 14 % of its CPU at 1280x720."""
+        groups: dict[tuple, dict[tuple, TrackerParams]] = {}
+        for p in points:
+            key = _pre_key(p)
+            if key not in self._pre:
+                groups.setdefault(_strength_key(p), {})[key] = p
+        for group in groups.values():
+            first = next(iter(group.values()))
+            filtered, t_filter = self._filtered_of(first)
+            made: dict[tuple, list[Preprocessed]] = {key: [] for key in group}
+            t_cand = {key: np.empty(len(filtered)) for key in group}
+            for i, frame in enumerate(filtered):
+                (grad, floor), shared = _least_of(STRENGTH_TIMINGS,
+                                                  functools.partial(strength_of, frame, first))
+                for key, p in group.items():
+                    t1 = time.perf_counter()
+                    cands, strength = candidates_above(grad, floor, p)
+                    t_cand[key][i] = shared + (time.perf_counter() - t1) * 1e3
+                    made[key].append(Preprocessed(frame, cands, strength))
+            for key in group:
+                self._pre[key] = made[key]
+                self._pre_times[key] = t_filter
+                self._cand_times[key] = t_cand[key]
+
+    def _filtered_of(self, params: TrackerParams) -> tuple[list[np.ndarray], np.ndarray]:
+        """The buffer filtered for ``params`` (:func:`preprocess`'s filter, which depends on
+        ``blur_sigma`` alone), once, and (n_frames,) ms of each frame's filter: the least of
+        FILTER_TIMINGS (the first kept)."""
+        key = float(params.blur_sigma)
+        if key not in self._filtered:
             out = []
             t_ms = np.empty(len(self.frames))
-            t_cand = np.empty(len(self.frames))
             for i, frame in enumerate(self.frames):
-                t0 = time.perf_counter()
-                pre = preprocess(frame, params)
-                t1 = time.perf_counter()
-                pre.candidates  # noqa: B018 - computed here, timed
-                t_cand[i] = (time.perf_counter() - t1) * 1e3
-                t_ms[i] = (t1 - t0) * 1e3
-                out.append(pre)
-            self._pre[key] = out
-            self._pre_times[key] = t_ms
-            self._cand_times[key] = t_cand
-        return self._pre[key]
+                pre, t_ms[i] = _least_of(FILTER_TIMINGS,
+                                         functools.partial(preprocess, frame, params))
+                out.append(pre.filtered)
+            self._filtered[key] = (out, t_ms)
+        return self._filtered[key]
 
     def _pre_cost(self, params: TrackerParams) -> np.ndarray:
         """(n_frames,) ms: the pre-processing time of each frame for ``params``, the least that
@@ -517,6 +561,32 @@ class Experiment:
         before = np.array([start[int(b.ids[k])] for k in both])
         err = groundtruth.endpoint_errors(before, b.points[both], gt.flow)
         return float(np.median(err)) if err.size else None
+
+
+#: How many times each frame's filter and gradient strength are timed, once for every
+#: pre-processing of a cycle (:meth:`Experiment._filtered_of`, :meth:`Experiment._prepare`):
+#: the least is charged, as a frame's tracking is charged the least of its passes. Each
+#: pre-processing timed its own once, 13 of them a cycle, and took the least of those of the
+#: same work (:meth:`Experiment._least`). The first timing writes to memory fresh from the
+#: system, a service's to memory its frame before freed: the filter timed once charged a
+#: 1280x720 cycle's frames 0.57 ms where the least of 13 was 0.39; the least of two 0.44 to
+#: 0.49. A filter is a tenth of a strength: timed 5 times, for a least within the noise of
+#: the 13, at 1280x720 ~60 ms of a ~6 s cycle; the strength, twice.
+FILTER_TIMINGS = 5
+STRENGTH_TIMINGS = 2
+
+
+def _least_of(times: int, work: Callable[[], Any]) -> tuple[Any, float]:
+    """``work()`` run ``times`` times: the first result and the least time, ms."""
+    best = np.inf
+    first = None
+    for k in range(times):
+        t0 = time.perf_counter()
+        got = work()
+        best = min(best, time.perf_counter() - t0)
+        if k == 0:
+            first = got
+    return first, best * 1e3
 
 
 class _Watched(Preprocessed):
@@ -566,9 +636,14 @@ def _key(params: TrackerParams) -> tuple:
 
 def _pre_key(params: TrackerParams) -> tuple:
     """What :func:`preprocess` depends on: the filter, the strength, THRES_PERCENT (its
-    :func:`_pre_work`), and the border margin that keeps a correlation window inside the
-    frame."""
-    return (*_pre_work(params), params.corr_half)
+    :func:`_pre_work`), the border margin that keeps a correlation window inside the frame,
+    and the floors' settings (quality level, the camera's noise)."""
+    return (*_pre_work(params), params.corr_half, params.quality_level, params.noise_sigma)
+
+
+def _strength_key(params: TrackerParams) -> tuple:
+    """What :func:`strength_of` depends on: the filter, the strength, the camera's noise."""
+    return params.blur_sigma, params.strength, params.noise_sigma
 
 
 def _pre_work(params: TrackerParams) -> tuple:

@@ -148,46 +148,70 @@ def test_equal_window_geometries_share_one_run(small_frames, count_trackers):
 
 @pytest.fixture
 def count_preprocessing(monkeypatch):
-    """Record (THRES_PERCENT, corr_half) of every frame the experiment pre-processes."""
-    made: list[tuple[float, int]] = []
-    real = ex_mod.preprocess
+    """Record what the experiment computes of each frame: ``filter`` the blur_sigma of each
+    filtering (:func:`preprocess`), ``strength`` that of each gradient strength,
+    ``candidates`` the (THRES_PERCENT, corr_half) of each threshold."""
+    made: dict[str, list] = {"filter": [], "strength": [], "candidates": []}
+    real_pre, real_strength = ex_mod.preprocess, ex_mod.strength_of
+    real_cand = ex_mod.candidates_above
 
-    def spy(frame, params):
-        made.append((params.thres_percent, params.corr_half))
-        return real(frame, params)
+    def filtering(frame, params):
+        made["filter"].append(params.blur_sigma)
+        return real_pre(frame, params)
 
-    monkeypatch.setattr(ex_mod, "preprocess", spy)
+    def strength(filtered, params):
+        made["strength"].append(params.blur_sigma)
+        return real_strength(filtered, params)
+
+    def candidates(grad, floor, params):
+        made["candidates"].append((params.thres_percent, params.corr_half))
+        return real_cand(grad, floor, params)
+
+    monkeypatch.setattr(ex_mod, "preprocess", filtering)
+    monkeypatch.setattr(ex_mod, "strength_of", strength)
+    monkeypatch.setattr(ex_mod, "candidates_above", candidates)
     return made
 
 
 def test_each_preprocessing_runs_once_whatever_the_timing_passes(small_frames,
                                                                  count_preprocessing):
     """Pre-processing is deterministic and its cost the same for every margin (see the module
-    notes): it runs once per distinct pre-processing, not once per timing pass."""
+    notes): the filter and the gradient strength, which depend on the filter alone, are made
+    once a frame for every run; the candidates' threshold once per distinct pre-processing;
+    none once per timing pass."""
     run_design(small_frames, paper_design(), seed=4, repeats=3)
+    n = len(small_frames)
+    # each timed a few times, the first kept (see FILTER_TIMINGS)
+    assert count_preprocessing["filter"] == [TrackerParams().blur_sigma] * (
+        ex_mod.FILTER_TIMINGS * n)
+    assert count_preprocessing["strength"] == [TrackerParams().blur_sigma] * (
+        ex_mod.STRENGTH_TIMINGS * n)
     # THRES_PERCENT 0.1 and 5 x the margins of CORR_SIZE 5, 15 and of the references' 30
     keys = {(t, h) for t in (0.1, 5.0) for h in (2, 7, 15)}
-    assert set(count_preprocessing) == keys
-    assert len(count_preprocessing) == len(keys) * len(small_frames)
+    assert set(count_preprocessing["candidates"]) == keys
+    assert len(count_preprocessing["candidates"]) == len(keys) * n
 
 
 def test_a_slow_spell_on_one_preprocessing_does_not_reach_its_points(small_frames,
                                                                       monkeypatch):
-    """A point's pre-processing time is, frame by frame, the least that any pre-processing
+    """A point's candidates' time is, frame by frame, the least that any pre-processing
     doing the same work took (they differ only by the border margin): a spell that slows one
     of them (here by 30 ms a frame, on CORR_SIZE 9's) does not make its windows look slower,
-    where timing each one alone would have added the 30 ms to its points' t1 and tf."""
-    real = ex_mod.preprocess
+    where timing each one alone would have added the 30 ms to its points' t1 (and to tf,
+    with every frame's candidates read)."""
+    real = ex_mod.candidates_above
     slow = {"calls": 0}
 
-    def spell(frame, params):
+    def spell(grad, floor, params):
         if params.corr_half == 4:
             slow["calls"] += 1
             time.sleep(0.03)
-        return real(frame, params)
+        return real(grad, floor, params)
 
-    monkeypatch.setattr(ex_mod, "preprocess", spell)
-    sw = sweep(Experiment(small_frames, repeats=2), search_sizes=[10], corr_sizes=[5, 9])
+    monkeypatch.setattr(ex_mod, "candidates_above", spell)
+    base = TrackerParams(max_features=2000, redetect_fraction=1.0)  # reads them every frame
+    sw = sweep(Experiment(small_frames, repeats=2), search_sizes=[10], corr_sizes=[5, 9],
+               base=base)
     assert slow["calls"] == len(small_frames)  # the spell did happen, on every frame
     (t1_5, t1_9), (tf_5, tf_9) = sw.t1[0], sw.tf[0]
     assert abs(tf_9 - tf_5) < 10.0 and abs(t1_9 - t1_5) < 10.0, (sw.t1, sw.tf)
@@ -200,18 +224,15 @@ def test_a_frame_whose_features_are_selected_pays_for_its_candidates(small_frame
     while they are computed (10 ms a frame), t1 is 10 ms and tf, with no re-detection, 0. The
     buffer's frames, shared by every run and pass, computed them in the first run's first
     frame alone, and the least of the passes (0) was t1."""
-    import importlib
-
-    preprocess_mod = importlib.import_module("vistrack.common.vision.preprocess")
     clock = {"now": 0.0}
     monkeypatch.setattr(time, "perf_counter", lambda: clock["now"])
-    real = preprocess_mod.candidates_of
+    real = ex_mod.strength_of
 
     def costly(filtered, params):
         clock["now"] += 0.010
         return real(filtered, params)
 
-    monkeypatch.setattr(preprocess_mod, "candidates_of", costly)
+    monkeypatch.setattr(ex_mod, "strength_of", costly)
     exp = Experiment(small_frames, repeats=3)
     r = run_point(exp, TrackerParams(search_size=10, corr_size=9, max_features=10))
     assert r.t1 == pytest.approx(10.0) and r.tf == 0.0
@@ -220,6 +241,20 @@ def test_a_frame_whose_features_are_selected_pays_for_its_candidates(small_frame
     every = run_point(exp, TrackerParams(search_size=10, corr_size=9, max_features=2000,
                                          redetect_fraction=1.0))
     assert every.t1 == pytest.approx(10.0) and every.tf == pytest.approx(10.0)
+
+
+def test_a_run_on_the_shared_filter_tracks_as_the_tracker_alone(small_frames):
+    """The shared filter and strength change nothing tracked: a point's motion and features
+    are those of ``track_frames`` on the same frames, on a buffer whose runs shared them."""
+    params = TrackerParams(search_size=12, corr_size=7)
+    exp = Experiment(small_frames, repeats=1)
+    run_point(exp, TrackerParams(search_size=16, corr_size=5, thres_percent=1.0))  # shares them
+    r = run_point(exp, params)
+    alone = track_frames(small_frames, params)
+    assert r.npi_mean == pytest.approx(np.mean([e.npi for e in alone]))
+    run = exp._runs[ex_mod._key(params)]
+    np.testing.assert_array_equal(run.dx, [e.dx for e in alone])
+    np.testing.assert_array_equal(run.dy, [e.dy for e in alone])
 
 
 def test_experiment_rejects_bad_buffers(small_frames):
@@ -434,7 +469,9 @@ def test_every_unit_preprocesses_the_buffer_itself(small_frames, monkeypatch):
     """Runs that share a pre-processing (THRES_PERCENT and CORR_SIZE's margin) would share
     its timing noise if they shared its timing, as the unreplicated design does: every unit
     pre-processes afresh in every pass; the untimed references reuse the outputs where
-    they can and pre-process once per THRES_PERCENT otherwise (their margin is CORR_SIZE 30's)."""
+    they can, and filter the buffer once for both THRES_PERCENT otherwise (the filter depends
+    on neither; their margin is CORR_SIZE 30's), each frame's filter timed FILTER_TIMINGS
+    times."""
     calls = []
     real = ex_mod.preprocess
 
@@ -447,7 +484,7 @@ def test_every_unit_preprocesses_the_buffer_itself(small_frames, monkeypatch):
     n = len(small_frames)
     design_calls = [p for p in calls if p.corr_size != 30]
     assert len(design_calls) == 16 * 2 * 2 * n
-    assert len(calls) - len(design_calls) == 2 * n
+    assert len(calls) - len(design_calls) == ex_mod.FILTER_TIMINGS * n
 
 
 def _planted_replicated(reps: int = 3, noise: float = 0.01,

@@ -37,10 +37,11 @@ Measurement choices (why)
   candidates are sorted) and in the border margin CORR_SIZE // 2 + 1 (which only moves the
   bounds of the candidates' scan; margins of 3 and 16 px measured the same within the timing
   noise on 256x256 to 1280x720 frames). So each distinct pre-processing runs once, timed frame
-  by frame, and a point's pre-processing time for frame i is the least that any
-  pre-processing of the same work (filter, strength, THRES_PERCENT) took on frame i: the
-  sweep's seven margins are seven samples of one cost, a whole run or more apart, as the timing
-  passes are for the tracking. Its cost grows with frames x pixels; timing it in every pass
+  by frame, and a point's candidates' time for frame i is the least that any pre-processing
+  of the same work (filter, strength, THRES_PERCENT) took on frame i: the sweep's seven
+  margins are seven samples of one cost, a whole run or more apart, as the timing passes are
+  for the tracking (the filter, the same for all, is timed FILTER_TIMINGS times: below).
+  Its cost grows with frames x pixels; timing it in every pass
   made a cycle at 1280x720 spend half its time pre-processing the same frames again (6.4 of
   11.8 s in one run). A slow spell over one pre-processing no longer shows as an effect of
   its CORR_SIZE either. The candidates (the gradient strength, the THRES_PERCENT selection
@@ -268,7 +269,6 @@ class Experiment:
         # the buffer filtered (blur_sigma): its frames and (n_frames,) ms of each, once
         self._filtered: dict[float, tuple[list[np.ndarray], np.ndarray]] = {}
         self._pre: dict[tuple, list[Preprocessed]] = {}
-        self._pre_times: dict[tuple, np.ndarray] = {}  # (n_frames,) ms of each, once
         # (n_frames,) ms of each frame's candidates (gradient strength, THRES_PERCENT, floors),
         # once: added to a run's time of the frames whose candidates it reads
         self._cand_times: dict[tuple, np.ndarray] = {}
@@ -500,7 +500,7 @@ class Experiment:
                 groups.setdefault(_strength_key(p), {})[key] = p
         for group in groups.values():
             first = next(iter(group.values()))
-            filtered, t_filter = self._filtered_of(first)
+            filtered = self._filtered_of(first)[0]
             made: dict[tuple, list[Preprocessed]] = {key: [] for key in group}
             t_cand = {key: np.empty(len(filtered)) for key in group}
             for i, frame in enumerate(filtered):
@@ -513,7 +513,6 @@ class Experiment:
                     made[key].append(Preprocessed(frame, cands, strength))
             for key in group:
                 self._pre[key] = made[key]
-                self._pre_times[key] = t_filter
                 self._cand_times[key] = t_cand[key]
 
     def _filtered_of(self, params: TrackerParams) -> tuple[list[np.ndarray], np.ndarray]:
@@ -532,15 +531,15 @@ class Experiment:
         return self._filtered[key]
 
     def _pre_cost(self, params: TrackerParams) -> np.ndarray:
-        """(n_frames,) ms: the pre-processing time of each frame for ``params``, the least that
-        any pre-processing of the buffer doing the same work took on that frame (see the module
-        notes: the border margin, the only other thing a pre-processing key holds, does not
-        change its cost)."""
-        return self._least(self._pre_times, params)
+        """(n_frames,) ms: the pre-processing time (the filter) of each frame for ``params``,
+        the least of FILTER_TIMINGS (:meth:`_filtered_of`)."""
+        return self._filtered_of(params)[1]
 
     def _cand_cost(self, params: TrackerParams) -> np.ndarray:
         """(n_frames,) ms: what computing each frame's candidates costs for ``params``, the
-        least of the pre-processings of the same work, as :meth:`_pre_cost`."""
+        least that any pre-processing of the buffer doing the same work took on that frame
+        (see the module notes: the border margin, the only other thing a pre-processing key
+        holds, does not change its cost)."""
         return self._least(self._cand_times, params)
 
     @staticmethod

@@ -53,7 +53,7 @@ if TYPE_CHECKING:
     from ..common.params import TrackerParams
 
 #: How long a cold compile takes on the reference machines (2 cores: 23 to 59 s measured
-#: for the default coarse-to-fine tracker on an AMD EPYC core, 72 to 119 s on an Intel Xeon
+#: for the default coarse-to-fine tracker on an AMD EPYC core, 46 to 119 s on an Intel Xeon
 #: one, 2026-12-07), for the line that announces it.
 COLD_COMPILE = "half a minute to two minutes on two cores"
 #: Seconds between the lines that say a cold compile is still going: a minute or two of

@@ -529,7 +529,7 @@ _Side = Annotated[int, msgspec.Meta(ge=1, le=MAX_SIDE)]
 _ParamsId = Annotated[int, msgspec.Meta(ge=0, le=MAX_PARAMS_ID)]
 
 
-class _FrameWire(msgspec.Struct):
+class _FrameWire(msgspec.Struct, kw_only=True):
     v: Literal[1]
     seq: _Count
     stamp_ns: _Count
@@ -537,9 +537,10 @@ class _FrameWire(msgspec.Struct):
     height: _Side
     encoding: Literal["mono8"]
     data: memoryview  # a view of the payload, not a copy
+    cut: bool = False  # absent: an older publisher's
 
 
-class _PreFrameWire(_FrameWire):
+class _PreFrameWire(_FrameWire, kw_only=True):
     candidates: memoryview
     strength: memoryview
     params_id: _ParamsId
@@ -596,10 +597,14 @@ class Frame(_Message):
     data : (height, width) uint8 array, 8-bit grey, row-major on the wire. Decoded frames hold
         a read-only view of the payload.
     encoding : ``"mono8"`` (the only encoding).
+    cut : True when this frame does not follow the one before it in the scene: the first
+        frame of a ``--loop`` source's second and later passes, a simulator's scenario
+        started again. Readers that track across frames start again there. Absent (a
+        publisher that predates the field): False.
     """
 
     KEY: ClassVar[str] = "camera/frame"
-    _CHECKS: ClassVar[dict[str, _Check]] = {**_SEQ, **_IMAGE}
+    _CHECKS: ClassVar[dict[str, _Check]] = {**_SEQ, **_IMAGE, "cut": _bool}
 
     seq: int
     stamp_ns: int
@@ -607,14 +612,16 @@ class Frame(_Message):
     height: int
     encoding: str = "mono8"
     data: np.ndarray
+    cut: bool = False
 
     @classmethod
-    def from_image(cls, image: np.ndarray, *, seq: int, stamp_ns: int) -> Frame:
+    def from_image(cls, image: np.ndarray, *, seq: int, stamp_ns: int,
+                   cut: bool = False) -> Frame:
         """A frame of a (height, width) uint8 image."""
         if not isinstance(image, np.ndarray) or image.ndim != 2:
             raise _error(cls.KEY, "data", "must be a 2-D (height, width) array", image)
         return cls(seq=seq, stamp_ns=stamp_ns, width=image.shape[1], height=image.shape[0],
-                   data=image)
+                   data=image, cut=cut)
 
     def _validate(self) -> None:
         _check_image(self.KEY, self)
@@ -622,7 +629,11 @@ class Frame(_Message):
     def _wire_fields(self) -> dict[str, Any]:
         return {"seq": self.seq, "stamp_ns": self.stamp_ns, "width": self.width,
                 "height": self.height, "encoding": self.encoding,
-                "data": _bin_of(self.data, "u1")}
+                "data": _bin_of(self.data, "u1"), "cut": self.cut}
+
+    @classmethod
+    def _from_map(cls, m: dict[str, Any]) -> Frame:
+        return super()._from_map(_cut_default(m))
 
     @classmethod
     def _arrays_from_wire(cls, values: dict[str, Any]) -> dict[str, Any]:
@@ -635,7 +646,13 @@ class Frame(_Message):
         if data is None:
             return None
         return {"seq": wire.seq, "stamp_ns": wire.stamp_ns, "width": wire.width,
-                "height": wire.height, "encoding": wire.encoding, "data": data}
+                "height": wire.height, "encoding": wire.encoding, "data": data,
+                "cut": wire.cut}
+
+
+def _cut_default(m: dict[str, Any]) -> dict[str, Any]:
+    """A received map with ``cut`` false where it is absent (a publisher that predates it)."""
+    return m if "cut" in m else {**m, "cut": False}
 
 
 Frame._FAST = msgspec.msgpack.Decoder(_FrameWire)
@@ -658,11 +675,12 @@ class PreFrame(_Message):
         are then empty) because motion-estimation said on ``motion/demand`` that it would not
         read them; a reader that needs them computes them from ``data``. Absent (a publisher
         that predates the field): False.
+    cut : the camera frame's :attr:`Frame.cut`, passed on (absent: False).
     """
 
     KEY: ClassVar[str] = "preprocessing/frame"
     _CHECKS: ClassVar[dict[str, _Check]] = {**_SEQ, **_IMAGE, "params_id": _PARAMS_ID,
-                                            "deferred": _bool}
+                                            "deferred": _bool, "cut": _bool}
 
     seq: int
     stamp_ns: int
@@ -674,6 +692,7 @@ class PreFrame(_Message):
     strength: np.ndarray
     params_id: int
     deferred: bool = False
+    cut: bool = False
 
     def _validate(self) -> None:
         _check_image(self.KEY, self)
@@ -706,13 +725,13 @@ class PreFrame(_Message):
                 "data": _bin_of(self.data, "u1"),
                 "candidates": _bin_of(self.candidates, "<i2"),
                 "strength": _bin_of(self.strength, "<f4"), "params_id": self.params_id,
-                "deferred": self.deferred}
+                "deferred": self.deferred, "cut": self.cut}
 
     @classmethod
     def _from_map(cls, m: dict[str, Any]) -> PreFrame:
         if "deferred" not in m:  # an older publisher's: its candidates are all there
             m = {**m, "deferred": False}
-        return super()._from_map(m)
+        return super()._from_map(_cut_default(m))
 
     @classmethod
     def _arrays_from_wire(cls, values: dict[str, Any]) -> dict[str, Any]:
@@ -753,7 +772,7 @@ class PreFrame(_Message):
         return {"seq": wire.seq, "stamp_ns": wire.stamp_ns, "width": wire.width,
                 "height": wire.height, "encoding": wire.encoding, "data": data,
                 "candidates": cand, "strength": strength, "params_id": wire.params_id,
-                "deferred": wire.deferred}
+                "deferred": wire.deferred, "cut": wire.cut}
 
 
 PreFrame._FAST = msgspec.msgpack.Decoder(_PreFrameWire)
@@ -926,8 +945,9 @@ def _exact_scalars(values: dict[str, Any], kinds: Mapping[str, type]) -> bool:
     return True
 
 
-_FRAME_SCALARS = {"seq": int, "stamp_ns": int}
-_PRE_FRAME_SCALARS = {"seq": int, "stamp_ns": int, "params_id": int, "deferred": bool}
+_FRAME_SCALARS = {"seq": int, "stamp_ns": int, "cut": bool}
+_PRE_FRAME_SCALARS = {"seq": int, "stamp_ns": int, "params_id": int, "deferred": bool,
+                      "cut": bool}
 
 
 def _plain_image(data: Any) -> bool:
@@ -937,8 +957,9 @@ def _plain_image(data: Any) -> bool:
             and 1 <= data.shape[1] <= MAX_SIDE)
 
 
-def encode_frame(image: np.ndarray, *, seq: int, stamp_ns: int) -> bytes:
-    """``Frame.from_image(image, seq=seq, stamp_ns=stamp_ns).encode()``, byte for byte.
+def encode_frame(image: np.ndarray, *, seq: int, stamp_ns: int, cut: bool = False) -> bytes:
+    """``Frame.from_image(image, seq=seq, stamp_ns=stamp_ns, cut=cut).encode()``, byte for
+    byte.
 
     The camera's hot path: for what a camera produces (a C-contiguous uint8 image, plain
     ints) the checks are a few type and range tests and no message object is built (13 to
@@ -949,17 +970,19 @@ def encode_frame(image: np.ndarray, *, seq: int, stamp_ns: int) -> bytes:
     MessageError
         As :meth:`Frame.from_image` would, naming the field.
     """
-    values = {"seq": seq, "stamp_ns": stamp_ns}
+    values = {"seq": seq, "stamp_ns": stamp_ns, "cut": cut}
     if not (_plain_image(image) and _exact_scalars(values, _FRAME_SCALARS)
             and seq >= 0 and stamp_ns >= 0):
-        return Frame.from_image(image, seq=seq, stamp_ns=stamp_ns).encode()
+        return Frame.from_image(image, seq=seq, stamp_ns=stamp_ns, cut=cut).encode()
     height, width = image.shape
-    return _ENCODER.encode({"v": SCHEMA_VERSION, **values, "width": width, "height": height,
-                            "encoding": "mono8", "data": image.data})
+    return _ENCODER.encode({"v": SCHEMA_VERSION, "seq": seq, "stamp_ns": stamp_ns,
+                            "width": width, "height": height, "encoding": "mono8",
+                            "data": image.data, "cut": cut})
 
 
 def encode_pre_frame(*, seq: int, stamp_ns: int, data: np.ndarray, candidates: np.ndarray,
-                     strength: np.ndarray, params_id: int, deferred: bool = False) -> bytes:
+                     strength: np.ndarray, params_id: int, deferred: bool = False,
+                     cut: bool = False) -> bytes:
     """``PreFrame(...).encode()`` of a (height, width) ``data``, byte for byte.
 
     Pre-processing's hot path: for what it produces (a C-contiguous uint8 image, ``(N, 2)``
@@ -973,7 +996,8 @@ def encode_pre_frame(*, seq: int, stamp_ns: int, data: np.ndarray, candidates: n
     MessageError
         As the constructor would, naming the field.
     """
-    values = {"seq": seq, "stamp_ns": stamp_ns, "params_id": params_id, "deferred": deferred}
+    values = {"seq": seq, "stamp_ns": stamp_ns, "params_id": params_id, "deferred": deferred,
+              "cut": cut}
     plain = (_plain_image(data) and _exact_scalars(values, _PRE_FRAME_SCALARS)
              and seq >= 0 and stamp_ns >= 0 and 0 <= params_id <= MAX_PARAMS_ID
              and type(candidates) is np.ndarray and candidates.dtype == np.int16
@@ -991,13 +1015,14 @@ def encode_pre_frame(*, seq: int, stamp_ns: int, data: np.ndarray, candidates: n
             raise _error(PreFrame.KEY, "data", "must be a 2-D (height, width) array", data)
         return PreFrame(seq=seq, stamp_ns=stamp_ns, width=data.shape[1],
                         height=data.shape[0], data=data, candidates=candidates,
-                        strength=strength, params_id=params_id, deferred=deferred).encode()
+                        strength=strength, params_id=params_id, deferred=deferred,
+                        cut=cut).encode()
     height, width = data.shape
     return _ENCODER.encode({
         "v": SCHEMA_VERSION, "seq": seq, "stamp_ns": stamp_ns, "width": width,
         "height": height, "encoding": "mono8", "data": data.data,
         "candidates": _bin_of(candidates, "<i2"), "strength": _bin_of(strength, "<f4"),
-        "params_id": params_id, "deferred": deferred})
+        "params_id": params_id, "deferred": deferred, "cut": cut})
 
 
 def _pack_checked(cls: type[_Message], values: dict[str, Any]) -> bytes:

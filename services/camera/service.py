@@ -194,45 +194,81 @@ def open_source(spec: str, size: tuple[int, int] | None, loop: bool,
             if total > LOOP_CACHE_BYTES:
                 if skip is not None:
                     skip.count = before  # read again from the start: skipped again there
-                return _passes(frames, path)
+                return Looped(_passes(frames, path))
     except VideoCutShort as e:
         say_on_stderr("camera")(f"warning: {e}; looping the {len(cached)} frames it holds")
     trailing = (skip.count - seen) if skip is not None else 0
-    if skip is None:
-        return itertools.chain.from_iterable(itertools.repeat([f for _, f in cached]))
-    skip.count = before
-    return _replayed(cached, trailing, skip)
+    if skip is not None:
+        skip.count = before
+    return Looped(_replayed(cached, trailing, skip))
+
+
+class Looped(Iterator[np.ndarray]):
+    """A ``--loop`` source's frames, pass after pass, with :attr:`cut` True while the frame
+    last given starts a pass after the first and differs from the frame before it (the last
+    of the pass before): it does not follow that frame in the scene, and the camera says so
+    on the wire (``camera/frame``'s ``cut``) so that downstream starts a new track there
+    rather than tracking the jump back to the start. One image looped is no cut: the same
+    frame again is a still scene."""
+
+    def __init__(self, passes: Iterator[tuple[np.ndarray, bool]]) -> None:
+        self._passes = passes
+        self._held: tuple[np.ndarray, bool] | None = None
+        self._last: np.ndarray | None = None
+        self.cut = False
+
+    def __iter__(self) -> Looped:
+        return self
+
+    def __next__(self) -> np.ndarray:
+        if self._held is not None:
+            (frame, starts), self._held = self._held, None
+        else:
+            frame, starts = next(self._passes)
+        self.cut = starts and self._last is not None and not np.array_equal(frame, self._last)
+        self._last = frame
+        return frame
+
+    def peek(self) -> np.ndarray:
+        """The next frame, read now and given again by the next ``next``."""
+        if self._held is None:
+            self._held = next(self._passes)
+        return self._held[0]
 
 
 def _replayed(cached: list[tuple[int, np.ndarray]], trailing: int,
-              skip: Skipped) -> Iterator[np.ndarray]:
+              skip: Skipped | None) -> Iterator[tuple[np.ndarray, bool]]:
     """The cached frames, pass after pass, each after counting the frames skipped before it
-    (``trailing``: those after the last) in ``skip``."""
+    (``trailing``: those after the last) in ``skip``; with each, whether it starts a pass
+    after the first."""
+    later = False
     while True:
-        for gap, frame in cached:
-            if gap:
+        for i, (gap, frame) in enumerate(cached):
+            if gap and skip is not None:
                 skip.add(gap)
-            yield frame
-        if trailing:
+            yield frame, later and not i
+        later = True
+        if trailing and skip is not None:
             skip.add(trailing)
 
 
-def _passes(frames: Iterable[np.ndarray], path: str) -> Iterator[np.ndarray]:
-    """``frames`` again and again, decoded each pass (a source too large to keep): a video cut
-    short is played to where it ends each time, which the log says once.
+def _passes(frames: Iterable[np.ndarray], path: str) -> Iterator[tuple[np.ndarray, bool]]:
+    """``frames`` again and again, decoded each pass (a source too large to keep), each with
+    whether it starts a pass after the first: a video cut short is played to where it ends
+    each time, which the log says once.
 
     Raises
     ------
     SourceError
         When a pass gives no frame: its files were removed or became unreadable (a USB stick
         or a network share gone). It went round in silence for ever, a core busy."""
-    warned = False
+    warned = later = False
     while True:
         given = 0
         try:
             for frame in frames:
                 given += 1
-                yield frame
+                yield frame, later and given == 1
         except VideoCutShort as e:
             if not warned:
                 log.warning("%s; looping the frames it holds", e)
@@ -240,6 +276,7 @@ def _passes(frames: Iterable[np.ndarray], path: str) -> Iterator[np.ndarray]:
         if not given:
             raise SourceError(f"{path}: a pass of --loop gave no frame (its files were "
                               "removed or cannot be read any more)")
+        later = True
 
 
 class _Acks:
@@ -385,6 +422,8 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
     last: list[bytes] = []
     faults = Faults(node, log)
     device = frames if isinstance(frames, DeviceFrames) else None
+    looped = frames if isinstance(frames, Looped) else None
+    cut = False
     try:
         for sent_before, image in enumerate(frames):
             seq = sent_before + (skipped.count if skipped is not None else 0)
@@ -406,8 +445,12 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
             # a device's frame: when it was read from the device (its newest, not when sent)
             stamp = device.capture_ns if device is not None else time.time_ns()
             node.status.extra["frames"] = sent_before + 1
-            if not faults.call(keys.frame, seq, _publish, node, image, seq, stamp, last, reliable):
+            # a cut on a frame that failed goes with the next one sent
+            cut = cut or (looped is not None and looped.cut)
+            if not faults.call(keys.frame, seq, _publish, node, image, seq, stamp, last, reliable,
+                               cut):
                 continue  # skipped (counted in failed): nothing to wait for
+            cut = False
             acks.sent = seq
             sent.append(seq)
             if period:
@@ -476,8 +519,8 @@ def _reliable(args: argparse.Namespace) -> bool:
 
 
 def _publish(node: Node, image: np.ndarray, seq: int, stamp: int, last: list[bytes],
-             reliable: bool) -> None:
-    last[:] = [encode_frame(image, seq=seq, stamp_ns=stamp)]
+             reliable: bool, cut: bool = False) -> None:
+    last[:] = [encode_frame(image, seq=seq, stamp_ns=stamp, cut=cut)]
     node.publish(node.keys.frame, last[0], reliable=reliable)
 
 
@@ -513,12 +556,13 @@ def _first_frame_read(frames: Iterator[np.ndarray]) -> Iterator[np.ndarray]:
     """``frames`` with its first frame read now: a video that does not decode, a device that
     does not open, or frames too large for a ``camera/frame`` are a one-line error before the
     service starts, not a log line."""
-    first = next(frames)
+    # a loop is kept as it is, its first frame read ahead: it tells the camera of its cuts
+    first = frames.peek() if isinstance(frames, Looped) else next(frames)
     h, w = first.shape
     if max(w, h) > MAX_SIDE:
         raise SourceError(f"frames are {w}x{h}: a camera/frame carries at most {MAX_SIDE} px "
                           f"a side; give --size to scale them")
-    return itertools.chain([first], frames)
+    return frames if isinstance(frames, Looped) else itertools.chain([first], frames)
 
 
 def main(args: argparse.Namespace) -> int:

@@ -13,7 +13,8 @@ frames meanwhile, and each estimate's ``params_id`` says which ones did.
 
 The tracker is the library's :class:`~vistrack.common.vision.Tracker`, fed the filtered frame
 and candidates computed upstream, so the pipeline computes exactly what ``vistrack track`` does.
-Estimates keep the camera frame's ``seq``; when it goes back (the camera restarted), or the
+Estimates keep the camera frame's ``seq``; when it goes back (the camera restarted), the frame
+is a ``cut`` (a ``--loop`` source's next pass: its first frame does not follow its last), or the
 frame size changes, the track starts again (``first: true``). A frame that comes again, the
 same ``seq`` and ``stamp_ns`` as the one just tracked (a camera in lockstep sends a frame again
 when its estimate was lost on the way back), is not tracked twice: the same estimate is
@@ -223,6 +224,11 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             Preprocessed(filtered, msg.candidates, msg.strength)
         if msg.seq <= last_seq:
             log.info("camera restarted (seq %d after %d): new track", msg.seq, last_seq)
+            tracker.reset()
+        elif msg.cut and tracker.frame_shape is not None:
+            # the source started again (a --loop file's next pass): its first frame does not
+            # follow the last, and tracked across the two it moved dx by the whole pass
+            log.debug("cut at seq %d (the source started again): new track", msg.seq)
             tracker.reset()
         elif tracker.frame_shape not in (None, filtered.shape):
             # another camera, or the camera's size changed: checked here, not caught as the

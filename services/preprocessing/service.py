@@ -9,6 +9,8 @@ Writes  ``vistrack/<robot>/preprocessing/frame``   (filtered frame + candidates 
 
 A pre-processed frame keeps its camera frame's ``seq``: downstream sees the camera's gaps, and
 a ``seq`` that goes back (the camera restarted) tells motion-estimation to start a new track.
+It keeps its ``cut`` too (a ``--loop`` source's next pass, which starts a new track there),
+and a cut frame always has its candidates: the new track selects features on it.
 
 The candidates (gradient strength and threshold, two thirds of the work) are computed only
 while motion-estimation says on ``motion/demand`` that it will read them (a first frame, a
@@ -139,10 +141,12 @@ def loop(node: Node, args: argparse.Namespace) -> None:
 
     def process(frame: Frame, t0: float) -> None:
         pre = preprocess(frame.data, state.params)
-        if wanted:
+        # a cut starts a new track downstream, which selects features: its candidates go
+        # with it whatever the demand said
+        if wanted or frame.cut:
             out = encode_pre_frame(seq=frame.seq, stamp_ns=frame.stamp_ns, data=pre.filtered,
                                    candidates=pre.candidates, strength=pre.strength,
-                                   params_id=state.params_id)
+                                   params_id=state.params_id, cut=frame.cut)
         else:
             out = encode_pre_frame(seq=frame.seq, stamp_ns=frame.stamp_ns, data=pre.filtered,
                                    candidates=NO_CANDIDATES, strength=NO_STRENGTH,

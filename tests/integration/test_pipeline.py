@@ -69,7 +69,9 @@ def test_camera_bad_flags_are_one_line_and_exit_2(flags, message):
 
 def test_a_paced_camera_reads_every_estimate_and_counts_no_drop(rubberwhale, free_port):
     """At --fps the estimates only mark the end of a file, but the camera still consumes each
-    one: an unread estimate overwritten by the next would count as a dropped input."""
+    one: an unread estimate overwritten by the next would count as a dropped input. The
+    8-frame loop's wraps (seq 8, 16, 24: the camera's ``cut``) each start a new track; the
+    jump back from frame14 to frame07 is not tracked as motion."""
     with router(free_port) as ep, zenoh.open(zenoh_config(ep)) as session, \
             services(ep, names=("preprocessing", "motion-estimation")):
         est = Collector(session, "vistrack/robot/motion/estimate")
@@ -94,6 +96,13 @@ def test_a_paced_camera_reads_every_estimate_and_counts_no_drop(rubberwhale, fre
     status = msgpack.unpackb(replies[0].payload.to_bytes())
     assert status["received"] >= 30  # the estimates reached the camera
     assert status["dropped"] == 0 and status["rejected"] == 0, status
+    by_seq = {m["seq"]: m for m in (msgpack.unpackb(p) for _, p in est.items)}
+    # (a frame dropped at a latest-only input has no estimate: only those received are read)
+    assert {m["seq"]: m["first"] for m in by_seq.values()} == \
+        {seq: seq % 8 == 0 for seq in by_seq}
+    wraps = [by_seq[s] for s in (8, 16, 24) if s in by_seq]
+    assert len(wraps) >= 2 and all((m["dx"], m["dy"], m["scale"]) == (0.0, 0.0, 1.0)
+                                   for m in wraps)
 
 
 def test_two_in_flight_loses_nothing_uncounted(rubberwhale, free_port):

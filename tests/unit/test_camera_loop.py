@@ -141,3 +141,38 @@ def test_a_folder_or_glob_of_other_image_types_opencv_reads_is_taken(tmp_path, e
         assert len(got) == 3, spec
         assert all(np.array_equal(g, h) for g, h in zip(got, held, strict=True)), spec
 
+
+
+@pytest.mark.parametrize("kept", [True, False], ids=["kept", "decoded-each-pass"])
+def test_a_loop_says_which_frames_start_a_later_pass(tmp_path, monkeypatch, kept):
+    """``cut`` is True exactly on the first frame of the second and later passes, kept in
+    memory or decoded each pass; a single image looped is a still scene, never a cut."""
+    if not kept:
+        monkeypatch.setattr(service, "LOOP_CACHE_BYTES", 1)
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), rng.integers(0, 256, (60, 80), dtype=np.uint8))
+    frames = service.open_source(f"file:{tmp_path}", None, loop=True)
+    cuts = [frames.cut for _ in itertools.islice(frames, 10)]
+    assert cuts == [False, False, False, True, False, False, True, False, False, True]
+    still = tmp_path / "still.png"
+    cv2.imwrite(str(still), rng.integers(0, 256, (60, 80), dtype=np.uint8))
+    frames = service.open_source(f"file:{still}", None, loop=True)
+    assert not any(frames.cut for _ in itertools.islice(frames, 5))
+
+
+def test_the_first_frame_read_ahead_keeps_a_loops_cuts(tmp_path):
+    """The camera reads a source's first frame before it starts (to fail early on a bad
+    file): a looping source is kept as it is, so its cuts are still seen, and its first
+    frame is given once."""
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (60, 80), dtype=np.uint8) for _ in range(2)]
+    for i, image in enumerate(images):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), image)
+    source = service.open_source(f"file:{tmp_path}", None, loop=True)
+    frames = service._first_frame_read(source)
+    assert frames is source
+    got = [(next(frames), source.cut) for _ in range(5)]
+    assert [cut for _, cut in got] == [False, False, True, False, True]
+    for k, (frame, _) in enumerate(got):
+        assert np.array_equal(frame, images[k % 2]), k

@@ -181,7 +181,10 @@ class AutoTuner:
         self.triggers = tr.Triggers(config)
         self.worker: Worker | None = None
         self.params_seq, self.report_seq = itertools.count(), itertools.count()  # per key
-        self.seen_id = 0  # largest params_id seen in estimates (a restarted tuner lags)
+        # largest params_id seen in estimates (a restarted tuner lags), until motion-estimation
+        # is asked: it runs that set (taken on), or another (what it runs counts)
+        self.seen_id = 0
+        self._refuted = -1  # the last params_id an estimate claimed that was not confirmed
         self._lagging = False  # reminders held back: the estimates run a newer set (announce)
         self._asked_for = -1  # the seen_id motion-estimation was last asked the set of
         self.last_estimate = NO_ESTIMATE  # (seq, stamp_ns) of the last estimate watched
@@ -206,6 +209,8 @@ class AutoTuner:
         no new ``params_id`` to give (logged, in the status): nothing is published."""
         st = self.state
         if reason is not None:
+            if self.seen_id > st.params_id:
+                self._take_on_in_force()  # asked once a claim: what runs, not what was said
             try:
                 new_id = next_params_id(max(st.params_id, self.seen_id))
             except MessageError as e:
@@ -256,14 +261,34 @@ class AutoTuner:
         after it ran its own flags, and its next tuning published its flags' max_features,
         thres_percent and ungroup_size with the windows it chose: the user's set was gone,
         with no line saying so. Reminding of the set taken on puts a restarted service back
-        on it. False where it cannot be asked, or runs another set."""
+        on it. False where it cannot be asked, or runs another set.
+
+        An estimate's ``params_id`` is a claim until motion-estimation confirms it: where it
+        answers with another set, that one counts (taken on if newer than this tuner's, else
+        the claim is dropped, said once). One estimate with params_id 2^53 - 1 from any
+        client (a forged one, or a recording's estimates replayed beside the live pipeline)
+        stopped the reminders for good, so a restarted motion-estimation stayed on its
+        flags, and left no newer id for any tuning."""
         if got is None:
             if self._asked_for == self.seen_id:  # once a set: the query waits up to 0.5 s
                 return False
             got = self.ask_in_force()
         self._asked_for = self.seen_id
-        if not got or got.get("params_id") != self.seen_id:
-            return False
+        runs = got.get("params_id") if got is not None else None
+        if got is None or not isinstance(runs, int) or isinstance(runs, bool) or runs < 0:
+            return False  # no answer: the claim stands (reminders held back)
+        if runs != self.seen_id:
+            st = self.state
+            log.warning("estimates carried params_id %d, but motion-estimation runs %d: "
+                        "%s (a recording's estimates replayed beside this pipeline, or a "
+                        "forged one?)", self.seen_id, runs,
+                        f"taking on {runs}" if runs > st.params_id
+                        else f"not taken, this tuner's {st.params_id} stays in force")
+            self._refuted, self.seen_id, self._asked_for = self.seen_id, runs, runs
+            if runs <= st.params_id:
+                self.seen_id = st.params_id
+                self._lagging = False
+                return True
         st = self.state
         try:
             params = st.params.replace(**{k: got[k] for k in FACTORS})
@@ -364,7 +389,8 @@ class AutoTuner:
         msg = decode_or_reject(Estimate, payload, self.node, log)
         if msg is None or self.worker is None:
             return
-        self.seen_id = max(self.seen_id, msg.params_id)
+        if msg.params_id != self._refuted:  # the same claim again is not asked about again
+            self.seen_id = max(self.seen_id, msg.params_id)
         # one estimate in ESTIMATE_PERIOD_S is watched: a new track's first may not be
         first = starts_track(msg, self.last_estimate)
         self.last_estimate = (msg.seq, msg.stamp_ns)

@@ -121,6 +121,44 @@ def test_the_tuner_at_the_largest_params_id_keeps_what_is_in_force():
         assert node.published_on(node.keys.params) == []
 
 
+@pytest.mark.parametrize("runs", [1, 3])
+def test_a_params_id_only_an_estimate_claims_does_not_stop_the_tuner(caplog, runs):
+    """One estimate with params_id 2^53 - 1 from any client (a forged one, a recording's
+    replayed beside the pipeline) stopped the tuner's reminders for good (a restarted
+    motion-estimation then stayed on its flags) and left no id for its next tuning. Asked,
+    motion-estimation runs params_id ``runs``: that one counts, taken on where it is newer
+    than the tuner's (3), the claim dropped where it is not (1); said once either way."""
+    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
+
+    in_force = {"max_features": 70, "thres_percent": 2.0, "search_size": 15, "corr_size": 9,
+                "ungroup_size": 5, "params_id": runs, "source": "user", "reason": "by hand"}
+    asked = []
+
+    def ask():
+        asked.append(1)
+        return in_force
+
+    args = parse("auto-tuner", "--no-tune")
+    with MemoryNode("auto_tuner") as node, caplog.at_level(logging.INFO,
+                                                            logger="vistrack.auto_tuner"):
+        tuner = AutoTuner(node, args, check_flags(args), ask_in_force=ask)
+        assert tuner.announce("start-up (flags)")  # params_id 1
+        tuner.seen_id = MAX_PARAMS_ID  # an estimate claimed it
+        for _ in range(3):
+            assert tuner.announce()
+        assert tuner.announce("scene change")
+        sent = [Params.decode(p) for p in node.published_on(node.keys.params)]
+    assert [m.params_id for m in sent] == [1, runs, runs, runs, runs + 1]
+    assert sent[1].max_features == (70 if runs == 3 else TrackerParams().max_features)
+    assert len(asked) == 1 and not node.status.last_error
+    said = [r.getMessage() for r in caplog.records if "estimates carried" in r.getMessage()]
+    assert said == [f"estimates carried params_id {MAX_PARAMS_ID}, but motion-estimation runs "
+                    f"{runs}: " + ("taking on 3" if runs == 3 else
+                                   "not taken, this tuner's 1 stays in force")
+                    + " (a recording's estimates replayed beside this pipeline, or a forged "
+                      "one?)"]
+
+
 def test_a_restarted_tuner_takes_on_the_set_motion_estimation_runs(caplog):
     """A tuner restarted after a user's set (params_id 5: max_features 50, thres_percent 3,
     ungroup_size 8) knew only its flags' values: it reminded no one, a service restarted

@@ -399,11 +399,13 @@ REJECTED_LOG_S = 5.0
 _NUMBERS = re.compile(r"[-+]?\d[\d.]*(?:e[-+]?\d+)?")
 
 
-def reject(node: Node, logger: logging.Logger, what: str, error: BaseException | str) -> None:
+def reject(node: Node, logger: logging.Logger, what: str, error: BaseException | str,
+           line: str | None = None, level: int = logging.ERROR) -> None:
     """Count a bad input in the status and log why (the loop goes on): the first of ``what``
     at once, then at most once every :data:`REJECTED_LOG_S` with how many more came (a peer
     sending 3000 bad messages in a second wrote 3000 ERROR lines, and a depth camera on a
-    ROS 2 topic 30 a second for as long as it ran)."""
+    ROS 2 topic 30 a second for as long as it ran). ``line`` is what is logged, at
+    ``level`` (default: "rejected WHAT: ERROR")."""
     node.status.reject(error)
     # one window per kind of error (its text, numbers left out): the first of a new kind is
     # said at once (a flood of one kind hid another: clocks out of step behind a bad version)
@@ -412,7 +414,7 @@ def reject(node: Node, logger: logging.Logger, what: str, error: BaseException |
     if unsaid is not None:
         more = f" ({unsaid} more rejected since the last said, each counted in the status)" \
             if unsaid else ""
-        logger.error("rejected %s: %s%s", what, error, more)
+        logger.log(level, "%s%s", f"rejected {what}: {error}" if line is None else line, more)
 
 
 M = TypeVar("M")
@@ -539,17 +541,19 @@ class ParamsInForce:
             msg = Params.decode(payload)
             new = msg.tracker_params(self.params)
         except (MessageError, ParamError) as e:
-            node.status.reject(e)
-            logger.error("rejected tuner/params: %s; keeping params_id %d", e, self.params_id)
+            # through reject(): a flood of bad sets wrote a line each (200 sets, 400 lines
+            # from preprocessing and motion-estimation)
+            reject(node, logger, "tuner/params", e,
+                   f"rejected tuner/params: {e}; keeping params_id {self.params_id}")
             return None
         latest_id, latest = ((pending.params_id, pending.params) if pending is not None
                              else (self.params_id, self.params))
         if msg.params_id == latest_id and new == latest:
             return None  # the tuner's periodic reminder of what is in force (or pending)
         if msg.params_id <= latest_id:
-            node.status.reject(f"stale params_id {msg.params_id} <= {latest_id}")
-            logger.warning("ignored tuner/params with params_id %d: %d is %s", msg.params_id,
-                           latest_id, "pending" if pending is not None else "in force")
+            reject(node, logger, "tuner/params", f"stale params_id {msg.params_id} <= {latest_id}",
+                   f"ignored tuner/params with params_id {msg.params_id}: {latest_id} is "
+                   f"{'pending' if pending is not None else 'in force'}", logging.WARNING)
             return None
         return ParamsUpdate(new, msg.params_id, msg.source, msg.reason)
 

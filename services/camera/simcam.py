@@ -17,9 +17,10 @@ import logging
 import time
 
 from ...common.bus import Node
+from ...common.keys import key_suffix
 from ...common.messages import CmdVel, Estimate, MessageError, Pose, encode_frame
 from ...common.sources import parse_size
-from ..runtime import Faults, paced, ready, wait_for_consumers
+from ..runtime import Faults, paced, ready, reject, wait_for_consumers
 from .scenarios import ScenarioError, load_scenario
 from .sim import CAMERA_SIDES, Camera, Command, Simulator
 
@@ -65,8 +66,7 @@ def _wait_answer(node: Node, stamp_ns: int, want_cmd: bool, timeout: float
             elif not want_cmd and Estimate.decode(payload).stamp_ns == stamp_ns:
                 return True, latest
         except MessageError as e:
-            node.status.reject(e)
-            log.error("rejected %s: %s", key, e)
+            reject(node, log, key_suffix(key), e)
     return False, latest
 
 
@@ -79,8 +79,7 @@ def _drain_commands(node: Node) -> CmdVel | None:
         try:
             latest = CmdVel.decode(payload)
         except MessageError as e:
-            node.status.reject(e)
-            log.error("rejected control/cmd_vel: %s", e)
+            reject(node, log, "control/cmd_vel", e)
     return latest
 
 

@@ -38,7 +38,7 @@ from ...common import ros2types as r2
 from ...common.bus import Node
 from ...common.messages import CmdVel, Estimate, Params
 from ..camera.ros2cam import default_domain
-from ..runtime import REJECTED_LOG_S, add_service_args, decode_or_reject, ready, serve
+from ..runtime import REJECTED_LOG_S, add_service_args, decode_or_reject, ready, reject, serve
 from ..usage import add_number
 
 log = logging.getLogger("vistrack.ros2")
@@ -165,8 +165,8 @@ def loop(node: Node, args: argparse.Namespace, participant: rmw.Participant | No
                     cdr = r2.serialize(r2.to_ros(msg, payload=payload))
                 except (struct.error, OverflowError, ValueError) as e:
                     # a valid message whose value the ROS 2 type cannot hold
-                    node.status.reject(e)
-                    log.error("rejected %s: no ROS 2 %s: %s", key, names[bridge.attr], e)
+                    reject(node, log, key, e,
+                           f"rejected {key}: no ROS 2 {names[bridge.attr]}: {e}")
                     continue
                 pub.put(cdr)
             node.status.count_published()

@@ -66,6 +66,26 @@ def test_params_out_of_range_are_refused_and_the_old_ones_stay(factor, value, pr
         assert (state.params.search_size, state.params_id) == (21, 4)
 
 
+def test_a_flood_of_bad_or_stale_params_is_said_once_and_counted_whole(caplog):
+    """200 sets out of range, then 100 stale ones, from a peer: one line each kind (a line
+    each was 400 lines from preprocessing and motion-estimation), every one counted."""
+    with MemoryNode("preprocessing") as node, caplog.at_level(logging.INFO, logger="test"):
+        state = ParamsInForce(TrackerParams(), params_id=3)
+        for _ in range(200):
+            assert not state.apply(params_payload(4, search_size=999), node, log)
+        for _ in range(100):
+            assert not state.apply(params_payload(2, search_size=21), node, log)
+        assert node.status.rejected == 300 and (state.params, state.params_id) == \
+            (TrackerParams(), 3)
+        assert state.apply(params_payload(4, search_size=21), node, log)  # a good one after
+    said = [(r.levelno, r.getMessage()) for r in caplog.records]
+    assert said[:2] == [
+        (logging.ERROR, "rejected tuner/params: tuner/params: field 'search_size': "
+                        "search_size=999 is out of range: allowed 2..128; keeping params_id 3"),
+        (logging.WARNING, "ignored tuner/params with params_id 2: 3 is in force")]
+    assert not [m for _, m in said[2:] if "rejected" in m or "ignored" in m]
+
+
 def test_a_params_id_beyond_the_largest_is_refused():
     """2**64 - 1 was accepted, and "one above the largest" could then not be encoded: the
     params tool died with a traceback and a tuning would have killed the auto-tuner."""
@@ -845,3 +865,24 @@ def test_a_payload_nested_1000_deep_is_rejected_and_the_service_goes_on():
     assert not thread.is_alive()
     assert status["rejected"] == 1 and status["failed"] == 0, status
     assert [m.seq for m in out] == [1]
+
+
+def test_the_simulator_says_a_flood_of_bad_commands_once(caplog):
+    """50 velocity commands with ``vx: "fast"``: a line each before; one now, all counted,
+    and the simulator renders on."""
+    from loops import Running
+
+    bad = msgpack.packb({"v": 1, "seq": 1, "stamp_ns": 1, "vx": "fast", "vy": 0.0, "wz": 0.0,
+                         "stale": False})
+    with caplog.at_level(logging.INFO, logger="vistrack.camera"), \
+            Running("camera", "--source", "sim", "--fps", "100", "--size", "64x48") as cam:
+        node = cam.node
+        for _ in range(50):
+            cam.feed(node.keys.cmd_vel, bad, reliable=True, wait=False)
+        wait_for(lambda: node.status.rejected == 50, timeout=30, what="50 rejections")
+        rendered = len(node.published_on(node.keys.frame))
+        wait_for(lambda: len(node.published_on(node.keys.frame)) > rendered + 5,
+                 what="frames after the flood")
+    said = [r.getMessage() for r in caplog.records if "rejected" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("rejected control/cmd_vel: ") \
+        and "'vx'" in said[0], said

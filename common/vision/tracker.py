@@ -485,10 +485,20 @@ class Tracker:
         room = p.max_features - len(self._pos)
         if room <= 0:
             return
-        chosen = select_features(pre.candidates, shape, p, existing=self._pos, max_count=room)
+        cands = pre.candidates
+        # a feature's correlation window must fit in the frame: preprocessing's candidates
+        # keep that margin, but a peer's preprocessing/frame need not (corner candidates of
+        # a black 8 x 8 frame were 4 features of an estimate marked valid)
+        margin = p.corr_half + 1
+        h, w = shape
+        xs, ys = cands[:, 0], cands[:, 1]
+        inside = (xs >= margin) & (xs < w - margin) & (ys >= margin) & (ys < h - margin)
+        if not inside.all():
+            cands = cands[inside]
+        chosen = select_features(cands, shape, p, existing=self._pos, max_count=room)
         if len(chosen) == 0:
             return
-        new = pre.candidates[chosen].astype(np.float64)
+        new = cands[chosen].astype(np.float64)
         # a new feature's first step is predicted by the image motion of the frame before,
         # its scale step included (about the tracked features' centroid: an approach moves
         # the features near the frame's edges fastest); the paper's tracker has no finite

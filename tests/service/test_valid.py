@@ -93,6 +93,37 @@ def test_motion_estimation_marks_an_estimate_without_features_invalid():
     assert [(e.width, e.height) for e in got] == [f.shape[::-1] for f in frames]
 
 
+def test_candidates_whose_window_does_not_fit_make_no_features():
+    """A peer's pre-processed frames with candidates on the corners (ours keep a margin of
+    the correlation window's half plus one): a black 8 x 8 frame gave 4 features in an
+    estimate marked valid, a 1 x 1 frame 1. None fits a window there: NPI 0, not valid.
+    On a textured frame the candidates that fit are taken, those on the border are not."""
+    from vistrack.services.motion_estimation.service import loop
+
+    def forged(image: np.ndarray, seq: int, cands: list[tuple[int, int]]) -> bytes:
+        return PreFrame(seq=seq, stamp_ns=time.time_ns() + seq, width=image.shape[1],
+                        height=image.shape[0], data=image,
+                        candidates=np.array(cands, np.int16).reshape(-1, 2),
+                        strength=np.ones(len(cands), np.float32), params_id=0).encode()
+
+    textured = synthetic.sequence(1, size=(128, 128))[0]
+    margin = TrackerParams().corr_half + 1
+    inner = [(margin + 10 * k, margin + 7 * k) for k in range(1, 9)]
+    frames = [(np.zeros((8, 8), np.uint8), [(0, 0), (7, 0), (0, 7), (7, 7)]),
+              (np.full((1, 1), 200, np.uint8), [(0, 0)]),
+              (textured, [(0, 0), (127, 64), (margin - 1, 50), *inner, (50, 127 - margin + 1)])]
+    with Running("motion_estimation", loop, parse("motion-estimation")) as node:
+        for seq, (image, cands) in enumerate(frames):
+            payload = forged(image, seq, cands)
+            wait_for(lambda payload=payload: node.feed(node.keys.pre_frame, payload),
+                     what="a subscription")
+            wait_for(lambda seq=seq: len(node.published_on(node.keys.estimate)) > seq,
+                     what=f"estimate {seq}")
+        got = [Estimate.decode(p) for p in node.published_on(node.keys.estimate)]
+    assert [(e.npi, e.valid) for e in got[:2]] == [(0, False), (0, False)]
+    assert sorted((x, y) for _, x, y in got[2].features) == sorted(inner)
+
+
 def test_motion_estimation_status_counts_rejected_features_by_reason():
     """A frame of another scene: the features find no trustworthy match there and are
     rejected, not reported; the status says how many and why, beside the features lost."""

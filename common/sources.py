@@ -118,6 +118,8 @@ def read_image(path: str, grey: Grey | None = None) -> np.ndarray:
         raise SourceError(f"{path}: no such file")
     if os.path.isdir(path):
         raise SourceError(f"{path}: is a folder, expected an image file")
+    if os.path.getsize(path) == 0:
+        raise SourceError(f"{path}: not a readable image: the file is empty (0 bytes)")
     if utf8_name(path):
         read = functools.partial(cv2.imread, path, cv2.IMREAD_UNCHANGED)
     else:  # read here, decoded from memory (OpenCV would crash on the name)
@@ -198,10 +200,13 @@ def name_order(path: str) -> tuple[tuple[tuple[int, Decimal | str], ...], str]:
 def _check_images(paths: list[str]) -> None:
     """Fail now, not after the first frames, on a file that is not an image at all: OpenCV
     knows a format from a file's first bytes. (A damaged image of a known format still fails
-    when it is read, naming the file.)"""
+    when it is read, naming the file; so does an empty one, the usual damage of a recorder
+    cut off, which a camera then leaves out as it does a truncated one: refused here, it
+    ended a run before its first frame.)"""
     for p in paths:
         # (a name OpenCV cannot take is checked when it is read, :func:`read_image`)
-        if os.path.isfile(p) and utf8_name(p) and not cv2.haveImageReader(p):
+        if os.path.isfile(p) and utf8_name(p) and os.path.getsize(p) \
+                and not cv2.haveImageReader(p):
             if p.lower().endswith(VIDEO_EXTS):
                 raise SourceError(f"{p}: a video among {len(paths)} files: give one video "
                                   "alone, or image files")
@@ -331,6 +336,13 @@ def _is_image(path: str) -> bool:
     return path.lower().endswith(IMAGE_EXTS)
 
 
+def _listed(name: str) -> bool:
+    """Whether a folder's entry ``name`` is one of its frames: an image file by its name,
+    not a hidden one (as a glob has it). A folder copied from a Mac holds ``._f0.png`` beside
+    each ``f0.png`` (AppleDouble metadata, 4 KiB, no image), and was refused whole."""
+    return _is_image(name) and not name.startswith(".")
+
+
 def open_files(specs: Sequence[str], size: tuple[int, int] | None = None
                ) -> FileFrames | GeneratedFrames:
     """Resolve FRAMES arguments: a video file, a folder of images (in :func:`name_order`), a glob
@@ -341,7 +353,7 @@ def open_files(specs: Sequence[str], size: tuple[int, int] | None = None
     if len(specs) == 1:
         spec = specs[0]
         if os.path.isdir(spec):
-            paths = sorted((os.path.join(spec, f) for f in os.listdir(spec) if _is_image(f)),
+            paths = sorted((os.path.join(spec, f) for f in os.listdir(spec) if _listed(f)),
                            key=name_order)
             if not paths:
                 raise SourceError(f"{spec}: folder holds no image ({', '.join(IMAGE_EXTS)})")

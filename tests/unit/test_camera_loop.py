@@ -176,3 +176,51 @@ def test_the_first_frame_read_ahead_keeps_a_loops_cuts(tmp_path):
     assert [cut for _, cut in got] == [False, False, True, False, True]
     for k, (frame, _) in enumerate(got):
         assert np.array_equal(frame, images[k % 2]), k
+
+
+def test_a_folder_copied_from_a_mac_is_read_without_its_hidden_files(tmp_path):
+    """macOS leaves ``._NAME`` (AppleDouble, no image) beside each file on a stick or a
+    share: the folder was refused whole ("._f0.png: not a readable image") where a glob of
+    it, which skips hidden names, was read."""
+    from vistrack.common.sources import open_files
+
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (60, 80), dtype=np.uint8) for _ in range(3)]
+    for i, image in enumerate(images):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), image)
+        (tmp_path / f"._f{i}.png").write_bytes(b"\x00\x05\x16\x07" + bytes(4092))
+    got = list(open_files([str(tmp_path)]))
+    assert len(got) == 3 and all(np.array_equal(a, b) for a, b in zip(got, images, strict=True))
+
+
+def test_an_empty_frame_is_left_out_by_a_camera_and_ends_an_offline_run_there(tmp_path,
+                                                                              caplog):
+    """A 0-byte image (a recorder cut off) was refused before the first frame, ending a
+    camera's run at its start, where a truncated one is left out with a warning. It is now
+    read as a damaged image: a camera leaves it out and goes on, an offline run gives the
+    frames before it and then the error naming it."""
+    from vistrack.common.bus import MemoryNode
+    from vistrack.common.sources import open_files
+
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (60, 80), dtype=np.uint8) for _ in range(4)]
+    for i, image in enumerate(images):
+        if i == 2:
+            (tmp_path / "f2.png").write_bytes(b"")
+        else:
+            cv2.imwrite(str(tmp_path / f"f{i}.png"), image)
+    skipped = service.Skipped()
+    with MemoryNode("camera") as node, caplog.at_level(logging.WARNING, logger="vistrack.camera"):
+        skipped.attach(node)
+        got = list(service.open_source(f"file:{tmp_path}", None, loop=False, skip=skipped))
+        assert node.status.extra["skipped"] == 1
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'f2.png'}: not a readable image: the file is empty (0 bytes): frame "
+        "skipped, the frames after it go on"]
+    assert len(got) == 3
+    assert all(np.array_equal(a, images[i]) for a, i in zip(got, (0, 1, 3), strict=True))
+    offline = []
+    with pytest.raises(SourceError, match="f2.png: not a readable image: the file is empty"):
+        for frame in open_files([str(tmp_path)]):
+            offline.append(frame)
+    assert len(offline) == 2

@@ -286,10 +286,10 @@ def to_ros(msg: Message, frame_id: str = FRAME_ID, payload: bytes | None = None)
 # -- ROS 2 -> contract ----------------------------------------------------------------------
 
 def frame_of_image(obj: Any, *, seq: int) -> Frame:
-    """The ``camera/frame`` of a ``mono8`` ``sensor_msgs/msg/Image`` (other encodings are the
-    ROS 2 camera source's job)."""
-    if obj.encoding != "mono8":
-        raise ValueError(f"image encoding {obj.encoding!r}: expected 'mono8'")
+    """The ``camera/frame`` of a ``sensor_msgs/msg/Image`` in any encoding the ROS 2 camera
+    source takes (:func:`grey_of_image`: colour to grey, 16-bit by its high byte; ``mono8``
+    as it is). Only ``mono8`` was taken: a recording of a colour camera (a valid rosbag2
+    file) was refused as damaged at its first frame."""
     return Frame.from_image(grey_of_image(obj), seq=seq, stamp_ns=stamp_ns(obj.header))
 
 

@@ -127,8 +127,9 @@ def export(recording: Recording | McapRecording, writer: Writer,
           + (f", with {overlays} overlay messages drawn from the estimates" if overlays else "")
           + f" in {time.monotonic() - start:.2f} s", file=sys.stderr)
     if damage is not None:
-        warn("export", f"{recording.path} is damaged: read the {read} valid samples before byte "
-                       f"offset {damage.offset}, and wrote {writer.count} of them")
+        warn("export", f"{recording.path}{' is damaged' if damage.damaged else ''}: read the "
+                       f"{read} valid samples before byte offset {damage.offset}, and wrote "
+                       f"{writer.count} of them")
         error("export", damage)
         return 2
     return 0

@@ -37,8 +37,8 @@ from typing import BinaryIO
 import mcap.writer
 import zstandard
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Header, Message, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, Header, Message, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
 
@@ -52,6 +52,12 @@ MAGIC = b"\x89MCAP0\r\n"
 PROFILE = "ros2"
 #: Chunk size before compression: a chunk is also closed by every flush (once a second).
 CHUNK_BYTES = 1 << 20
+#: The most a record, or a chunk once decompressed, may hold in a file vistrack reads: 16
+#: times the largest camera/frame (a 4096 x 4096 mono8 Image, 16 MiB); writers' chunks are
+#: 0.75 to 4 MiB by default. A 34 KB file whose one chunk unpacked to a 32768 x 32768
+#: Image took 2.2 GB of memory before its size was refused, and the reader's own limit
+#: (4 GiB a record) would have let a larger one take 8 GB or more.
+MAX_READ_BYTES = 256 << 20
 _SEQ_MOD = 1 << 32
 #: zstd level of the chunks. mcap's writer calls ``zstandard.compress`` (level 3): on 256x256
 #: frames that ran at 13 MB/s here, 7 % of a core for a 30 fps recording, against 1.6 % at
@@ -287,26 +293,49 @@ class McapRecording:
         channels: dict[int, tuple[str, str, str] | None] = {}  # id -> (key, suffix, type)
         last_seq: dict[int, tuple[int, int]] = {}  # channel -> (sequence, seq) of its last
         with open(self.path, "rb") as f:
-            reader = iter(StreamReader(f, validate_crcs=True).records)
-            start = 0  # where the record being taken apart (a chunk) starts
+            reader = iter(StreamReader(f, validate_crcs=True, emit_chunks=True,
+                                       record_size_limit=MAX_READ_BYTES).records)
             while True:
-                before = f.tell()
+                start = f.tell()  # where the record, or the chunk taken apart, starts
                 try:
                     rec = next(reader)
+                    inner = self._unpacked(rec, start) if isinstance(rec, Chunk) else [rec]
+                except RecordError:
+                    raise
                 except StopIteration:
                     return
                 except Exception as e:  # noqa: BLE001 - damaged bytes: mcap raises many kinds
-                    raise RecordError(self.path, before, _damage(e)) from None
-                if f.tell() != before:  # a new record read from the file, not from a chunk
-                    start = before
-                if isinstance(rec, Schema):
-                    schemas[rec.id] = rec
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = self._channel(rec, schemas.get(rec.schema_id))
-                elif isinstance(rec, Message):
-                    target = channels.get(rec.channel_id)
-                    if target is not None:
-                        yield self._sample(rec, target, last_seq, start)
+                    raise RecordError(self.path, start, _damage(e)) from None
+                for rec in inner:
+                    if isinstance(rec, Schema):
+                        schemas[rec.id] = rec
+                    elif isinstance(rec, Channel):
+                        channels[rec.id] = self._channel(rec, schemas.get(rec.schema_id))
+                    elif isinstance(rec, Message):
+                        target = channels.get(rec.channel_id)
+                        if target is not None:
+                            yield self._sample(rec, target, last_seq, start)
+
+    def _unpacked(self, chunk: Chunk, offset: int) -> list:
+        """The records of ``chunk``, decompressed only where it says it holds at most
+        :data:`MAX_READ_BYTES` (an lz4 chunk that holds more than it says is refused too)."""
+        if chunk.uncompressed_size > MAX_READ_BYTES:
+            raise RecordError(self.path, offset, f"a chunk of {chunk.uncompressed_size:,} "
+                              f"bytes once decompressed, over the {MAX_READ_BYTES >> 20} MiB "
+                              "vistrack reads in one (a camera/frame is at most 16 MiB)",
+                              damaged=False)
+        if chunk.compression == "lz4":  # mcap's own lz4 path ignores the size it declares
+            import lz4.frame  # mcap's dependency for lz4 chunks
+            out = lz4.frame.LZ4FrameDecompressor()
+            data = out.decompress(chunk.data, max_length=chunk.uncompressed_size + 1)
+            if len(data) != chunk.uncompressed_size or not out.eof:
+                raise RecordError(self.path, offset, "an lz4 chunk that does not hold the "
+                                  f"{chunk.uncompressed_size:,} bytes it declares")
+            chunk = Chunk(message_start_time=chunk.message_start_time,
+                          message_end_time=chunk.message_end_time,
+                          uncompressed_size=chunk.uncompressed_size,
+                          uncompressed_crc=chunk.uncompressed_crc, compression="", data=data)
+        return breakup_chunk(chunk, validate_crc=True)
 
     def _channel(self, channel: Channel, schema: Schema | None) -> tuple[str, str, str] | None:
         """(key, suffix, ROS type) of a channel to replay, or None (noted in ``skipped``)."""

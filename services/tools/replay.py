@@ -381,8 +381,8 @@ def replay(session: zenoh.Session, keys: Keys, recording: Recording | McapRecord
             while player.play(recording.records()) and args.loop:
                 pass
         except RecordError as e:
-            warn("replay", f"{recording.path} is damaged: replayed the {player.published} "
-                           f"valid samples before byte offset {e.offset}")
+            warn("replay", f"{recording.path}{' is damaged' if e.damaged else ''}: replayed "
+                           f"the {player.published} valid samples before byte offset {e.offset}")
             raise ToolError(str(e), code=2) from None
         finally:
             player.close()

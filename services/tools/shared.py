@@ -236,13 +236,17 @@ class RecordError(Exception):
     path : the file.
     offset : byte offset of the first record (or header) that could not be read; None when
         the file itself cannot be read.
+    damaged : False where the file is sound but holds what vistrack does not read there (a
+        chunk too large to unpack): the tools then do not call it damaged.
     """
 
-    def __init__(self, path: str | Path, offset: int | None, problem: str) -> None:
+    def __init__(self, path: str | Path, offset: int | None, problem: str, *,
+                 damaged: bool = True) -> None:
         where = "" if offset is None else f" at byte offset {offset}"
         super().__init__(f"{path}{where}: {problem}")
         self.path = str(path)
         self.offset = offset
+        self.damaged = damaged
 
 
 @dataclass(frozen=True)

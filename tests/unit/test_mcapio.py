@@ -11,11 +11,13 @@ from __future__ import annotations
 import json
 import os
 
+import cv2
 import msgpack
 import numpy as np
 import pytest
 from forkcli import vistrack
 from mcap.reader import make_reader
+from mcap.writer import CompressionType
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
 
@@ -246,6 +248,89 @@ def _foreign(path, topic: str, typename: str, msgdef: str, message: dict,
             writer.write_message(topic=topic, schema=schema, message=message, log_time=t,
                                  publish_time=t)
         writer.finish()
+
+
+def _image(width: int, height: int, encoding: str, data: bytes, step: int) -> dict:
+    return {"header": {"stamp": {"sec": 1700000000, "nanosec": 0}, "frame_id": "cam"},
+            "height": height, "width": width, "encoding": encoding, "is_bigendian": 0,
+            "step": step, "data": data}
+
+
+def _write_frames(path, images: list[dict], **writer) -> None:
+    with open(path, "wb") as f:
+        w = Ros2Writer(f, **writer)
+        schema = w.register_msgdef(r2.IMAGE, r2.msgdef(r2.IMAGE))
+        for k, image in enumerate(images):
+            t = T0 + k * 33_000_000
+            w.write_message(topic=f"/{ROOT}/camera/frame", schema=schema, message=image,
+                            log_time=t, publish_time=t, sequence=k + 1)
+        w.finish()
+
+
+@pytest.mark.parametrize("compression", list(CompressionType), ids=lambda c: c.name)
+def test_frames_are_read_back_from_every_chunk_compression(tmp_path, compression):
+    """zstd (ours), lz4 (another writer's) and none: the chunks are unpacked by vistrack
+    (bounded by their declared size, :data:`MAX_READ_BYTES`), each frame as it was."""
+    rng = np.random.default_rng(3)
+    grey = [rng.integers(0, 256, (30, 40), dtype=np.uint8) for _ in range(5)]
+    path = tmp_path / "c.mcap"
+    _write_frames(path, [_image(40, 30, "mono8", g.tobytes(), 40) for g in grey],
+                  compression=compression, chunk_size=4000)  # a chunk every 3 frames
+    got = [decode_any(r.key, r.payload) for r in McapRecording(path).records()]
+    assert [f.seq for f in got] == [1, 2, 3, 4, 5]
+    assert all(np.array_equal(f.data, g) for f, g in zip(got, grey, strict=True))
+
+
+def test_a_chunk_larger_than_vistrack_reads_is_refused_before_it_is_unpacked(tmp_path,
+                                                                            monkeypatch,
+                                                                            capsys):
+    """A 34 KB file whose one chunk unpacked to a 32768 x 32768 Image took 2.2 GB of memory
+    before the frame's size was refused. A chunk that declares more than MAX_READ_BYTES
+    (here made 1 MiB, the frame 4 MiB of zeros, 4 KB compressed) is refused unread: the
+    frame before it is read, and the file is not called damaged."""
+    from vistrack.services.tools import mcapio
+
+    path = tmp_path / "big.mcap"
+    small = _image(40, 30, "mono8", bytes(1200), 40)
+    big = _image(2048, 2048, "mono8", bytes(2048 * 2048), 2048)
+    _write_frames(path, [small, big], chunk_size=1 << 10)  # one chunk each
+    assert os.path.getsize(path) < 64 << 10
+    monkeypatch.setattr(mcapio, "MAX_READ_BYTES", 1 << 20)
+    got = []
+    with pytest.raises(RecordError) as err:
+        for rec in McapRecording(path).records():
+            got.append(rec)
+    assert len(got) == 1 and not err.value.damaged
+    assert "bytes once decompressed, over the 1 MiB vistrack reads in one" in str(err.value)
+    from vistrack.services import cli
+    from vistrack.services.tools import export
+
+    out = tmp_path / "out.vtr"
+    args = cli.build_parser("export").parse_args(["export", str(path), str(out)])
+    assert export.main(args) == 2
+    said = capsys.readouterr().err
+    assert f"vistrack export: warning: {path}: read the 1 valid samples before byte offset" \
+        in said and "is damaged" not in said, said
+
+
+@pytest.mark.parametrize(("encoding", "channels", "to_grey"), [
+    ("rgb8", 3, lambda px: cv2.cvtColor(px, cv2.COLOR_RGB2GRAY)),
+    ("bgr8", 3, lambda px: cv2.cvtColor(px, cv2.COLOR_BGR2GRAY)),
+    ("mono16", 2, lambda px: px.view("<u2")[:, :, 0] >> 8),
+])
+def test_a_bag_of_a_colour_or_16_bit_camera_is_replayed_grey(tmp_path, encoding, channels,
+                                                             to_grey):
+    """A valid rosbag2 file with rgb8, bgr8 or 16-bit frames on the camera/frame topic was
+    refused as damaged at its first frame (only mono8 was read); its frames are now made
+    grey as the ROS 2 camera source makes them (16-bit by the high byte)."""
+    rng = np.random.default_rng(4)
+    pixels = rng.integers(0, 256, (30, 40, channels), dtype=np.uint8)
+    path = tmp_path / f"{encoding}.mcap"
+    _write_frames(path, [_image(40, 30, encoding, pixels.tobytes(), 40 * channels)] * 2)
+    got = [decode_any(r.key, r.payload) for r in McapRecording(path).records()]
+    assert len(got) == 2
+    expected = to_grey(pixels.reshape(30, 40, channels)).astype(np.uint8)
+    assert np.array_equal(got[0].data, expected)
 
 
 def test_frames_of_a_writer_that_leaves_the_sequence_0_are_numbered_in_order(tmp_path):

@@ -124,7 +124,8 @@ def test_frame_round_trip_and_rows_with_padding():
 
 
 @pytest.mark.parametrize("change,problem", [
-    (dict(encoding="rgb8"), "encoding 'rgb8'"),
+    (dict(encoding="32FC1"), "encoding '32FC1' is not supported: allowed mono8, "),
+    (dict(encoding="rgb8"), "step >= width \\* bytes a pixel = 4 \\* 3"),  # taken: too few bytes
     (dict(step=3), "step >= width"),
     (dict(data=np.zeros(5, np.uint8)), "5 bytes"),
 ])

@@ -67,6 +67,12 @@ class Rmw(NamedTuple):
 
 # -- names ------------------------------------------------------------------------------------
 
+def is_name_token(text: str) -> bool:
+    """Whether ``text`` is one token of a ROS 2 name (letters, digits and ``_``, not
+    starting with a digit)."""
+    return _TOKEN_RE.fullmatch(text) is not None
+
+
 def validate_domain(domain: object) -> int:
     lo, hi = DOMAIN_RANGE
     if isinstance(domain, bool) or not isinstance(domain, int) or not lo <= domain <= hi:

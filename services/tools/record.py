@@ -36,6 +36,7 @@ import msgpack
 import zenoh
 
 from ...common.keys import Keys, key_suffix
+from ...common.rmw_zenoh import is_name_token
 from ..usage import add_number, add_path, plural
 from .mcapio import McapRecording, McapWriter, is_mcap
 from .shared import (
@@ -252,6 +253,15 @@ def open_writer(path: str | Path, fmt: str | None, *, robot: str, keys: list[str
     """A writer of ``path`` in :func:`format_of` ``(path, fmt)`` (ToolError, code 2, if the
     file cannot be created)."""
     if format_of(path, fmt) == "mcap":
+        if not is_name_token(robot):
+            # the topics are /vistrack/<robot>/...: valid for MCAP and Foxglove, but a ROS 2
+            # name refuses them, and `ros2 bag play` with them
+            like = ("" if robot[:1].isalpha() else "r") + robot.replace("-", "_")
+            warn(tool.removeprefix("vistrack "),
+                 f"robot id {robot!r} makes topics that are not ROS 2 names "
+                 f"(/vistrack/{robot}/camera/frame: each part letters, digits and '_', not "
+                 "starting with a digit): Foxglove and the mcap tools read the file, "
+                 f"`ros2 bag` does not; a robot id such as {like!r} makes it one")
         return McapWriter(path, robot=robot, keys=keys, tool=tool, start_ns=start_ns)
     return RecordWriter(path, robot=robot, keys=keys, tool=tool, start_ns=start_ns)
 

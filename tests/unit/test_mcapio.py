@@ -499,3 +499,27 @@ def test_an_export_onto_a_full_disk_is_one_line_not_a_traceback(samples, tmp_pat
     assert run.stderr.splitlines()[-1] == ("vistrack export: error: /dev/full: No space left "
                                            "on device (the export is incomplete)")
     assert "Traceback" not in run.stderr
+
+
+@pytest.mark.parametrize(("robot", "like"), [("robot-1", "robot_1"), ("2wheels", "r2wheels"),
+                                             ("robot_1", None)])
+def test_a_robot_id_that_makes_no_ros_2_topic_is_said_when_writing_mcap(tmp_path, capsys,
+                                                                        robot, like):
+    """Robot ids may hold '-' and start with a digit; ROS 2 names may not, so the topics of
+    such a file (/vistrack/robot-1/...) are no ROS 2 names and `ros2 bag` refuses them:
+    written all the same (Foxglove and the mcap tools read them), with a warning that says
+    so and names an id that works. A .vtr has no topics: nothing to say."""
+    from vistrack.services.tools.record import open_writer
+
+    with open_writer(tmp_path / "r.mcap", None, robot=robot, keys=[f"vistrack/{robot}/**"]):
+        pass
+    said = capsys.readouterr().err
+    if like is None:
+        assert said == ""
+    else:
+        assert said.startswith(f"vistrack record: warning: robot id {robot!r} makes topics "
+                               "that are not ROS 2 names") and said.count("\n") == 1
+        assert f"a robot id such as {like!r} makes it one" in said
+    with open_writer(tmp_path / "r.vtr", None, robot=robot, keys=[f"vistrack/{robot}/**"]):
+        pass
+    assert capsys.readouterr().err == ""

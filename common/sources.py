@@ -111,16 +111,81 @@ def parse_size(text: str, flag: str = "size", *,
     return w, h
 
 
-def read_image(path: str, grey: Grey | None = None) -> np.ndarray:
+#: The most memory an animation read whole (OpenCV reads an animated PNG or WebP at once) may
+#: take, its frames' pixels times 4 bytes.
+MAX_ANIMATION_BYTES = 1 << 30
+
+
+def image_frames(path: str, grey: Grey | None = None) -> Iterator[np.ndarray]:
+    """The frames of one image file, each as :func:`read_image` gives one: a multi-page TIFF
+    page by page, an animated PNG or WebP frame by frame, any other image once. Only the
+    first of them was read, in silence: an 8-page TIFF stack tracked as one frame."""
+    pages = _pages(path)
+    if pages <= 1:
+        yield read_image(path, grey)
+        return
+    grey = grey or Grey()
+    if path.lower().endswith((".tif", ".tiff")):
+        for k in range(pages):
+            yield read_image(path, grey, page=k)
+    else:  # OpenCV reads the frames of an animation whole (a page alone: always the first)
+        yield from _animation_frames(path, grey, pages)
+
+
+#: The image types that may hold more than one frame (TIFF pages, APNG, animated WebP)
+_MULTI_FRAME_EXTS = (".tif", ".tiff", ".png", ".webp")
+
+
+def _pages(path: str) -> int:
+    """How many frames OpenCV finds in an image file (1 where it cannot say): ~0.6 ms a
+    PNG frame (its read ~10 ms), its complaints about a damaged file caught (the read names
+    it)."""
+    if not (path.lower().endswith(_MULTI_FRAME_EXTS) and utf8_name(path)
+            and os.path.isfile(path) and os.path.getsize(path)):
+        return 1
+    try:
+        n, said = _stderr_of(cv2.imcount, path)
+    except cv2.error:
+        return 1
+    return max(1, int(n))
+
+
+def _animation_frames(path: str, grey: Grey, pages: int) -> Iterator[np.ndarray]:
+    """The frames of an animated PNG or WebP (``cv2.imreadanimation``, OpenCV 4.11 and
+    later), read whole within :data:`MAX_ANIMATION_BYTES`."""
+    first = read_image(path, None)  # its size, for the bound (and the limit on pixels)
+    need = pages * first.shape[0] * first.shape[1] * 4
+    if not hasattr(cv2, "imreadanimation"):
+        raise SourceError(f"{path}: an animation of {pages} frames, which this OpenCV "
+                          f"({cv2.__version__}) does not read: convert it to a video or to "
+                          "image files")
+    if need > MAX_ANIMATION_BYTES:
+        raise SourceError(f"{path}: an animation of {pages} frames of {first.shape[1]}x"
+                          f"{first.shape[0]} px is read whole, {need:,} bytes, more than "
+                          f"{MAX_ANIMATION_BYTES >> 20} MiB: convert it to a video or to "
+                          "image files")
+    (ok, animation), _ = _stderr_of(cv2.imreadanimation, path)
+    frames = list(animation.frames) if ok else []
+    if len(frames) != pages:
+        raise SourceError(f"{path}: an animation of {pages} frames, {len(frames)} of which "
+                          "read")
+    for image in frames:
+        yield grey(image)
+
+
+def read_image(path: str, grey: Grey | None = None, page: int | None = None) -> np.ndarray:
     """One image file as (H, W) uint8 grey (16-bit images scaled by ``grey``, the stream's,
-    else by the depth of this image's own samples: see :class:`Grey`)."""
+    else by the depth of this image's own samples: see :class:`Grey`); ``page``: that page
+    of a multi-page file (:func:`image_frames`)."""
     if not os.path.exists(path):
         raise SourceError(f"{path}: no such file")
     if os.path.isdir(path):
         raise SourceError(f"{path}: is a folder, expected an image file")
     if os.path.getsize(path) == 0:
         raise SourceError(f"{path}: not a readable image: the file is empty (0 bytes)")
-    if utf8_name(path):
+    if page is not None:
+        read = functools.partial(_read_page, path, page)
+    elif utf8_name(path):
         read = functools.partial(cv2.imread, path, cv2.IMREAD_UNCHANGED)
     else:  # read here, decoded from memory (OpenCV would crash on the name)
         read = functools.partial(cv2.imdecode, np.fromfile(path, np.uint8),
@@ -132,8 +197,14 @@ def read_image(path: str, grey: Grey | None = None) -> np.ndarray:
                           "does (cut short?)")
     _pass_on(said, read=img is not None)
     if img is None:
-        raise SourceError(f"{path}: not a readable image")
+        raise SourceError(f"{path}: not a readable image" if page is None
+                          else f"{path}: page {page} is not a readable image")
     return (grey or Grey())(img)
+
+
+def _read_page(path: str, page: int) -> np.ndarray | None:
+    ok, mats = cv2.imreadmulti(path, start=page, count=1, flags=cv2.IMREAD_UNCHANGED)
+    return mats[0] if ok and mats else None
 
 
 def utf8_name(path: str) -> bool:
@@ -285,12 +356,18 @@ class FileFrames:
                 cap.release()
         else:
             for p in self.paths:
-                try:
-                    image = read_image(p, grey)
-                except SourceError as e:
-                    self._bad(e)
-                    continue
-                yield p, image
+                pages = image_frames(p, grey)
+                k = 0
+                while True:
+                    try:
+                        image = next(pages)
+                    except StopIteration:
+                        break
+                    except SourceError as e:
+                        self._bad(e)
+                        break
+                    yield (p if not k else f"{p}#{k}"), image
+                    k += 1
 
 
 def _check_complete(path: str, read: int, announced: float, fps: float = 0.0,

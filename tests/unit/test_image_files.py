@@ -1,0 +1,66 @@
+"""Image files that hold more than one frame: a multi-page TIFF stack, an animated PNG or WebP.
+Only their first frame was read, in silence (an 8-page TIFF tracked as one frame)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from vistrack.common import sources
+from vistrack.common.sources import SourceError, open_files
+
+
+def _frames(n: int = 4) -> list[np.ndarray]:
+    rng = np.random.default_rng(5)
+    return [rng.integers(0, 256, (30, 40), dtype=np.uint8) for _ in range(n)]
+
+
+def test_a_tiff_stack_gives_every_page_in_order(tmp_path):
+    frames = _frames()
+    path = tmp_path / "stack.tif"
+    assert cv2.imwritemulti(str(path), frames)
+    got = list(open_files([str(path)]))
+    assert len(got) == 4
+    assert all(np.array_equal(a, b) for a, b in zip(got, frames, strict=True))
+    # in a folder, beside single images: each file's frames in the folder's order
+    cv2.imwrite(str(tmp_path / "a.png"), frames[3])
+    got = list(open_files([str(tmp_path)]))
+    assert len(got) == 5 and np.array_equal(got[0], frames[3])
+    assert all(np.array_equal(a, b) for a, b in zip(got[1:], frames, strict=True))
+
+
+@pytest.mark.skipif(not hasattr(cv2, "imwriteanimation"), reason="OpenCV < 4.11 writes no "
+                    "animation to read back")
+@pytest.mark.parametrize("ext", [".png", ".webp"])
+def test_an_animated_image_gives_every_frame(tmp_path, ext):
+    frames = _frames()
+    animation = cv2.Animation()
+    animation.frames = [cv2.cvtColor(f, cv2.COLOR_GRAY2BGR) for f in frames]
+    animation.durations = [40] * len(frames)
+    path = tmp_path / f"anim{ext}"
+    params = [cv2.IMWRITE_WEBP_QUALITY, 101] if ext == ".webp" else []  # lossless
+    assert cv2.imwriteanimation(str(path), animation, params)
+    got = list(open_files([str(path)]))
+    assert len(got) == 4
+    for a, b in zip(got, frames, strict=True):
+        assert np.abs(a.astype(int) - b).max() <= 1  # grey through BGR and back
+
+
+def test_an_animation_too_large_to_read_whole_is_refused_naming_its_size(tmp_path,
+                                                                         monkeypatch):
+    if not hasattr(cv2, "imwriteanimation"):
+        pytest.skip("OpenCV < 4.11 writes no animation")
+    frames = _frames()
+    animation = cv2.Animation()
+    animation.frames = [cv2.cvtColor(f, cv2.COLOR_GRAY2BGR) for f in frames]
+    animation.durations = [40] * len(frames)
+    path = tmp_path / "anim.png"
+    assert cv2.imwriteanimation(str(path), animation)
+    monkeypatch.setattr(sources, "MAX_ANIMATION_BYTES", 1000)
+    got = []
+    with pytest.raises(SourceError, match="an animation of 4 frames of 40x30 px is read "
+                                          "whole, 19,200 bytes, more than 0 MiB"):
+        for frame in open_files([str(path)]):
+            got.append(frame)
+    assert got == []  # refused before any frame: OpenCV reads an animation whole

@@ -446,7 +446,11 @@ def open_files(specs: Sequence[str], size: tuple[int, int] | None = None
             raise SourceError("'' is not a file or folder: give a video, a folder of images, "
                               "a glob or image files")
         if not os.path.exists(spec):
-            raise SourceError(f"{spec}: no such file or folder")
+            # quoted where blanks would hide ('rgba ' from a stray space)
+            shown = repr(spec) if spec != spec.strip() else spec
+            raise SourceError(f"{shown}: no such file or folder"
+                              + ("; network streams (rtsp://, http://) are not read"
+                                 if "://" in spec else ""))
         if not _is_image(spec):
             return FileFrames([spec], video=True, size=size, description=spec)
     for p in specs:

@@ -505,9 +505,15 @@ def tune(frames: Sequence[np.ndarray], seed: int | None = None, *,
     if textured < MIN_TEXTURED:
         h, w = np.shape(exp.frames[0])[:2]
         most = (base if base is not None else TrackerParams()).max_features
-        # a frame no wider than the reference's correlation window holds none of its templates
-        cause = (f"frames of {w}x{h} px hold no {exp.reference[1]} px correlation window: "
-                 "give larger frames" if min(h, w) <= exp.reference[1]
+        # a frame no wider than the reference's correlation window holds none of its
+        # templates; one not much wider, few (a feature keeps half a window from the
+        # border: 40 x 40 px frames of real texture were said to be a covered lens)
+        search, corr = exp.reference
+        cause = (f"frames of {w}x{h} px hold no {corr} px correlation window: "
+                 "give larger frames" if min(h, w) <= corr
+                 else f"frames of {w}x{h} px are small for the reference windows "
+                 f"({search}, {corr}): a feature keeps {corr // 2 + 1} px from each border; "
+                 "give larger frames" if min(h, w) <= search + corr
                  # max_features 1 or 2 (allowed) was said to be a covered lens
                  else f"max_features is {most}: fewer features than that can be tracked"
                  if most < MIN_VALID_NPI

@@ -57,7 +57,7 @@ from ...common.sources import (
     parse_size,
 )
 from ..runtime import Faults, add_service_args, paced, ready, serve, wait_for_consumers
-from ..usage import add_number, add_path, print_error, say_on_stderr
+from ..usage import add_number, add_path, plural, print_error, say_on_stderr
 from .ros2cam import default_domain, is_ros2, run_ros2, topic_of
 from .simcam import make_simulator, run_sim
 
@@ -428,13 +428,13 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
         for sent_before, image in enumerate(frames):
             seq = sent_before + (skipped.count if skipped is not None else 0)
             if node.stop.is_set():
-                log.info("stopped after %d frames", sent_before)
+                log.info("stopped after %s", plural(sent_before, "frame"))
                 return 0
             if period:
                 if sent_before:  # the first frame goes at once (it waited a whole period)
                     next_t = paced(node, next_t, period, acks.consume)
                 if node.stop.is_set():  # stopped while it waited: no frame more
-                    log.info("stopped after %d frames", sent_before)
+                    log.info("stopped after %s", plural(sent_before, "frame"))
                     return 0
             elif sent:
                 need = {keys.estimate: sent[0]} if len(sent) == window else {}
@@ -461,7 +461,8 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
         _last_estimate(node, args, acks, last if lockstep else [])
         raise
     _last_estimate(node, args, acks, last if lockstep else [])
-    log.info("end of %s after %d frames", args.source, node.status.extra.get("frames", 0))
+    log.info("end of %s after %s", args.source,
+             plural(node.status.extra.get("frames", 0), "frame"))
     return 0
 
 

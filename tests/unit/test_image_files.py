@@ -64,3 +64,17 @@ def test_an_animation_too_large_to_read_whole_is_refused_naming_its_size(tmp_pat
         for frame in open_files([str(path)]):
             got.append(frame)
     assert got == []  # refused before any frame: OpenCV reads an animation whole
+
+
+@pytest.mark.parametrize(("spec", "said"), [
+    ("frames ", "'frames ': no such file or folder"),  # a stray blank, shown
+    ("rtsp://10.0.0.5/stream", "rtsp://10.0.0.5/stream: no such file or folder; network "
+                               "streams (rtsp://, http://) are not read"),
+])
+def test_a_missing_source_is_named_so_that_what_was_wrong_shows(tmp_path, monkeypatch, spec,
+                                                                 said):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "frames").mkdir()
+    with pytest.raises(SourceError) as err:
+        open_files([spec])
+    assert str(err.value) == said

@@ -34,6 +34,12 @@ def test_frames_smaller_than_the_reference_window_say_so(real_image):
         tune(small, seed=1)
     with pytest.raises(TextureError, match=r"a covered lens"):
         tune(_noise(6), seed=1)
+    # wider than the window, but not by much: 40 x 40 px of real texture is no covered lens
+    small = [np.ascontiguousarray(real_image[k:k + 40, k:k + 40]) for k in range(6)]
+    with pytest.raises(TextureError, match=r"frames of 40x40 px are small for the reference "
+                                           r"windows \(50, 30\): a feature keeps 16 px from "
+                                           r"each border; give larger frames"):
+        tune(small, seed=1)
 
 
 @pytest.mark.parametrize("most", [1, 2])

@@ -55,6 +55,31 @@ DEVICE_RETRY_PAUSE_S = 0.005
 
 log = logging.getLogger("vistrack.frames")
 
+#: Network streams a camera reads as it reads a device (OpenCV's FFmpeg back end): an IP
+#: camera's RTSP, an MJPEG or HLS stream over HTTP, RTMP, SRT, UDP or TCP.
+STREAM_SCHEMES = ("rtsp", "rtsps", "rtmp", "http", "https", "srt", "udp", "tcp")
+_STREAM_RE = re.compile(rf"^({'|'.join(STREAM_SCHEMES)})://", re.IGNORECASE)
+#: How long opening a stream, and a read of it, may take before it counts as failed, ms
+#: (FFmpeg's own: 30 s and more for a camera that does not answer)
+STREAM_TIMEOUT_MS = 5000
+
+
+def is_stream(spec: str) -> bool:
+    """Whether a SOURCE is a network stream's URL (:data:`STREAM_SCHEMES`)."""
+    return _STREAM_RE.match(spec) is not None
+
+
+def is_live(spec: str) -> bool:
+    """Whether a SOURCE is a live camera: a device or a network stream (its frames are the
+    newest it delivers, for whoever is there; a file's wait for their consumers)."""
+    return spec.startswith("device:") or is_stream(spec)
+
+
+def redacted(url: str) -> str:
+    """``url`` with the password of its user info hidden (``rtsp://admin:***@cam/1``): an IP
+    camera's URL often carries one, and it goes into logs and the status."""
+    return re.sub(r"^([a-zA-Z][a-zA-Z0-9+.-]*://[^:/@]*):[^@/]*@", r"\1:***@", url)
+
 # OpenCV and its FFmpeg back end print their own warnings on stderr ("moov atom not found",
 # "can't open camera by index") before the one-line error that names the file or device.
 os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET; read at first capture
@@ -449,8 +474,8 @@ def open_files(specs: Sequence[str], size: tuple[int, int] | None = None
             # quoted where blanks would hide ('rgba ' from a stray space)
             shown = repr(spec) if spec != spec.strip() else spec
             raise SourceError(f"{shown}: no such file or folder"
-                              + ("; network streams (rtsp://, http://) are not read"
-                                 if "://" in spec else ""))
+                              + ("; a network stream is read by the camera alone "
+                                 "(vistrack camera --source URL)" if is_stream(spec) else ""))
         if not _is_image(spec):
             return FileFrames([spec], video=True, size=size, description=spec)
     for p in specs:
@@ -479,15 +504,16 @@ def device_index(spec: str) -> int:
 
 
 def probe_device(spec: str) -> None:
-    """Open the ``device:N`` source, read one frame and let the device go: a camera that is
-    missing, busy or mute is found before anything that needs it starts.
+    """Open the ``device:N`` source (or a network stream's URL), read one frame and let the
+    device go: a camera that is missing, busy or mute is found before anything that needs it
+    starts.
 
     Raises
     ------
     SourceError
         Naming the device and what failed.
     """
-    frames = open_device(device_index(spec))
+    frames = open_stream(spec) if is_stream(spec) else open_device(device_index(spec))
     try:
         next(frames)
     finally:
@@ -513,6 +539,36 @@ def open_device(index: int, size: tuple[int, int] | None = None, *,
     return DeviceFrames(cap, index, size, retry_s, capture)
 
 
+def _capture_stream(url: str) -> Any:
+    """``cv2.VideoCapture`` of a stream by FFmpeg, its open and reads bounded by
+    :data:`STREAM_TIMEOUT_MS`."""
+    return cv2.VideoCapture(url, cv2.CAP_FFMPEG, [
+        cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, STREAM_TIMEOUT_MS,
+        cv2.CAP_PROP_READ_TIMEOUT_MSEC, STREAM_TIMEOUT_MS])
+
+
+def open_stream(url: str, size: tuple[int, int] | None = None, *,
+                retry_s: float = STREAM_TIMEOUT_MS / 1000,
+                capture: Callable[[str], Any] = _capture_stream) -> DeviceFrames:
+    """A network stream (an IP camera's ``rtsp://...``, :data:`STREAM_SCHEMES`) read as a
+    device is (:class:`DeviceFrames`: the newest frame it has delivered each time one is
+    asked for, opened again once when it stops delivering).
+
+    Raises
+    ------
+    SourceError
+        If the stream does not open within :data:`STREAM_TIMEOUT_MS` (naming the URL without
+        its password).
+    """
+    cap, said = _stderr_of(capture, url)
+    if not cap.isOpened():
+        cap.release()
+        raise SourceError(f"{redacted(url)}: cannot open the stream (within "
+                          f"{STREAM_TIMEOUT_MS / 1000:g} s: a wrong address, or the camera "
+                          "does not answer)")
+    return DeviceFrames(cap, url, size, retry_s, capture)
+
+
 class DeviceFrames:
     """The frames of an open camera device, each the newest it has delivered: a thread reads
     the device as fast as it delivers, and each ``next()`` returns the newest frame not
@@ -531,9 +587,11 @@ class DeviceFrames:
     policy). :meth:`close` stops the thread, which lets the device go.
     """
 
-    def __init__(self, cap, index: int, size: tuple[int, int] | None, retry_s: float,
+    def __init__(self, cap, index: int | str, size: tuple[int, int] | None, retry_s: float,
                  capture) -> None:
-        self.index = index
+        self.index = index  # a device's number, or a stream's URL (:func:`open_stream`)
+        #: how logs and errors name it: ``device:N``, or the URL without its password
+        self.name = f"device:{index}" if isinstance(index, int) else redacted(index)
         self.size = size
         self.retry_s = retry_s
         self.capture_ns = 0
@@ -543,9 +601,13 @@ class DeviceFrames:
         self._newest: tuple[np.ndarray, int] | None = None
         self._error: SourceError | None = None
         self._stop = threading.Event()
+        #: another stop that ends ``next()``'s wait (the camera's): a stream that delivers
+        #: nothing (a video over HTTP at its end, a camera gone) held a stop for up to two
+        #: read timeouts while it was tried and opened again
+        self.stop_with: threading.Event | None = None
         self.cap = cap  # the capture being read (another once the device is opened again)
         self._thread = threading.Thread(target=self._read_all, daemon=True,
-                                        name=f"device:{index}")
+                                        name=self.name)
         self._thread.start()
 
     def __iter__(self) -> DeviceFrames:
@@ -554,7 +616,8 @@ class DeviceFrames:
     def __next__(self) -> np.ndarray:
         with self._ready:
             while (self._newest is None and self._error is None) or self._stop.is_set():
-                if self._stop.is_set():
+                if self._stop.is_set() or (self.stop_with is not None
+                                           and self.stop_with.is_set()):
                     raise StopIteration
                 self._ready.wait(0.1)
             if self._newest is None:
@@ -570,22 +633,22 @@ class DeviceFrames:
         self._thread.join(timeout=2.0)
 
     def _read_all(self) -> None:
-        index = self.index
+        index, name = self.index, self.name
         cap = self.cap
         try:
             while not self._stop.is_set():
                 img = self._read(cap)
                 if img is None and not self._stop.is_set():
-                    log.warning("device:%d: no frame for %g s: opening the device again",
-                                index, self.retry_s)
+                    log.warning("%s: no frame for %g s: opening the device again",
+                                name, self.retry_s)
                     cap.release()
                     cap = self.cap = self._capture(index)
                     img = self._read(cap) if cap.isOpened() else None
                     if img is None:
-                        raise SourceError(f"device:{index}: the camera stopped delivering "
+                        raise SourceError(f"{name}: the camera stopped delivering "
                                           f"frames (none for {self.retry_s:g} s, nor once "
                                           "opened again)")
-                    log.info("device:%d: delivering frames again, opened again", index)
+                    log.info("%s: delivering frames again, opened again", name)
                 if img is not None:
                     with self._ready:
                         self._newest = (img, time.time_ns())
@@ -594,7 +657,7 @@ class DeviceFrames:
             # any failure of the device or its driver (OpenCV raises cv2.error): next()
             # waited for a frame for ever once this thread had died of one
             error = e if isinstance(e, SourceError) else SourceError(
-                f"device:{index}: reading the camera failed: {type(e).__name__}: {e}")
+                f"{name}: reading the camera failed: {type(e).__name__}: {e}")
             with self._ready:
                 self._error = error
                 self._ready.notify()
@@ -607,14 +670,14 @@ class DeviceFrames:
         ok, img = cap.read()
         if ok and img is not None:
             return img
-        index = self.index
-        log.warning("device:%d: a frame could not be read; trying again", index)
+        name = self.name
+        log.warning("%s: a frame could not be read; trying again", name)
         deadline = time.monotonic() + self.retry_s
         failed = 1
         while time.monotonic() < deadline and not self._stop.wait(DEVICE_RETRY_PAUSE_S):
             ok, img = cap.read()
             if ok and img is not None:
-                log.info("device:%d: a frame read again after %d failed reads", index, failed)
+                log.info("%s: a frame read again after %d failed reads", name, failed)
                 return img
             failed += 1
         return None

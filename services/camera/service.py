@@ -5,7 +5,8 @@ Reads   ``vistrack/<robot>/motion/estimate``  (pacing to the pipeline, and end o
         ``vistrack/<robot>/control/cmd_vel``  (simulator only: it moves the robot)
 Writes  ``vistrack/<robot>/camera/frame``, ``vistrack/<robot>/sim/pose`` (simulator only)
 
-Sources: ``file:PATH`` (video, image folder or glob), ``device:N``, ``builtin`` (a generated
+Sources: ``file:PATH`` (video, image folder or glob), ``device:N``, a network stream's URL
+(``rtsp://...``, ``http://...``: an IP camera, read as a device is), ``builtin`` (a generated
 textured scene), ``sim[:SCENARIO]`` (the robot simulator, see :mod:`.simcam`), ``ros2:TOPIC``
 (a ROS 2 camera's ``sensor_msgs/msg/Image`` topic over ``rmw_zenoh``, see :mod:`.ros2cam`).
 
@@ -52,8 +53,11 @@ from ...common.sources import (
     SourceError,
     VideoCutShort,
     device_index,
+    is_live,
+    is_stream,
     open_device,
     open_files,
+    open_stream,
     parse_size,
 )
 from ..runtime import Faults, add_service_args, paced, ready, serve, wait_for_consumers
@@ -75,7 +79,8 @@ RESENDS = 2
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", default=BUILTIN, metavar="SOURCE",
-                        help="file:PATH (video, image folder or glob), device:N, builtin (the "
+                        help="file:PATH (video, image folder or glob), device:N, a network "
+                             "stream's URL (an IP camera's rtsp://..., http://...), builtin (the "
                              "built-in generated sequence, default), or sim[:SCENARIO] (the "
                              "robot simulator; scenarios: default, sideways, approach, steps, "
                              "still, lighting, or a YAML file), or ros2:TOPIC (a ROS 2 camera's "
@@ -165,6 +170,8 @@ def open_source(spec: str, size: tuple[int, int] | None, loop: bool,
     with ``skip``, a file source's frames that cannot be given mid-run are left to it."""
     if spec.startswith("device:"):
         return open_device(device_index(spec), size)
+    if is_stream(spec):
+        return open_stream(spec, size)
     if spec == "file:":
         raise SourceError("--source 'file:' names no file: give file:PATH (a video, an image "
                           "folder or a glob)")
@@ -386,6 +393,11 @@ def loop(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray] | No
         if is_ros2(args.source):
             return run_ros2(node, args, _size(args)) if released(node, args) else 0
         frames = open_source(args.source, _size(args), args.loop)
+        if isinstance(frames, DeviceFrames):  # opened here: let go here (main's are its own)
+            try:
+                return loop(node, args, frames, skipped)
+            finally:
+                frames.close()
     if not released(node, args):
         return 0
     # estimates tell when a frame has been through the pipeline (pacing with --fps 0, and the
@@ -397,7 +409,7 @@ def loop(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray] | No
     ready(node)
     # a recording loses its first frames if it plays before anyone listens; a live device
     # is like any camera: its frames are for whoever is there
-    if not args.source.startswith("device:") and not wait_for_consumers(node, node.keys.frame):
+    if not is_live(args.source) and not wait_for_consumers(node, node.keys.frame):
         return 0  # stopped before anyone subscribed
     try:
         return _run(node, args, frames, acks, window, skipped)
@@ -422,6 +434,8 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
     last: list[bytes] = []
     faults = Faults(node, log)
     device = frames if isinstance(frames, DeviceFrames) else None
+    if device is not None:
+        device.stop_with = node.stop  # a stop ends a wait for a frame that does not come
     looped = frames if isinstance(frames, Looped) else None
     cut = False
     try:
@@ -516,7 +530,7 @@ def _reliable(args: argparse.Namespace) -> bool:
     a frame sent BLOCK with BLOCK). With two in flight and latest-only (BLOCK_FIRST) frames,
     a frame that found its predecessor still on a link was lost uncounted now and then (a CI
     run lost a run's last estimate: no later ``seq`` showed the gap)."""
-    return not args.fps and not args.source.startswith("device:")
+    return not args.fps and not is_live(args.source)
 
 
 def _publish(node: Node, image: np.ndarray, seq: int, stamp: int, last: list[bytes],
@@ -543,6 +557,8 @@ def check_args(args: argparse.Namespace) -> None:
         return
     if args.source.startswith("device:"):
         device_index(args.source)
+        return
+    if is_stream(args.source):
         return
     frames = open_source(args.source, size, False)
     try:
@@ -580,7 +596,7 @@ def main(args: argparse.Namespace) -> int:
     except SourceError as e:
         print_error("camera", e)
         # no such camera is a start-up failure (1); a file that cannot be read, bad input (2)
-        return 1 if args.source.startswith("device:") else 2
+        return 1 if is_live(args.source) else 2
     try:
         def run(node: Node, a: argparse.Namespace) -> int:
             skipped.attach(node)

@@ -63,7 +63,7 @@ from ...common.bus import (
     add_zenoh_args,
     install_signal_handlers,
 )
-from ...common.sources import MIN_FPS, SourceError, probe_device
+from ...common.sources import MIN_FPS, SourceError, is_live, probe_device
 from ..usage import add_number, add_path, plural, print_error
 from .launchfile import (
     LaunchError,
@@ -169,7 +169,7 @@ def check_camera(launch: LaunchSpec) -> None:
         Naming the device.
     """
     source = camera_source(launch)
-    if source is not None and source.startswith("device:"):
+    if source is not None and is_live(source):
         probe_device(source)
 
 

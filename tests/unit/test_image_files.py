@@ -68,8 +68,9 @@ def test_an_animation_too_large_to_read_whole_is_refused_naming_its_size(tmp_pat
 
 @pytest.mark.parametrize(("spec", "said"), [
     ("frames ", "'frames ': no such file or folder"),  # a stray blank, shown
-    ("rtsp://10.0.0.5/stream", "rtsp://10.0.0.5/stream: no such file or folder; network "
-                               "streams (rtsp://, http://) are not read"),
+    ("rtsp://10.0.0.5/stream", "rtsp://10.0.0.5/stream: no such file or folder; a network "
+                               "stream is read by the camera alone (vistrack camera --source "
+                               "URL)"),
 ])
 def test_a_missing_source_is_named_so_that_what_was_wrong_shows(tmp_path, monkeypatch, spec,
                                                                  said):

@@ -42,6 +42,8 @@ PREFIX = "ros2:"
 NODE_NAME = "vistrack_camera"
 #: Seconds without an image after which the camera says where to look (once).
 NO_IMAGE_S = 5.0
+#: A publisher that sent nothing for this long has gone (s): one that comes then replaces it
+PUBLISHER_GONE_S = 2.0
 
 
 def is_ros2(spec: str) -> bool:
@@ -178,7 +180,9 @@ class _Converter:
         self.node, self.typename, self.size = node, typename, size
         self.seq = 0
         self.grey = Grey()  # 16-bit images: scaled by the depth of the camera's samples
-        self._last: dict[bytes, int] = {}  # publisher GID -> its last sequence number
+        # publisher GID -> its last sequence number, and when it was seen (monotonic s)
+        self._last: dict[bytes, tuple[int, float]] = {}
+        self._said_first = False  # a publisher has been seen
         self._slot_lock = threading.Lock()  # Zenoh's callback against the loop
         self._newest: bytes | None = None  # the image waiting to be converted
         self.waiting = threading.Event()  # set while one waits
@@ -194,19 +198,34 @@ class _Converter:
             except ValueError:
                 pass  # not from rmw_zenoh: the image is what matters
             else:
-                last = self._last.get(att.gid)
-                if last is not None and att.seq > last + 1:
-                    node.status.count_dropped(att.seq - last - 1)
-                if last is None and self._last:
-                    log.warning("a second publisher on the topic (%d in all): their images "
-                                "are taken as one camera's", len(self._last) + 1)
-                self._last[att.gid] = att.seq
+                now = time.monotonic()
+                seen = self._last.get(att.gid)
+                if seen is not None and att.seq > seen[0] + 1:
+                    node.status.count_dropped(att.seq - seen[0] - 1)
+                if seen is None:
+                    self._new_publisher(now)
+                self._last[att.gid] = att.seq, now
         payload = sample.payload.to_bytes()
         with self._slot_lock:
             if self._newest is not None:
                 node.status.count_dropped(1)  # overwritten before it was converted
             self._newest = payload
             self.waiting.set()
+
+    def _new_publisher(self, now: float) -> None:
+        """Say a new publisher: a second camera on the topic (a warning) where another one
+        sent within :data:`PUBLISHER_GONE_S`, else the camera driver restarted (a restarted
+        driver was said to be a second publisher, "N in all" growing with each restart).
+        Publishers silent that long are forgotten."""
+        for gid in [g for g, (_, t) in self._last.items() if now - t >= PUBLISHER_GONE_S]:
+            del self._last[gid]
+        if self._last:
+            log.warning("a second publisher on the topic (%d in all): their images are "
+                        "taken as one camera's", len(self._last) + 1)
+        elif self._said_first:
+            log.info("images from a new publisher on the topic (the camera driver "
+                     "restarted?)")
+        self._said_first = True
 
     def take(self) -> bytes | None:
         """The newest image waiting, if any (it is no longer waiting)."""

@@ -300,3 +300,41 @@ def test_a_limit_of_the_user_s_own_is_read_as_opencv_reads_it(given, tmp_path):
     assert out.stdout.split("\n")[:2] == [str((side, limit // side)), "refused"], out
     assert parse_limit("50M") is None and parse_limit("1e9") is None  # OpenCV aborts on them
     assert parse_limit("0") == 0
+
+
+def test_a_restarted_camera_driver_is_a_new_publisher_not_a_second_one(monkeypatch, caplog):
+    """A camera driver restarted publishes under a new GID: it was said to be "a second
+    publisher on the topic (2 in all)", 3 after the next restart, and so on. A publisher
+    silent for PUBLISHER_GONE_S has gone; one that comes then replaces it (said at INFO). Two
+    sending at once are still two (a warning)."""
+    import types
+
+    import zenoh
+
+    from vistrack.common.bus import MemoryNode
+    from vistrack.common.rmw_zenoh import GID_SIZE, Attachment
+    from vistrack.services.camera import ros2cam
+
+    clock = [100.0]
+    monkeypatch.setattr(ros2cam.time, "monotonic", lambda: clock[0])
+
+    def sample(gid: int, seq: int):  # what Zenoh's callback is given: payload and attachment
+        att = Attachment(seq=seq, stamp_ns=1, gid=bytes([gid]) * GID_SIZE).encode()
+        return types.SimpleNamespace(payload=zenoh.ZBytes(b"image"),
+                                     attachment=zenoh.ZBytes(att))
+
+    with MemoryNode("camera") as node, caplog.at_level("INFO", logger="vistrack.camera"):
+        conv = ros2cam._Converter(node, r2.IMAGE, None)
+        for seq in (1, 2, 3):
+            conv.on_sample(sample(1, seq))
+            clock[0] += 0.1
+        clock[0] += ros2cam.PUBLISHER_GONE_S  # driver 1 gone, driver 2 (a restart) comes
+        for seq in (1, 2):
+            conv.on_sample(sample(2, seq))
+            clock[0] += 0.1
+        conv.on_sample(sample(3, 1))  # a third while the second sends: two cameras
+    said = [(r.levelname, r.getMessage()) for r in caplog.records]
+    assert said == [
+        ("INFO", "images from a new publisher on the topic (the camera driver restarted?)"),
+        ("WARNING", "a second publisher on the topic (2 in all): their images are taken as "
+                    "one camera's")]

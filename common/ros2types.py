@@ -375,7 +375,7 @@ def schema_problem(typename: str, text: str) -> str | None:
             theirs_, ours_ = _field_list(fields), _field_list(ours[name][1])
             if theirs_ == ours_:
                 return f"the field types of its {name} differ from this vistrack's"
-            return f"its {name} is ({theirs_}), this vistrack's is ({ours_})"
+            return f"its {name} has the fields ({theirs_}), this vistrack's ({ours_})"
     if typename not in theirs:
         return f"its schema does not define {typename}"
     return None

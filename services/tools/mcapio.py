@@ -277,7 +277,7 @@ class McapRecording:
                 why = "; ".join(f"{t}: {w}" for t, w in sorted(ours.items())) if ours else (
                     f"it has {_topics(summary)} (vistrack replays the /{PREFIX}/<robot>/<key> "
                     "topics that vistrack record writes)")
-                raise RecordError(path, None, f"no vistrack topic to replay: {why}")
+                raise RecordError(path, None, f"no vistrack topic to read: {why}")
 
     def records(self) -> Iterator[Record]:
         """The samples the file's messages rebuild, in file order (the order they were

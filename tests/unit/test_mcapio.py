@@ -364,7 +364,7 @@ def test_an_estimate_written_by_another_encoder_is_read_back(tmp_path):
 def test_a_foreign_mcap_file_is_refused_naming_what_it_holds(tmp_path):
     path = tmp_path / "tf.mcap"
     _foreign(path, "/chatter", "std_msgs/msg/String", "string data", {"data": "hi"})
-    with pytest.raises(RecordError, match=r"no vistrack topic to replay: it has /chatter "
+    with pytest.raises(RecordError, match=r"no vistrack topic to read: it has /chatter "
                                           r"\(std_msgs/msg/String\)"):
         McapRecording(path)
     wrong = tmp_path / "wrong-type.mcap"
@@ -467,7 +467,7 @@ def test_a_report_keeps_the_fields_beyond_the_contract_in_its_json(tmp_path):
 
 def test_an_empty_recording_replays_and_exports_nothing_as_an_empty_vtr_does(tmp_path):
     """A recorder that caught nothing (no publisher) writes an MCAP file with no channel: it
-    was refused ("no vistrack topic to replay", exit 2, for export too) where an empty .vtr
+    was refused ("no vistrack topic to read", exit 2, for export too) where an empty .vtr
     replays and exports with exit 0."""
     for name, writer_type in (("empty.mcap", McapWriter), ("empty.vtr", RecordWriter)):
         path = tmp_path / name

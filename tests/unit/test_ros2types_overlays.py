@@ -75,4 +75,5 @@ def test_schema_problem_accepts_our_msg_files_and_names_a_difference():
     assert "(header, seq, npi," in r2.schema_problem(r2.ESTIMATE, older)
     retyped = r2.msgdef(r2.ESTIMATE).replace("uint32 npi", "int64 npi")
     assert "field types" in r2.schema_problem(r2.ESTIMATE, retyped)
-    assert "Image is (linear, angular)" in r2.schema_problem(r2.IMAGE, r2.msgdef(r2.TWIST))
+    assert "Image has the fields (linear, angular), this vistrack's (header, " in \
+        r2.schema_problem(r2.IMAGE, r2.msgdef(r2.TWIST))

@@ -60,7 +60,15 @@ from ...common.sources import (
     open_stream,
     parse_size,
 )
-from ..runtime import Faults, add_service_args, paced, ready, serve, wait_for_consumers
+from ..runtime import (
+    Faults,
+    add_service_args,
+    paced,
+    ready,
+    serve,
+    setup_logging,
+    wait_for_consumers,
+)
 from ..usage import add_number, add_path, plural, print_error, say_on_stderr
 from .ros2cam import default_domain, is_ros2, run_ros2, topic_of
 from .simcam import make_simulator, run_sim
@@ -586,6 +594,10 @@ def main(args: argparse.Namespace) -> int:
     if _is_sim(args) or is_ros2(args.source):
         return serve("camera", args, loop, publishes_frames=True)
     skipped = Skipped()
+    # the source is read before the service starts (its first frame; a --loop source kept
+    # in memory whole): its grey depth and float range decisions are logged from here on,
+    # where they were lost before serve() set the log up
+    setup_logging(args.log_level)
     try:
         source = open_source(args.source, _size(args), args.loop, skipped)
         frames = _first_frame_read(source)

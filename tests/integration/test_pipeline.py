@@ -202,3 +202,22 @@ def test_black_frames_give_invalid_estimates_no_motion_and_tracking_resumes(tmp_
                for m in back if m["stamp_ns"] in commands)
     for name, s in statuses.items():
         assert s["failed"] == 0 and s["rejected"] == 0, (name, s["last_error"])
+
+
+def test_the_camera_logs_how_it_reads_its_frames_grey_before_it_starts(tmp_path, free_port):
+    """A 12-bit camera's frames in 16-bit PNGs, looped: the camera reads them all before it
+    starts (kept in memory), and its depth decision ("12 significant bits") was lost there,
+    logged before the service set its log up. It is said now, before "ready"."""
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"),
+                    rng.integers(0, 4096, (60, 80)).astype(np.uint16))
+    with router(free_port) as ep:
+        cam = service("camera", ep, "--source", f"file:{tmp_path}", "--loop")
+        try:
+            cam.wait_for("ready", timeout=60)
+        finally:
+            cam.stop()
+    said = "\n".join(cam.lines)
+    assert "16-bit frames with 12 significant bits: grey = value >> 4" in said, said
+    assert said.index("12 significant bits") < said.index("ready")

@@ -537,7 +537,7 @@ class _FrameWire(msgspec.Struct, kw_only=True):
     height: _Side
     encoding: Literal["mono8"]
     data: memoryview  # a view of the payload, not a copy
-    cut: bool = False  # absent: an older publisher's
+    cuts: _Count = 0  # absent: an older publisher's
 
 
 class _PreFrameWire(_FrameWire, kw_only=True):
@@ -597,14 +597,16 @@ class Frame(_Message):
     data : (height, width) uint8 array, 8-bit grey, row-major on the wire. Decoded frames hold
         a read-only view of the payload.
     encoding : ``"mono8"`` (the only encoding).
-    cut : True when this frame does not follow the one before it in the scene: the first
-        frame of a ``--loop`` source's second and later passes, a simulator's scenario
-        started again. Readers that track across frames start again there. Absent (a
-        publisher that predates the field): False.
+    cuts : how many cuts the source has made before this frame, >= 0: a frame whose
+        ``cuts`` differs from the frame before it does not follow that frame in the scene
+        (the first frame of a ``--loop`` source's next pass, a simulator's scenario started
+        again). Readers that track across frames start again there. A count, not a flag, so
+        that a cut frame dropped on the way still shows in the frame after it. Absent (a
+        publisher that predates the field): 0.
     """
 
     KEY: ClassVar[str] = "camera/frame"
-    _CHECKS: ClassVar[dict[str, _Check]] = {**_SEQ, **_IMAGE, "cut": _bool}
+    _CHECKS: ClassVar[dict[str, _Check]] = {**_SEQ, **_IMAGE, "cuts": _int()}
 
     seq: int
     stamp_ns: int
@@ -612,16 +614,16 @@ class Frame(_Message):
     height: int
     encoding: str = "mono8"
     data: np.ndarray
-    cut: bool = False
+    cuts: int = 0
 
     @classmethod
     def from_image(cls, image: np.ndarray, *, seq: int, stamp_ns: int,
-                   cut: bool = False) -> Frame:
+                   cuts: int = 0) -> Frame:
         """A frame of a (height, width) uint8 image."""
         if not isinstance(image, np.ndarray) or image.ndim != 2:
             raise _error(cls.KEY, "data", "must be a 2-D (height, width) array", image)
         return cls(seq=seq, stamp_ns=stamp_ns, width=image.shape[1], height=image.shape[0],
-                   data=image, cut=cut)
+                   data=image, cuts=cuts)
 
     def _validate(self) -> None:
         _check_image(self.KEY, self)
@@ -629,11 +631,11 @@ class Frame(_Message):
     def _wire_fields(self) -> dict[str, Any]:
         return {"seq": self.seq, "stamp_ns": self.stamp_ns, "width": self.width,
                 "height": self.height, "encoding": self.encoding,
-                "data": _bin_of(self.data, "u1"), "cut": self.cut}
+                "data": _bin_of(self.data, "u1"), "cuts": self.cuts}
 
     @classmethod
     def _from_map(cls, m: dict[str, Any]) -> Frame:
-        return super()._from_map(_cut_default(m))
+        return super()._from_map(_cuts_default(m))
 
     @classmethod
     def _arrays_from_wire(cls, values: dict[str, Any]) -> dict[str, Any]:
@@ -647,12 +649,12 @@ class Frame(_Message):
             return None
         return {"seq": wire.seq, "stamp_ns": wire.stamp_ns, "width": wire.width,
                 "height": wire.height, "encoding": wire.encoding, "data": data,
-                "cut": wire.cut}
+                "cuts": wire.cuts}
 
 
-def _cut_default(m: dict[str, Any]) -> dict[str, Any]:
-    """A received map with ``cut`` false where it is absent (a publisher that predates it)."""
-    return m if "cut" in m else {**m, "cut": False}
+def _cuts_default(m: dict[str, Any]) -> dict[str, Any]:
+    """A received map with ``cuts`` 0 where it is absent (a publisher that predates it)."""
+    return m if "cuts" in m else {**m, "cuts": 0}
 
 
 Frame._FAST = msgspec.msgpack.Decoder(_FrameWire)
@@ -675,12 +677,12 @@ class PreFrame(_Message):
         are then empty) because motion-estimation said on ``motion/demand`` that it would not
         read them; a reader that needs them computes them from ``data``. Absent (a publisher
         that predates the field): False.
-    cut : the camera frame's :attr:`Frame.cut`, passed on (absent: False).
+    cuts : the camera frame's :attr:`Frame.cuts`, passed on (absent: 0).
     """
 
     KEY: ClassVar[str] = "preprocessing/frame"
     _CHECKS: ClassVar[dict[str, _Check]] = {**_SEQ, **_IMAGE, "params_id": _PARAMS_ID,
-                                            "deferred": _bool, "cut": _bool}
+                                            "deferred": _bool, "cuts": _int()}
 
     seq: int
     stamp_ns: int
@@ -692,7 +694,7 @@ class PreFrame(_Message):
     strength: np.ndarray
     params_id: int
     deferred: bool = False
-    cut: bool = False
+    cuts: int = 0
 
     def _validate(self) -> None:
         _check_image(self.KEY, self)
@@ -725,13 +727,13 @@ class PreFrame(_Message):
                 "data": _bin_of(self.data, "u1"),
                 "candidates": _bin_of(self.candidates, "<i2"),
                 "strength": _bin_of(self.strength, "<f4"), "params_id": self.params_id,
-                "deferred": self.deferred, "cut": self.cut}
+                "deferred": self.deferred, "cuts": self.cuts}
 
     @classmethod
     def _from_map(cls, m: dict[str, Any]) -> PreFrame:
         if "deferred" not in m:  # an older publisher's: its candidates are all there
             m = {**m, "deferred": False}
-        return super()._from_map(_cut_default(m))
+        return super()._from_map(_cuts_default(m))
 
     @classmethod
     def _arrays_from_wire(cls, values: dict[str, Any]) -> dict[str, Any]:
@@ -772,7 +774,7 @@ class PreFrame(_Message):
         return {"seq": wire.seq, "stamp_ns": wire.stamp_ns, "width": wire.width,
                 "height": wire.height, "encoding": wire.encoding, "data": data,
                 "candidates": cand, "strength": strength, "params_id": wire.params_id,
-                "deferred": wire.deferred, "cut": wire.cut}
+                "deferred": wire.deferred, "cuts": wire.cuts}
 
 
 PreFrame._FAST = msgspec.msgpack.Decoder(_PreFrameWire)
@@ -945,9 +947,9 @@ def _exact_scalars(values: dict[str, Any], kinds: Mapping[str, type]) -> bool:
     return True
 
 
-_FRAME_SCALARS = {"seq": int, "stamp_ns": int, "cut": bool}
+_FRAME_SCALARS = {"seq": int, "stamp_ns": int, "cuts": int}
 _PRE_FRAME_SCALARS = {"seq": int, "stamp_ns": int, "params_id": int, "deferred": bool,
-                      "cut": bool}
+                      "cuts": int}
 
 
 def _plain_image(data: Any) -> bool:
@@ -957,8 +959,8 @@ def _plain_image(data: Any) -> bool:
             and 1 <= data.shape[1] <= MAX_SIDE)
 
 
-def encode_frame(image: np.ndarray, *, seq: int, stamp_ns: int, cut: bool = False) -> bytes:
-    """``Frame.from_image(image, seq=seq, stamp_ns=stamp_ns, cut=cut).encode()``, byte for
+def encode_frame(image: np.ndarray, *, seq: int, stamp_ns: int, cuts: int = 0) -> bytes:
+    """``Frame.from_image(image, seq=seq, stamp_ns=stamp_ns, cuts=cuts).encode()``, byte for
     byte.
 
     The camera's hot path: for what a camera produces (a C-contiguous uint8 image, plain
@@ -970,19 +972,19 @@ def encode_frame(image: np.ndarray, *, seq: int, stamp_ns: int, cut: bool = Fals
     MessageError
         As :meth:`Frame.from_image` would, naming the field.
     """
-    values = {"seq": seq, "stamp_ns": stamp_ns, "cut": cut}
+    values = {"seq": seq, "stamp_ns": stamp_ns, "cuts": cuts}
     if not (_plain_image(image) and _exact_scalars(values, _FRAME_SCALARS)
-            and seq >= 0 and stamp_ns >= 0):
-        return Frame.from_image(image, seq=seq, stamp_ns=stamp_ns, cut=cut).encode()
+            and seq >= 0 and stamp_ns >= 0 and cuts >= 0):
+        return Frame.from_image(image, seq=seq, stamp_ns=stamp_ns, cuts=cuts).encode()
     height, width = image.shape
     return _ENCODER.encode({"v": SCHEMA_VERSION, "seq": seq, "stamp_ns": stamp_ns,
                             "width": width, "height": height, "encoding": "mono8",
-                            "data": image.data, "cut": cut})
+                            "data": image.data, "cuts": cuts})
 
 
 def encode_pre_frame(*, seq: int, stamp_ns: int, data: np.ndarray, candidates: np.ndarray,
                      strength: np.ndarray, params_id: int, deferred: bool = False,
-                     cut: bool = False) -> bytes:
+                     cuts: int = 0) -> bytes:
     """``PreFrame(...).encode()`` of a (height, width) ``data``, byte for byte.
 
     Pre-processing's hot path: for what it produces (a C-contiguous uint8 image, ``(N, 2)``
@@ -997,9 +999,9 @@ def encode_pre_frame(*, seq: int, stamp_ns: int, data: np.ndarray, candidates: n
         As the constructor would, naming the field.
     """
     values = {"seq": seq, "stamp_ns": stamp_ns, "params_id": params_id, "deferred": deferred,
-              "cut": cut}
+              "cuts": cuts}
     plain = (_plain_image(data) and _exact_scalars(values, _PRE_FRAME_SCALARS)
-             and seq >= 0 and stamp_ns >= 0 and 0 <= params_id <= MAX_PARAMS_ID
+             and seq >= 0 and stamp_ns >= 0 and cuts >= 0 and 0 <= params_id <= MAX_PARAMS_ID
              and type(candidates) is np.ndarray and candidates.dtype == np.int16
              and candidates.ndim == 2 and candidates.shape[1] == 2
              and candidates.flags.c_contiguous and type(strength) is np.ndarray
@@ -1016,13 +1018,13 @@ def encode_pre_frame(*, seq: int, stamp_ns: int, data: np.ndarray, candidates: n
         return PreFrame(seq=seq, stamp_ns=stamp_ns, width=data.shape[1],
                         height=data.shape[0], data=data, candidates=candidates,
                         strength=strength, params_id=params_id, deferred=deferred,
-                        cut=cut).encode()
+                        cuts=cuts).encode()
     height, width = data.shape
     return _ENCODER.encode({
         "v": SCHEMA_VERSION, "seq": seq, "stamp_ns": stamp_ns, "width": width,
         "height": height, "encoding": "mono8", "data": data.data,
         "candidates": _bin_of(candidates, "<i2"), "strength": _bin_of(strength, "<f4"),
-        "params_id": params_id, "deferred": deferred, "cut": cut})
+        "params_id": params_id, "deferred": deferred, "cuts": cuts})
 
 
 def _pack_checked(cls: type[_Message], values: dict[str, Any]) -> bytes:

@@ -59,6 +59,7 @@ from ...common.sources import (
     open_files,
     open_stream,
     parse_size,
+    redacted,
 )
 from ..runtime import (
     Faults,
@@ -219,18 +220,18 @@ def open_source(spec: str, size: tuple[int, int] | None, loop: bool,
 
 
 class Looped(Iterator[np.ndarray]):
-    """A ``--loop`` source's frames, pass after pass, with :attr:`cut` True while the frame
-    last given starts a pass after the first and differs from the frame before it (the last
-    of the pass before): it does not follow that frame in the scene, and the camera says so
-    on the wire (``camera/frame``'s ``cut``) so that downstream starts a new track there
-    rather than tracking the jump back to the start. One image looped is no cut: the same
-    frame again is a still scene."""
+    """A ``--loop`` source's frames, pass after pass, with :attr:`cuts` the cuts before the
+    frame last given: one more at each pass after the first whose first frame differs from
+    the frame before it (the last of the pass before). Such a frame does not follow that
+    frame in the scene, and the camera says so on the wire (``camera/frame``'s ``cuts``) so
+    that downstream starts a new track there rather than tracking the jump back to the
+    start. One image looped is no cut: the same frame again is a still scene."""
 
     def __init__(self, passes: Iterator[tuple[np.ndarray, bool]]) -> None:
         self._passes = passes
         self._held: tuple[np.ndarray, bool] | None = None
         self._last: np.ndarray | None = None
-        self.cut = False
+        self.cuts = 0
 
     def __iter__(self) -> Looped:
         return self
@@ -240,7 +241,8 @@ class Looped(Iterator[np.ndarray]):
             (frame, starts), self._held = self._held, None
         else:
             frame, starts = next(self._passes)
-        self.cut = starts and self._last is not None and not np.array_equal(frame, self._last)
+        if starts and self._last is not None and not np.array_equal(frame, self._last):
+            self.cuts += 1
         self._last = frame
         return frame
 
@@ -445,7 +447,6 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
     if device is not None:
         device.stop_with = node.stop  # a stop ends a wait for a frame that does not come
     looped = frames if isinstance(frames, Looped) else None
-    cut = False
     try:
         for sent_before, image in enumerate(frames):
             seq = sent_before + (skipped.count if skipped is not None else 0)
@@ -467,12 +468,10 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
             # a device's frame: when it was read from the device (its newest, not when sent)
             stamp = device.capture_ns if device is not None else time.time_ns()
             node.status.extra["frames"] = sent_before + 1
-            # a cut on a frame that failed goes with the next one sent
-            cut = cut or (looped is not None and looped.cut)
+            cuts = looped.cuts if looped is not None else 0
             if not faults.call(keys.frame, seq, _publish, node, image, seq, stamp, last, reliable,
-                               cut):
+                               cuts):
                 continue  # skipped (counted in failed): nothing to wait for
-            cut = False
             acks.sent = seq
             sent.append(seq)
             if period:
@@ -483,7 +482,7 @@ def _run(node: Node, args: argparse.Namespace, frames: Iterator[np.ndarray], ack
         _last_estimate(node, args, acks, last if lockstep else [])
         raise
     _last_estimate(node, args, acks, last if lockstep else [])
-    log.info("end of %s after %s", args.source,
+    log.info("end of %s after %s", redacted(args.source),
              plural(node.status.extra.get("frames", 0), "frame"))
     return 0
 
@@ -542,8 +541,8 @@ def _reliable(args: argparse.Namespace) -> bool:
 
 
 def _publish(node: Node, image: np.ndarray, seq: int, stamp: int, last: list[bytes],
-             reliable: bool, cut: bool = False) -> None:
-    last[:] = [encode_frame(image, seq=seq, stamp_ns=stamp, cut=cut)]
+             reliable: bool, cuts: int = 0) -> None:
+    last[:] = [encode_frame(image, seq=seq, stamp_ns=stamp, cuts=cuts)]
     node.publish(node.keys.frame, last[0], reliable=reliable)
 
 
@@ -558,7 +557,7 @@ def check_args(args: argparse.Namespace) -> None:
     given = [flag for flag, dest, default in SIM_ONLY if getattr(args, dest) != default]
     if given:  # they were ignored in silence: --texture /nonexistent with a file source ran
         raise SourceError(f"{', '.join(given)}: for --source sim only (the robot simulator), "
-                          f"not {args.source}")
+                          f"not {redacted(args.source)}")
     size = _size(args)
     if is_ros2(args.source):
         topic_of(args.source)
@@ -581,7 +580,7 @@ def _first_frame_read(frames: Iterator[np.ndarray]) -> Iterator[np.ndarray]:
     """``frames`` with its first frame read now: a video that does not decode, a device that
     does not open, or frames too large for a ``camera/frame`` are a one-line error before the
     service starts, not a log line."""
-    # a loop is kept as it is, its first frame read ahead: it tells the camera of its cuts
+    # a loop is kept as it is, its first frame read ahead: it counts the camera's cuts
     first = frames.peek() if isinstance(frames, Looped) else next(frames)
     h, w = first.shape
     if max(w, h) > MAX_SIDE:

@@ -84,12 +84,12 @@ def _drain_commands(node: Node) -> CmdVel | None:
 
 
 def _publish(node: Node, sim: Simulator, seq: int, stamp: int, lockstep: bool,
-             cut: bool = False) -> None:
+             cuts: int = 0) -> None:
     """Render the current view and publish it with the ground truth; in lockstep, the frame
     reliable (BLOCK): with one frame in flight that queues no backlog, and a recorder gets
     every frame too (as a file camera's in lockstep, see :mod:`.service`)."""
     frame = sim.render()
-    node.publish(node.keys.frame, encode_frame(frame, seq=seq, stamp_ns=stamp, cut=cut),
+    node.publish(node.keys.frame, encode_frame(frame, seq=seq, stamp_ns=stamp, cuts=cuts),
                  reliable=lockstep)
     node.publish(node.keys.pose, Pose(seq=seq, stamp_ns=stamp, **sim.pose()).encode(),
                  reliable=True)
@@ -114,7 +114,7 @@ def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
     t0_ns = time.time_ns()
     next_t = time.perf_counter()
     seq = 0
-    cut = False
+    cuts = 0  # the scenario's restarts (--loop)
     while not node.stop.is_set():
         if sim.done:
             if not args.loop:
@@ -123,14 +123,13 @@ def run_sim(node: Node, args: argparse.Namespace, sim: Simulator) -> int:
                          node.status.extra.get("ack_timeouts", 0))
                 return 0
             sim.reset()
-            cut = True  # the scenario from its start: the view jumps back there
+            cuts += 1  # the scenario from its start: the view jumps back there
         # the capture time is when the frame exists, as for a file or device camera: the
         # render (about 2 ms of warpPerspective) is the simulator's cost, not the pipeline's;
         # lockstep stamps run on the simulated clock, so they are reproducible
         stamp = t0_ns + round(seq * dt * 1e9) if args.lockstep else time.time_ns()
         sent = faults.call(node.keys.frame, seq, _publish, node, sim, seq, stamp, args.lockstep,
-                           cut)
-        cut = cut and not sent
+                           cuts)
         node.status.extra["frames"] = seq + 1
         if args.lockstep and sent:
             answered, got = _wait_answer(node, stamp, control, args.ack_timeout)

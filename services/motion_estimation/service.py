@@ -13,12 +13,12 @@ frames meanwhile, and each estimate's ``params_id`` says which ones did.
 
 The tracker is the library's :class:`~vistrack.common.vision.Tracker`, fed the filtered frame
 and candidates computed upstream, so the pipeline computes exactly what ``vistrack track`` does.
-Estimates keep the camera frame's ``seq``; when it goes back (the camera restarted), the frame
-is a ``cut`` (a ``--loop`` source's next pass: its first frame does not follow its last), or the
-frame size changes, the track starts again (``first: true``). A frame that comes again, the
-same ``seq`` and ``stamp_ns`` as the one just tracked (a camera in lockstep sends a frame again
-when its estimate was lost on the way back), is not tracked twice: the same estimate is
-published again (status ``extra``: ``repeated``).
+Estimates keep the camera frame's ``seq``; when it goes back (the camera restarted), the
+frame's ``cuts`` changes (a ``--loop`` source's next pass: its first frame does not follow its
+last), or the frame size changes, the track starts again (``first: true``). A frame that comes
+again, the same ``seq`` and ``stamp_ns`` as the one just tracked (a camera in lockstep sends a
+frame again when its estimate was lost on the way back), is not tracked twice: the same
+estimate is published again (status ``extra``: ``repeated``).
 
 The tracker reads a frame's candidates only to select features (a first frame, a re-detection
 once fewer than ``redetect_fraction * max_features`` survive). ``motion/demand`` tells
@@ -143,6 +143,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     node.advertise(node.keys.demand, reliable=True)
     demand = DemandSignal(node)
     last_seq = -1
+    last_cuts = 0  # the last frame's cuts (camera/frame's): another starts a new track
     # (seq, stamp_ns) of the frame last tracked, and its estimate: what a frame sent again gets
     answered: tuple[int, int, bytes] = (-1, -1, b"")
     last_npi, last_valid = 0, False  # the last estimate's, for the status
@@ -200,7 +201,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         return True
 
     def on_frame(payload: bytes) -> None:
-        nonlocal last_seq, answered, last_npi, last_valid, warned_budget, last_est
+        nonlocal last_seq, last_cuts, answered, last_npi, last_valid, warned_budget, last_est
         t0 = time.perf_counter()
         if pending is not None:
             put_in_force()
@@ -225,7 +226,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         if msg.seq <= last_seq:
             log.info("camera restarted (seq %d after %d): new track", msg.seq, last_seq)
             tracker.reset()
-        elif msg.cut and tracker.frame_shape is not None:
+        elif msg.cuts != last_cuts and tracker.frame_shape is not None:
             # the source started again (a --loop file's next pass): its first frame does not
             # follow the last, and tracked across the two it moved dx by the whole pass
             log.debug("cut at seq %d (the source started again): new track", msg.seq)
@@ -237,7 +238,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                         "track", filtered.shape[1], filtered.shape[0],
                         *tracker.frame_shape[::-1])
             tracker.reset()
-        last_seq = msg.seq
+        last_seq, last_cuts = msg.seq, msg.cuts
         redetections, over = tracker.redetections, tracker.over_budget
         est = tracker.update(pre, seq=msg.seq, t_start=t0)
         if tracker.over_budget > over and warned_budget != state.params_id:

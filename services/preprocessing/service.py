@@ -9,8 +9,9 @@ Writes  ``vistrack/<robot>/preprocessing/frame``   (filtered frame + candidates 
 
 A pre-processed frame keeps its camera frame's ``seq``: downstream sees the camera's gaps, and
 a ``seq`` that goes back (the camera restarted) tells motion-estimation to start a new track.
-It keeps its ``cut`` too (a ``--loop`` source's next pass, which starts a new track there),
-and a cut frame always has its candidates: the new track selects features on it.
+It keeps its ``cuts`` too (a count that grows at a ``--loop`` source's next pass, where a new
+track starts), and the first frame after a cut always has its candidates: the new track
+selects features on it.
 
 The candidates (gradient strength and threshold, two thirds of the work) are computed only
 while motion-estimation says on ``motion/demand`` that it will read them (a first frame, a
@@ -124,6 +125,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
     warm_up_kernels(log.info, load=lambda: _load_kernels(state.params))
     always = getattr(args, "candidates", "always") == "always"
     wanted = True  # until motion-estimation says otherwise
+    cuts: int | None = None  # the last frame's (camera/frame's cuts)
     node.subscribe(node.keys.params, latest=False)
     if not always:
         node.subscribe(node.keys.demand, latest=False)
@@ -140,17 +142,19 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                       msg.seq)
 
     def process(frame: Frame, t0: float) -> None:
+        nonlocal cuts
         pre = preprocess(frame.data, state.params)
         # a cut starts a new track downstream, which selects features: its candidates go
         # with it whatever the demand said
-        if wanted or frame.cut:
+        cut, cuts = cuts is not None and frame.cuts != cuts, frame.cuts
+        if wanted or cut:
             out = encode_pre_frame(seq=frame.seq, stamp_ns=frame.stamp_ns, data=pre.filtered,
                                    candidates=pre.candidates, strength=pre.strength,
-                                   params_id=state.params_id, cut=frame.cut)
+                                   params_id=state.params_id, cuts=frame.cuts)
         else:
             out = encode_pre_frame(seq=frame.seq, stamp_ns=frame.stamp_ns, data=pre.filtered,
                                    candidates=NO_CANDIDATES, strength=NO_STRENGTH,
-                                   params_id=state.params_id, deferred=True)
+                                   params_id=state.params_id, deferred=True, cuts=frame.cuts)
             node.status.extra["deferred"] += 1
         node.publish(node.keys.pre_frame, out, reliable=node.answer_reliably)
         if node.has_subscribers(node.keys.pre_done):  # a file camera pacing its frames

@@ -1,8 +1,8 @@
-"""A ``--loop`` source's wrap end to end in-process (the MemoryNode seam): the camera marks the
-first frame of each later pass ``cut``, pre-processing passes it on with its candidates, and
-motion-estimation starts a new track there instead of tracking the jump back to the start
-as motion (``dx`` stepped back by the whole pass at every wrap, a sawtooth in every
-recording of a looped file)."""
+"""A ``--loop`` source's wrap end to end in-process (the MemoryNode seam): the camera counts a
+cut at the first frame of each later pass (``cuts``), pre-processing passes it on with the
+candidates of the frame after a cut, and motion-estimation starts a new track there instead
+of tracking the jump back to the start as motion (``dx`` stepped back by the whole pass at
+every wrap, a sawtooth in every recording of a looped file)."""
 
 from __future__ import annotations
 
@@ -28,24 +28,25 @@ def _wait(condition, what: str) -> None:
         time.sleep(0.002)
 
 
-def _pre_frame(image: np.ndarray, seq: int, cut: bool) -> bytes:
+def _pre_frame(image: np.ndarray, seq: int, cuts: int) -> bytes:
     pre = preprocess(image, TrackerParams())
     return PreFrame(seq=seq, stamp_ns=time.time_ns() + seq, width=image.shape[1],
                     height=image.shape[0], data=pre.filtered, candidates=pre.candidates,
-                    strength=pre.strength, params_id=0, cut=cut).encode()
+                    strength=pre.strength, params_id=0, cuts=cuts).encode()
 
 
 @pytest.mark.parametrize("cut", [True, False])
 def test_motion_estimation_starts_a_new_track_at_a_cut(cut):
     """Four frames moving 1.5 px a frame right, then the first one again (a 4-frame loop's
-    wrap). Marked cut, its estimate is a new track's first (dx 0, scale 1), and the track
-    goes on from there; unmarked, the jump back is tracked as motion, as before the field."""
+    wrap). With ``cuts`` one more from there, its estimate is a new track's first (dx 0,
+    scale 1), and the track goes on from there; with ``cuts`` unchanged, the jump back is
+    tracked as motion, as before the field."""
     frames = synthetic.sequence(4, size=(128, 128))
     feed = [*frames, frames[0], frames[1]]
     with Running("motion-estimation") as me:
         node = me.node
         for seq, image in enumerate(feed):
-            payload = _pre_frame(image, seq, cut and seq == 4)
+            payload = _pre_frame(image, seq, int(cut and seq >= 4))
             me.feed(node.keys.pre_frame, payload)
             _wait(lambda seq=seq: len(node.published_on(node.keys.estimate)) > seq,
                   f"estimate {seq}")
@@ -61,28 +62,47 @@ def test_motion_estimation_starts_a_new_track_at_a_cut(cut):
         assert got[5].dx == pytest.approx(1.5, abs=0.3)
 
 
+def test_a_cut_whose_frame_was_dropped_still_starts_a_new_track():
+    """The wrap's first frame overwritten at a latest-only input (seq 4 never arrives): the
+    frame after it counts the cut too, and starts the new track. (A flag on the cut frame
+    alone went with it, and the jump was tracked as motion.)"""
+    frames = synthetic.sequence(4, size=(128, 128))
+    feed = [(0, frames[0], 0), (1, frames[1], 0), (2, frames[2], 0), (3, frames[3], 0),
+            (5, frames[1], 1), (6, frames[2], 1)]
+    with Running("motion-estimation") as me:
+        node = me.node
+        for k, (seq, image, cuts) in enumerate(feed):
+            me.feed(node.keys.pre_frame, _pre_frame(image, seq, cuts))
+            _wait(lambda k=k: len(node.published_on(node.keys.estimate)) > k, f"estimate {k}")
+        got = [Estimate.decode(p) for p in node.published_on(node.keys.estimate)]
+    assert [(e.seq, e.first) for e in got] == [(0, True), (1, False), (2, False), (3, False),
+                                               (5, True), (6, False)]
+    assert got[4].dx == 0.0 and got[5].dx == pytest.approx(1.5, abs=0.3)
+
+
 def test_preprocessing_passes_a_cut_on_with_the_candidates_the_new_track_reads():
-    """Motion-estimation has said it reads no candidates (a held track): a plain frame goes
-    deferred, without them; a cut frame goes with them, and says it is a cut."""
+    """Motion-estimation has said it reads no candidates (a held track): a frame goes
+    deferred, without them, but the first after a cut (``cuts`` 0 -> 1) goes with them; each
+    keeps its ``cuts``."""
     image = synthetic.sequence(1, size=(128, 128))[0]
     with Running("preprocessing") as pre:
         node = pre.node
         pre.feed(node.keys.demand, Demand(seq=0, stamp_ns=1, candidates=False).encode(),
                  reliable=True)
-        for seq, cut in ((0, False), (1, True), (2, False)):
+        for seq, cuts in ((0, 0), (1, 1), (2, 1)):
             pre.feed(node.keys.frame, Frame.from_image(image, seq=seq, stamp_ns=10 + seq,
-                                                       cut=cut).encode())
+                                                       cuts=cuts).encode())
             _wait(lambda seq=seq: len(node.published_on(node.keys.pre_frame)) > seq,
                   f"pre-processed frame {seq}")
         got = [PreFrame.decode(p) for p in node.published_on(node.keys.pre_frame)]
-    assert [(m.seq, m.cut, m.deferred) for m in got] == [(0, False, True), (1, True, False),
-                                                        (2, False, True)]
+    assert [(m.seq, m.cuts, m.deferred) for m in got] == [(0, 0, True), (1, 1, False),
+                                                         (2, 1, True)]
     assert len(got[1].candidates) > 10 and len(got[0].candidates) == 0
 
 
 def test_a_looping_camera_marks_the_first_frame_of_each_later_pass(tmp_path):
     """Three images looped at 200 fps: seq 3 and 6 start the second and third passes, and
-    only they say ``cut``."""
+    the count of cuts grows by one at each."""
     rng = np.random.default_rng(0)
     for i in range(3):
         cv2.imwrite(str(tmp_path / f"f{i}.png"), rng.integers(0, 256, (60, 80), dtype=np.uint8))
@@ -90,7 +110,7 @@ def test_a_looping_camera_marks_the_first_frame_of_each_later_pass(tmp_path):
         _wait(lambda: len(cam.node.published_on(cam.node.keys.frame)) >= 8, "8 frames")
     sent = [msgpack.unpackb(p) for p in cam.node.published_on(cam.node.keys.frame)][:8]
     assert [m["seq"] for m in sent] == list(range(8))
-    assert [m["seq"] for m in sent if m["cut"]] == [3, 6]
+    assert [m["cuts"] for m in sent] == [0, 0, 0, 1, 1, 1, 2, 2]
 
 
 def test_a_looping_simulator_marks_the_frame_its_scenario_starts_again(tmp_path):
@@ -103,4 +123,4 @@ def test_a_looping_simulator_marks_the_frame_its_scenario_starts_again(tmp_path)
         _wait(lambda: len(cam.node.published_on(cam.node.keys.frame)) >= 25, "25 frames")
     sent = [msgpack.unpackb(p) for p in cam.node.published_on(cam.node.keys.frame)][:25]
     assert [m["seq"] for m in sent] == list(range(25))
-    assert [m["seq"] for m in sent if m["cut"]] == [10, 20]
+    assert [m["cuts"] for m in sent] == [0] * 10 + [1] * 10 + [2] * 5

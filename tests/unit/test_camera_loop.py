@@ -145,20 +145,20 @@ def test_a_folder_or_glob_of_other_image_types_opencv_reads_is_taken(tmp_path, e
 
 @pytest.mark.parametrize("kept", [True, False], ids=["kept", "decoded-each-pass"])
 def test_a_loop_says_which_frames_start_a_later_pass(tmp_path, monkeypatch, kept):
-    """``cut`` is True exactly on the first frame of the second and later passes, kept in
-    memory or decoded each pass; a single image looped is a still scene, never a cut."""
+    """``cuts`` grows by one exactly at the first frame of the second and later passes, kept
+    in memory or decoded each pass; a single image looped is a still scene, never a cut."""
     if not kept:
         monkeypatch.setattr(service, "LOOP_CACHE_BYTES", 1)
     rng = np.random.default_rng(0)
     for i in range(3):
         cv2.imwrite(str(tmp_path / f"f{i}.png"), rng.integers(0, 256, (60, 80), dtype=np.uint8))
     frames = service.open_source(f"file:{tmp_path}", None, loop=True)
-    cuts = [frames.cut for _ in itertools.islice(frames, 10)]
-    assert cuts == [False, False, False, True, False, False, True, False, False, True]
+    cuts = [frames.cuts for _ in itertools.islice(frames, 10)]
+    assert cuts == [0, 0, 0, 1, 1, 1, 2, 2, 2, 3]
     still = tmp_path / "still.png"
     cv2.imwrite(str(still), rng.integers(0, 256, (60, 80), dtype=np.uint8))
     frames = service.open_source(f"file:{still}", None, loop=True)
-    assert not any(frames.cut for _ in itertools.islice(frames, 5))
+    assert not any(frames.cuts for _ in itertools.islice(frames, 5))
 
 
 def test_the_first_frame_read_ahead_keeps_a_loops_cuts(tmp_path):
@@ -172,8 +172,8 @@ def test_the_first_frame_read_ahead_keeps_a_loops_cuts(tmp_path):
     source = service.open_source(f"file:{tmp_path}", None, loop=True)
     frames = service._first_frame_read(source)
     assert frames is source
-    got = [(next(frames), source.cut) for _ in range(5)]
-    assert [cut for _, cut in got] == [False, False, True, False, True]
+    got = [(next(frames), source.cuts) for _ in range(5)]
+    assert [cuts for _, cuts in got] == [0, 0, 1, 1, 2]
     for k, (frame, _) in enumerate(got):
         assert np.array_equal(frame, images[k % 2]), k
 

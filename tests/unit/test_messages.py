@@ -200,7 +200,7 @@ def test_decode_accepts_bytearray_and_memoryview():
 
 # fields added to the contract later: a message from an older publisher lacks them
 OPTIONAL = {(Estimate, "valid"), (Estimate, "width"), (Estimate, "height"),
-            (PreFrame, "deferred"), (Frame, "cut"), (PreFrame, "cut")}
+            (PreFrame, "deferred"), (Frame, "cuts"), (PreFrame, "cuts")}
 
 
 @pytest.mark.parametrize(("cls", "name"), [
@@ -246,20 +246,21 @@ def test_a_pre_frame_without_deferred_from_an_older_publisher_has_its_candidates
 
 
 @pytest.mark.parametrize("cls", [Frame, PreFrame], ids=lambda c: c.__name__)
-def test_a_frame_without_cut_from_an_older_publisher_is_no_cut(cls):
-    """``cut`` came later: absent, the frame follows the one before it, on the fast path and
-    by the checks alike; present, it must be a bool."""
+def test_a_frame_without_cuts_from_an_older_publisher_has_none(cls):
+    """``cuts`` came later: absent, it is 0 (the frame follows the one before it), on the
+    fast path and by the checks alike; present, an integer >= 0."""
     m = raw_map(make(cls))
-    assert m["cut"] is False
-    del m["cut"]
+    assert m["cuts"] == 0
+    del m["cuts"]
     for decode in (cls.decode, lambda p: cls._from_map(unpack(p))):
-        assert decode(repack(m)).cut is False
-    m["cut"] = True
-    assert cls.decode(repack(m)).cut is True
-    for wrong in (1, "yes", None):
-        m["cut"] = wrong
-        err = expect_error(cls, repack(m), "cut")
-        assert "true or false" in str(err)
+        assert decode(repack(m)).cuts == 0
+    m["cuts"] = 3
+    assert cls.decode(repack(m)).cuts == 3
+    for wrong, words in ((-1, "must be >= 0"), (True, "must be an integer"),
+                         ("2", "must be an integer"), (1.5, "must be an integer")):
+        m["cuts"] = wrong
+        err = expect_error(cls, repack(m), "cuts")
+        assert words in str(err)
 
 
 def test_a_deferred_pre_frame_has_no_candidates():
@@ -824,22 +825,22 @@ def test_encode_frame_pre_frame_and_cmd_vel_write_what_the_messages_write():
     for img, seq in ((image, 7), (image[10:50, 3:99], 8), (image, np.int64(9))):
         assert encode_frame(img, seq=seq, stamp_ns=123) == \
             Frame.from_image(img, seq=seq, stamp_ns=123).encode()
-        for cut in (True, np.bool_(True), False):
-            assert encode_frame(img, seq=seq, stamp_ns=123, cut=cut) == \
-                Frame.from_image(img, seq=seq, stamp_ns=123, cut=cut).encode()
-    assert Frame.decode(encode_frame(image, seq=1, stamp_ns=2, cut=True)).cut is True
+        for cuts in (0, 2, np.int64(5)):
+            assert encode_frame(img, seq=seq, stamp_ns=123, cuts=cuts) == \
+                Frame.from_image(img, seq=seq, stamp_ns=123, cuts=cuts).encode()
+    assert Frame.decode(encode_frame(image, seq=1, stamp_ns=2, cuts=7)).cuts == 7
     pre = preprocess(image, TrackerParams())
     assert len(pre.candidates) > 100
     none = dict(candidates=np.empty((0, 2), np.int16), strength=np.empty(0, np.float32))
-    for (arrays, deferred), cut in itertools.product(
+    for (arrays, deferred), cuts in itertools.product(
             ((dict(candidates=pre.candidates, strength=pre.strength), False),
              (none, True), (none, False),
              (dict(candidates=pre.candidates.astype(np.int32),
-                   strength=pre.strength.astype(np.float64)), False)), (False, True)):
+                   strength=pre.strength.astype(np.float64)), False)), (0, 4)):
         fields = dict(seq=5, stamp_ns=6, data=pre.filtered, params_id=3, deferred=deferred,
-                      cut=cut, **arrays)
+                      cuts=cuts, **arrays)
         assert encode_pre_frame(**fields) == PreFrame(width=256, height=256, **fields).encode()
-        assert PreFrame.decode(encode_pre_frame(**fields)).cut is cut
+        assert PreFrame.decode(encode_pre_frame(**fields)).cuts == cuts
     for stale in (False, True):
         fields = dict(seq=4, stamp_ns=5, vx=0.25, vy=-0.5, wz=0.0, stale=stale)
         assert encode_cmd_vel(**fields) == CmdVel(**fields).encode()
@@ -856,8 +857,9 @@ def test_encode_frame_pre_frame_and_cmd_vel_write_what_the_messages_write():
     ("frame", {"image": np.zeros((4, 4), np.float32)}, "data", "uint8"),
     ("frame", {"image": np.zeros(4, np.uint8)}, "data", "2-D"),
     ("frame", {"image": np.zeros((1, 4097), np.uint8)}, "width", "1..4096"),
-    ("frame", {"cut": 1}, "cut", "true or false"),
-    ("pre", {"cut": "yes"}, "cut", "true or false"),
+    ("frame", {"cuts": -1}, "cuts", ">= 0"),
+    ("frame", {"cuts": True}, "cuts", "integer"),
+    ("pre", {"cuts": "1"}, "cuts", "integer"),
     ("pre", {"candidates": np.array([[0, 256]], np.int16)}, "candidates", "inside"),
     ("pre", {"candidates": np.array([[-1, 0]], np.int16)}, "candidates", "inside"),
     ("pre", {"strength": np.array([np.nan], np.float32)}, "strength", "finite"),

@@ -8,6 +8,7 @@ Frames are the built-in sequence, estimates the real tracker's over them.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 
@@ -257,7 +258,9 @@ def _image(width: int, height: int, encoding: str, data: bytes, step: int) -> di
 
 
 def _write_frames(path, images: list[dict], **writer) -> None:
-    with open(path, "wb") as f:
+    """``images`` on the camera/frame topic of an MCAP file at ``path`` (or into a binary
+    stream), written by mcap-ros2-support's writer."""
+    with open(path, "wb") if not hasattr(path, "write") else contextlib.nullcontext(path) as f:
         w = Ros2Writer(f, **writer)
         schema = w.register_msgdef(r2.IMAGE, r2.msgdef(r2.IMAGE))
         for k, image in enumerate(images):
@@ -311,6 +314,68 @@ def test_a_chunk_larger_than_vistrack_reads_is_refused_before_it_is_unpacked(tmp
     said = capsys.readouterr().err
     assert f"vistrack export: warning: {path}: read the 1 valid samples before byte offset" \
         in said and "is damaged" not in said, said
+
+
+def test_a_record_larger_than_vistrack_reads_is_refused_not_called_damaged(tmp_path,
+                                                                          monkeypatch):
+    """An uncompressed chunk (or an attachment) over the limit is a sound file's record
+    too large to read: refused, naming it, and not called damaged."""
+    from vistrack.services.tools import mcapio
+
+    path = tmp_path / "raw.mcap"
+    _write_frames(path, [_image(40, 30, "mono8", bytes(1200), 40),
+                         _image(2048, 2048, "mono8", bytes(2048 * 2048), 2048)],
+                  compression=CompressionType.NONE, chunk_size=1 << 10)
+    monkeypatch.setattr(mcapio, "MAX_READ_BYTES", 1 << 20)
+    got = []
+    with pytest.raises(RecordError) as err:
+        for rec in McapRecording(path).records():
+            got.append(rec)
+    assert len(got) == 1 and not err.value.damaged
+    assert "CHUNK" in str(err.value) and "vistrack reads records of at most 1 MiB" in \
+        str(err.value)
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4"])
+def test_a_chunk_that_holds_more_than_it_declares_is_refused_unpacked(tmp_path, compression):
+    """A chunk that declares 4 KiB and holds 2 MiB (its zstd frame saying so in its own
+    header, which mcap's reader believed over the chunk's: a 19 KB file took 1.3 GB at
+    600 MiB): unpacked only to the size declared, and refused."""
+    import io
+    import struct
+
+    import lz4.frame
+    import zstandard
+    from mcap.data_stream import RecordBuilder
+    from mcap.records import Chunk, DataEnd, Footer
+    from mcap.stream_reader import StreamReader
+
+    buf = io.BytesIO()
+    _write_frames(buf, [_image(40, 30, "mono8", bytes(1200), 40)],
+                  compression=CompressionType.NONE, chunk_size=1 << 30)
+    raw = buf.getvalue()
+    chunk = next(r for r in StreamReader(io.BytesIO(raw), emit_chunks=True).records
+                 if isinstance(r, Chunk))
+    n = 2 << 20  # the records, then an unknown record that pads them to 2 MiB
+    inner = chunk.data + b"\x7f" + struct.pack("<Q", n - len(chunk.data) - 9) \
+        + bytes(n - len(chunk.data) - 9)
+    packed = (zstandard.ZstdCompressor(write_content_size=True).compress(inner)
+              if compression == "zstd" else lz4.frame.compress(inner))
+    lying = Chunk(message_start_time=chunk.message_start_time,
+                  message_end_time=chunk.message_end_time, uncompressed_size=4096,
+                  uncompressed_crc=0, compression=compression, data=packed)
+    old, new = RecordBuilder(), RecordBuilder()
+    chunk.write(old)
+    lying.write(new)
+    end = RecordBuilder()
+    DataEnd(data_section_crc=0).write(end)
+    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(end)
+    head = raw[:raw.index(old.end())]
+    path = tmp_path / "lying.mcap"
+    path.write_bytes(head + new.end() + end.end() + b"\x89MCAP0\r\n")
+    with pytest.raises(RecordError, match=f"a {compression} chunk that does not hold the "
+                                          "4,096 bytes it declares"):
+        list(McapRecording(path).records())
 
 
 @pytest.mark.parametrize(("encoding", "channels", "to_grey"), [

@@ -75,10 +75,23 @@ def is_live(spec: str) -> bool:
     return spec.startswith("device:") or is_stream(spec)
 
 
+#: Query parameters that carry a secret (``?token=...``, SRT's ``passphrase``)
+_SECRET_QUERY = re.compile(r"(?i)([?&;](?:password|passwd|pwd|pass|passphrase|token|"
+                           r"access_token|auth|key|secret)=)[^&;#]*")
+
+
 def redacted(url: str) -> str:
-    """``url`` with the password of its user info hidden (``rtsp://admin:***@cam/1``): an IP
-    camera's URL often carries one, and it goes into logs and the status."""
-    return re.sub(r"^([a-zA-Z][a-zA-Z0-9+.-]*://[^:/@]*):[^@/]*@", r"\1:***@", url)
+    """``url`` with its secrets hidden (``rtsp://admin:***@cam/1``, ``?token=***``): an IP
+    camera's URL often carries a password, and it goes into logs and the status. The user
+    info ends at the last ``@`` (as FFmpeg reads it: a password may hold ``@`` or ``/``), so
+    an ``@`` in a path after a port may hide more than the password, never less."""
+    scheme, sep, rest = url.partition("://")
+    if not sep:
+        return url
+    at, colon = rest.rfind("@"), rest.find(":")
+    if 0 <= colon < at:
+        rest = f"{rest[:colon]}:***{rest[at:]}"
+    return scheme + sep + _SECRET_QUERY.sub(r"\1***", rest)
 
 # OpenCV and its FFmpeg back end print their own warnings on stderr ("moov atom not found",
 # "can't open camera by index") before the one-line error that names the file or device.
@@ -141,20 +154,32 @@ def parse_size(text: str, flag: str = "size", *,
 MAX_ANIMATION_BYTES = 1 << 30
 
 
-def image_frames(path: str, grey: Grey | None = None) -> Iterator[np.ndarray]:
-    """The frames of one image file, each as :func:`read_image` gives one: a multi-page TIFF
-    page by page, an animated PNG or WebP frame by frame, any other image once. Only the
-    first of them was read, in silence: an 8-page TIFF stack tracked as one frame."""
+def frame_reads(path: str, grey: Grey | None = None) -> list[Callable[[], np.ndarray]]:
+    """The reads of the frames of one image file, one call each, each giving a frame as
+    :func:`read_image` does (or raising :class:`SourceError` for that frame alone): a
+    multi-page TIFF page by page, an animated PNG or WebP frame by frame (read whole, once,
+    at the first call), any other image once. Only the first of them was read, in silence:
+    an 8-page TIFF stack tracked as one frame; and a bad page ended its file's pages there,
+    where a camera leaves a bad frame out and goes on."""
     pages = _pages(path)
     if pages <= 1:
-        yield read_image(path, grey)
-        return
+        return [functools.partial(read_image, path, grey)]
     grey = grey or Grey()
     if path.lower().endswith((".tif", ".tiff")):
-        for k in range(pages):
-            yield read_image(path, grey, page=k)
-    else:  # OpenCV reads the frames of an animation whole (a page alone: always the first)
-        yield from _animation_frames(path, grey, pages)
+        return [functools.partial(read_image, path, grey, page=k) for k in range(pages)]
+    whole: list[np.ndarray] = []  # OpenCV reads an animation whole (a page alone: the first)
+    failed: list[SourceError] = []
+
+    def frame(k: int) -> np.ndarray:
+        if not whole and not failed:
+            try:
+                whole.extend(_animation_frames(path, grey, pages))
+            except SourceError as e:
+                failed.append(e)
+        if failed:
+            raise failed[0]
+        return whole[k]
+    return [functools.partial(frame, k) for k in range(pages)]
 
 
 #: The image types that may hold more than one frame (TIFF pages, APNG, animated WebP)
@@ -381,18 +406,13 @@ class FileFrames:
                 cap.release()
         else:
             for p in self.paths:
-                pages = image_frames(p, grey)
-                k = 0
-                while True:
+                for k, read in enumerate(frame_reads(p, grey)):
                     try:
-                        image = next(pages)
-                    except StopIteration:
-                        break
+                        image = read()
                     except SourceError as e:
                         self._bad(e)
-                        break
+                        continue
                     yield (p if not k else f"{p}#{k}"), image
-                    k += 1
 
 
 def _check_complete(path: str, read: int, announced: float, fps: float = 0.0,

@@ -86,8 +86,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_path(parser, "launch", example="deploy/local.yaml", nargs="?", metavar="LAUNCH.yaml",
              help="launch file (default: deploy/local.yaml)")
     parser.add_argument("--camera", metavar="SOURCE",
-                        help="the camera's source: file:PATH, device:N, builtin or "
-                             "sim[:SCENARIO]; drops the launch file's --loop. 'none': no "
+                        help="the camera's source: file:PATH, device:N, a stream's URL "
+                             "(rtsp://..., http://...), builtin, sim[:SCENARIO] or "
+                             "ros2:TOPIC; drops the launch file's --loop. 'none': no "
                              "camera (frames come from elsewhere, e.g. vistrack replay)")
     add_number(parser, "--fps", lo=MIN_FPS, hi=1000, or_zero=True, metavar="F",
                help="the camera's frames per second (its --fps), %(allowed)s")
@@ -160,8 +161,9 @@ def launch_from_args(args: argparse.Namespace) -> LaunchSpec:
 
 
 def check_camera(launch: LaunchSpec) -> None:
-    """A ``device:N`` camera is opened (and let go) before any service starts: a missing
-    camera is one line and exit 1 now, not a crash loop once everything else runs.
+    """A ``device:N`` camera, or a network stream's URL, is opened (and let go) before any
+    service starts: a missing camera is one line and exit 1 now, not a crash loop once
+    everything else runs.
 
     Raises
     ------

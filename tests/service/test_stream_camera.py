@@ -87,6 +87,13 @@ def test_urls_are_streams_and_their_passwords_are_not_said():
     assert is_live("device:0") and not is_live("builtin")
     assert redacted("rtsp://admin:s3cret@10.0.0.5:554/ch1") == "rtsp://admin:***@10.0.0.5:554/ch1"
     assert redacted("rtsp://10.0.0.5/ch1") == "rtsp://10.0.0.5/ch1"
+    # a password with '@' or '/' (FFmpeg takes the user info up to the last '@'), a query
+    # that carries a secret
+    assert redacted("rtsp://admin:p@ss@10.0.0.5/s") == "rtsp://admin:***@10.0.0.5/s"
+    assert redacted("rtsp://admin:p/ss@10.0.0.5/s") == "rtsp://admin:***@10.0.0.5/s"
+    assert redacted("srt://h:9000?passphrase=abc&latency=20") == \
+        "srt://h:9000?passphrase=***&latency=20"
+    assert redacted("http://h/x.mjpg?token=zz") == "http://h/x.mjpg?token=***"
 
 
 def test_a_stream_gives_its_frames_newest_first_as_a_device_does(served):

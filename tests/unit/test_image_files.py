@@ -79,3 +79,43 @@ def test_a_missing_source_is_named_so_that_what_was_wrong_shows(tmp_path, monkey
     with pytest.raises(SourceError) as err:
         open_files([spec])
     assert str(err.value) == said
+
+
+def test_a_bad_page_is_left_out_and_the_pages_after_it_are_read(tmp_path, caplog):
+    """A 4-page TIFF whose third page does not read (its strip offset beyond the file): a
+    camera leaves that page out, counted, and sends the fourth; the pages after a bad one
+    were lost with it. An offline run stops at it, after the pages before."""
+    import logging
+    import struct
+
+    from PIL import Image
+
+    from vistrack.common.bus import MemoryNode
+    from vistrack.services.camera import service as camera
+
+    frames = _frames()
+    path = tmp_path / "stack.tif"
+    images = [Image.fromarray(f) for f in frames]
+    images[0].save(path, save_all=True, append_images=images[1:])
+    with Image.open(path) as im:
+        im.seek(2)
+        offset = im.tag_v2[273][0]  # StripOffsets of page 2
+    data = bytearray(path.read_bytes())
+    entry = data.find(struct.pack("<HHI", 273, 4, 1) + struct.pack("<I", offset))
+    assert entry >= 0
+    data[entry + 8:entry + 12] = struct.pack("<I", 0x7FFFFF00)
+    path.write_bytes(bytes(data))
+    skipped = camera.Skipped()
+    with MemoryNode("camera") as node, caplog.at_level(logging.WARNING, logger="vistrack.camera"):
+        skipped.attach(node)
+        got = list(camera.open_source(f"file:{path}", None, loop=False, skip=skipped))
+        assert node.status.extra["skipped"] == 1
+    assert len(got) == 3
+    assert all(np.array_equal(a, frames[i]) for a, i in zip(got, (0, 1, 3), strict=True))
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{path}: page 2 is not a readable image: frame skipped, the frames after it go on"]
+    offline = []
+    with pytest.raises(SourceError, match="page 2 is not a readable image"):
+        for frame in open_files([str(path)]):
+            offline.append(frame)
+    assert len(offline) == 2

@@ -407,9 +407,12 @@ def reject(node: Node, logger: logging.Logger, what: str, error: BaseException |
     ROS 2 topic 30 a second for as long as it ran). ``line`` is what is logged, at
     ``level`` (default: "rejected WHAT: ERROR")."""
     node.status.reject(error)
-    # one window per kind of error (its text, numbers left out): the first of a new kind is
-    # said at once (a flood of one kind hid another: clocks out of step behind a bad version)
-    kind = _NUMBERS.sub("#", str(error))[:80]
+    # one window per kind of error: the first of a new kind is said at once (a flood of one
+    # kind hid another: clocks out of step behind a bad version). A kind is the field a
+    # message error names (its text quotes the value: 200 sets with a random `source` were
+    # 200 kinds, 200 lines), else the text with its numbers left out
+    field = getattr(error, "field", None)
+    kind = f"field {field!r}" if isinstance(field, str) else _NUMBERS.sub("#", str(error))[:80]
     unsaid = node.status.say(f"rejected {what}: {kind}", REJECTED_LOG_S)
     if unsaid is not None:
         more = f" ({unsaid} more rejected since the last said, each counted in the status)" \

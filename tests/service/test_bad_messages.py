@@ -67,23 +67,30 @@ def test_params_out_of_range_are_refused_and_the_old_ones_stay(factor, value, pr
 
 
 def test_a_flood_of_bad_or_stale_params_is_said_once_and_counted_whole(caplog):
-    """200 sets out of range, then 100 stale ones, from a peer: one line each kind (a line
-    each was 400 lines from preprocessing and motion-estimation), every one counted."""
+    """200 sets out of range, 100 stale ones, then 50 with a different bad `source` each,
+    from a peer: one line each kind (a line each was 400 lines from preprocessing and
+    motion-estimation; a kind was the line's text, which quotes the value), every one
+    counted."""
     with MemoryNode("preprocessing") as node, caplog.at_level(logging.INFO, logger="test"):
         state = ParamsInForce(TrackerParams(), params_id=3)
         for _ in range(200):
             assert not state.apply(params_payload(4, search_size=999), node, log)
         for _ in range(100):
             assert not state.apply(params_payload(2, search_size=21), node, log)
-        assert node.status.rejected == 300 and (state.params, state.params_id) == \
+        for k in range(50):  # the text quotes the value: each a different line of one kind
+            assert not state.apply(params_payload(4, source=f"s{chr(97 + k % 26) * k}"),
+                                   node, log)
+        assert node.status.rejected == 350 and (state.params, state.params_id) == \
             (TrackerParams(), 3)
         assert state.apply(params_payload(4, search_size=21), node, log)  # a good one after
     said = [(r.levelno, r.getMessage()) for r in caplog.records]
-    assert said[:2] == [
+    assert said[:3] == [
         (logging.ERROR, "rejected tuner/params: tuner/params: field 'search_size': "
                         "search_size=999 is out of range: allowed 2..128; keeping params_id 3"),
-        (logging.WARNING, "ignored tuner/params with params_id 2: 3 is in force")]
-    assert not [m for _, m in said[2:] if "rejected" in m or "ignored" in m]
+        (logging.WARNING, "ignored tuner/params with params_id 2: 3 is in force"),
+        (logging.ERROR, "rejected tuner/params: tuner/params: field 'source' must be one of "
+                        "'tuner', 'user', got 's'; keeping params_id 3")]
+    assert not [m for _, m in said[3:] if "rejected" in m or "ignored" in m]
 
 
 def test_a_params_id_beyond_the_largest_is_refused():

@@ -148,6 +148,21 @@ def test_the_tuner_at_the_largest_params_id_keeps_what_is_in_force():
         assert node.published_on(node.keys.params) == []
 
 
+def _tuner_asking(node, in_force: dict, asked: list):
+    """An auto-tuner (``--no-tune``) whose motion-estimation runs ``in_force``, each ask
+    appended to ``asked``, having announced its flags' set as params_id 1."""
+    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
+
+    def ask():
+        asked.append(1)
+        return in_force
+
+    args = parse("auto-tuner", "--no-tune")
+    tuner = AutoTuner(node, args, check_flags(args), ask_in_force=ask)
+    assert tuner.announce("start-up (flags)")  # params_id 1, from its flags
+    return tuner
+
+
 @pytest.mark.parametrize("runs", [1, 3])
 def test_a_params_id_only_an_estimate_claims_does_not_stop_the_tuner(caplog, runs):
     """One estimate with params_id 2^53 - 1 from any client (a forged one, a recording's
@@ -155,21 +170,12 @@ def test_a_params_id_only_an_estimate_claims_does_not_stop_the_tuner(caplog, run
     motion-estimation then stayed on its flags) and left no id for its next tuning. Asked,
     motion-estimation runs params_id ``runs``: that one counts, taken on where it is newer
     than the tuner's (3), the claim dropped where it is not (1); said once either way."""
-    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
-
     in_force = {"max_features": 70, "thres_percent": 2.0, "search_size": 15, "corr_size": 9,
                 "ungroup_size": 5, "params_id": runs, "source": "user", "reason": "by hand"}
-    asked = []
-
-    def ask():
-        asked.append(1)
-        return in_force
-
-    args = parse("auto-tuner", "--no-tune")
+    asked: list = []
     with MemoryNode("auto_tuner") as node, caplog.at_level(logging.INFO,
                                                             logger="vistrack.auto_tuner"):
-        tuner = AutoTuner(node, args, check_flags(args), ask_in_force=ask)
-        assert tuner.announce("start-up (flags)")  # params_id 1
+        tuner = _tuner_asking(node, in_force, asked)
         tuner.seen_id = MAX_PARAMS_ID  # an estimate claimed it
         for _ in range(3):
             assert tuner.announce()
@@ -193,21 +199,12 @@ def test_a_restarted_tuner_takes_on_the_set_motion_estimation_runs(caplog):
     thres_percent and ungroup_size with its windows: the user's set was gone. It now takes
     on the set motion-estimation runs (its status's params) where that is the newest the
     estimates carry, reminds of it, and tunes from it; asked once per set."""
-    from vistrack.services.auto_tuner.service import AutoTuner, check_flags
-
-    asked = []
+    asked: list = []
     in_force = {"max_features": 50, "thres_percent": 3.0, "search_size": 15, "corr_size": 9,
                 "ungroup_size": 8, "params_id": 5, "source": "user", "reason": "by hand"}
-
-    def ask():
-        asked.append(1)
-        return in_force
-
-    args = parse("auto-tuner", "--no-tune")
     with MemoryNode("auto_tuner") as node, caplog.at_level(logging.INFO,
                                                             logger="vistrack.auto_tuner"):
-        tuner = AutoTuner(node, args, check_flags(args), ask_in_force=ask)
-        assert tuner.announce("start-up (flags)")  # params_id 1, from its flags
+        tuner = _tuner_asking(node, in_force, asked)
         tuner.seen_id = 5  # the estimates run the user's set
         for _ in range(3):
             assert tuner.announce()

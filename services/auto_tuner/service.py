@@ -298,7 +298,7 @@ class AutoTuner:
         st.source, st.reason = str(got.get("source", "tuner")), str(got.get("reason", ""))
         st.publish_status(self.node)
         self._lagging = False
-        log.info("took on params_id %d from motion-estimation (%s, %s): %s", st.params_id,
+        log.info("took on params_id %d from the tracker's stages (%s, %s): %s", st.params_id,
                  st.source, st.reason or "no reason given", params.factors())
         return True
 
@@ -548,23 +548,35 @@ SLOW_CYCLE_S = 120.0
 #: prediction is a guess) over more than BREAK_S s break the buffer's run of consecutive
 #: frames (:meth:`AutoTuner._buffer`).
 BREAK_S = 0.5
-#: How long a restarted tuner waits for motion-estimation's status (the set in force), s
+#: How long a restarted tuner waits for each tracker stage's status (the set in force), s
 IN_FORCE_QUERY_S = 0.5
+#: The services whose parameters in force a tuner asks for: the tracker's two stages
+IN_FORCE_OF = ("motion_estimation", "preprocessing")
 
 
 def in_force_of(node: Node) -> dict[str, Any] | None:
-    """The parameters motion-estimation runs (its status's ``params``: the factors,
-    ``params_id``, ``source``, ``reason``), asked over the node's Zenoh session; None where
-    there is none (an in-process node) or no answer."""
+    """The newest parameters the tracker's stages run (motion-estimation's or
+    pre-processing's status ``params``: the factors, ``params_id``, ``source``, ``reason``;
+    the larger ``params_id``), asked over the node's Zenoh session; None where there is
+    none (an in-process node) or no answer. Motion-estimation alone was asked: where it
+    and the tuner restarted together, it ran its flags, the tuner took those on, and its
+    next set reused the params_id of the user's set pre-processing still ran, which refused
+    it for good (two sets under one id)."""
     session = getattr(node, "session", None)
     if session is None:
         return None
-    try:
-        status = service_status(session, node.keys, "motion_estimation", IN_FORCE_QUERY_S)
-    except zenoh.ZError:  # the session is closing: the tuner goes on as it was
-        return None
-    params = status.get("params") if status is not None else None
-    return params if isinstance(params, dict) else None
+    newest: dict[str, Any] | None = None
+    for service in IN_FORCE_OF:
+        try:
+            status = service_status(session, node.keys, service, IN_FORCE_QUERY_S)
+        except zenoh.ZError:  # the session is closing: the tuner goes on as it was
+            return newest
+        params = status.get("params") if status is not None else None
+        given = params.get("params_id") if isinstance(params, dict) else None
+        if isinstance(given, int) and not isinstance(given, bool) and (
+                newest is None or given > newest["params_id"]):
+            newest = params
+    return newest
 
 
 def loop(node: Node, args: argparse.Namespace) -> None:

@@ -213,7 +213,8 @@ def test_a_restarted_tuner_takes_on_the_set_motion_estimation_runs(caplog):
         reminder = sent[-1]
         assert (reminder.max_features, reminder.thres_percent, reminder.ungroup_size,
                 reminder.source) == (50, 3.0, 8, "user")
-        assert any("took on params_id 5 from motion-estimation (user, by hand)" in r.getMessage()
+        assert any("took on params_id 5 from the tracker's stages (user, by hand)" in
+                   r.getMessage()
                    for r in caplog.records)
         # a tuning's set keeps the user's other factors, with the windows it chose
         tuner.reason, tuner.id_at_start = "scene change", tuner.state.params_id

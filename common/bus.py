@@ -1354,9 +1354,16 @@ class ZenohNode(Node):
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
-def install_signal_handlers(stop: threading.Event) -> Callable[[], None]:
+#: Set to "1" by `vistrack up` in its services' environment: a service stopped by a signal
+#: then exits 128 + the signal's number, not 0, so that the launcher tells a stop from outside
+#: (restarted under ``restart: on-failure``) from a service's end
+SUPERVISED_ENV = "VISTRACK_SUPERVISED"
+
+
+def install_signal_handlers(stop: threading.Event, received: list[int] | None = None
+                            ) -> Callable[[], None]:
     """Make SIGINT, SIGTERM and SIGHUP set ``stop`` so the service loop ends and closes its
-    session.
+    session; each such signal is appended to ``received`` where given.
 
     A second SIGINT raises KeyboardInterrupt, so a stuck process can still be interrupted.
     Signal handlers can only be installed from the main thread; elsewhere (a service run in
@@ -1377,6 +1384,8 @@ def install_signal_handlers(stop: threading.Event) -> Callable[[], None]:
         # parent-death SIGTERMs, one per exiting launcher thread), and Event.set() takes the
         # lock that code may hold: a deadlock. A helper thread sets the event instead.
         nonlocal requested
+        if received is not None:
+            received.append(signum)
         if signum == signal.SIGINT and stop.is_set():
             raise KeyboardInterrupt
         if not requested:

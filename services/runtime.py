@@ -31,6 +31,7 @@ import numpy as np
 
 from ..common.bus import (
     STOP_SIGNALS,
+    SUPERVISED_ENV,
     BusError,
     Node,
     ZenohNode,
@@ -125,7 +126,8 @@ def serve(service: str, args: argparse.Namespace,
             close_within(node, CLOSE_S, logger)
             print_error(command, e)
             end_process(1)
-    restore = install_signal_handlers(node.stop)
+    signals: list[int] = []
+    restore = install_signal_handlers(node.stop, signals)
     returned = threading.Event()
     _watch_stop_requests(node, returned, logger)
     try:
@@ -138,6 +140,11 @@ def serve(service: str, args: argparse.Namespace,
         rc = 1
     returned.set()
     restore()
+    if rc == 0 and signals and os.environ.get(SUPERVISED_ENV) == "1":
+        # run by `vistrack up`, a stop it did not ask for (an operator's kill, a hung-up
+        # terminal) says so: exited 0, the launcher took it for an end and did not restart
+        # it under `restart: on-failure`, and the run went on without it
+        rc = 128 + signals[0]
     close_within(node, CLOSE_S, logger)
     logger.info("stopped")
     end_process(rc)

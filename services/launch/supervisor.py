@@ -30,6 +30,7 @@ from typing import IO, Any
 import zenoh
 
 from ...common.bus import (
+    SUPERVISED_ENV,
     alive_services,
     config_from_args,
     open_session,
@@ -752,7 +753,8 @@ class Launcher:
         self._log(f"started {child.spec.cli_name} (pid {proc.pid}{how})")
 
     def _popen(self, command: list[str], stdin: int) -> subprocess.Popen[bytes]:
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}  # lines as they happen, not per 8 KiB
+        # lines as they happen, not per 8 KiB; a stop from outside exits 128 + N (SUPERVISED_ENV)
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", SUPERVISED_ENV: "1"}
         return subprocess.Popen(command, stdin=stdin, stdout=subprocess.PIPE,
                                 stderr=subprocess.STDOUT, env=env,
                                 preexec_fn=_child_setup(os.getpid()), close_fds=True)

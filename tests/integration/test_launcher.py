@@ -278,7 +278,14 @@ def service_ready_at(out: str, service: str) -> float:
     return int(m[1]) * 3600 + int(m[2]) * 60 + float(m[3])
 
 
-def test_killed_service_is_restarted_alone_and_estimates_again(procs, tmp_path, free_port):
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGKILL, -9), (signal.SIGTERM, 143)],
+                         ids=["SIGKILL", "SIGTERM"])
+def test_killed_service_is_restarted_alone_and_estimates_again(procs, tmp_path, free_port,
+                                                              sig, code):
+    """Killed, or stopped by a signal the launcher did not send (an operator's `kill PID`):
+    restarted under `restart: on-failure`. A service stopped by SIGTERM exited 0, "not
+    restarted", and the run went on without estimates; run by the launcher it now exits
+    128 + 15."""
     robot = f"t{uuid.uuid4().hex[:8]}"
     keys = Keys(robot)
     up = start_up(procs, tmp_path, free_port, robot)
@@ -294,8 +301,9 @@ def test_killed_service_is_restarted_alone_and_estimates_again(procs, tmp_path, 
                                          lambda sample: estimates.append(time.monotonic()))
         wait_for(lambda: estimates, 20, "an estimate before the kill")
 
-        os.kill(before["motion_estimation"], signal.SIGKILL)
-        up.wait_line(LAUNCHER + r"motion-estimation exited with -9, restarting in 0\.2 s$", 10)
+        os.kill(before["motion_estimation"], sig)
+        up.wait_line(LAUNCHER + rf"motion-estimation exited with {code}, restarting in 0\.2 s$",
+                     10)
         up.wait_line(LAUNCHER + rf"started motion-estimation \(pid {spare.pop()}, from the "
                      r"spare\)$", 10)
 

@@ -71,7 +71,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="e.g. search_size=21 corr_size=11")
     put.add_argument("--json", action="store_true", help="print the result as JSON")
     add_number(put, "--timeout", lo=0, hi=3600, lo_open=True, unit="s", default=5.0,
-               metavar="S", help="longest wait for a subscriber and for the confirmation, "
+               metavar="S", help="longest wait for motion-estimation's answer (it may be "
+                                 "restarting), a subscriber and the confirmation, "
                                  "%(allowed)s (default 5 s)")
     add_tool_args(put)
 
@@ -158,11 +159,18 @@ def _print_params(params: dict[str, dict[str, Any]], as_json: bool) -> None:
 def set_params(session: zenoh.Session, keys: Keys, changes: dict[str, Any],
                args: argparse.Namespace) -> int:
     deadline = time.monotonic() + args.timeout
-    params = in_force(gather(session, keys, timeout=min(args.timeout, 2.0)))
-    current = params.get(CONFIRMING_SERVICE)
+    # asked again until it answers, for up to --timeout: a set given while motion-estimation
+    # restarts (a routine second) failed at once, "does not answer", within a 10 s timeout
+    while True:
+        left = deadline - time.monotonic()
+        params = in_force(gather(session, keys, timeout=min(max(left, 0.1), 2.0)))
+        current = params.get(CONFIRMING_SERVICE)
+        if current is not None or time.monotonic() >= deadline:
+            break
+        time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
     if current is None:
-        raise ToolError(f"{CONFIRMING_SERVICE} of robot {keys.robot!r} does not answer: is it "
-                        "running? (see vistrack status)")
+        raise ToolError(f"{CONFIRMING_SERVICE} of robot {keys.robot!r} does not answer within "
+                        f"{args.timeout:g} s: is it running? (see vistrack status)")
     # above every id in force, or a service that is ahead would reject the set as stale
     try:
         params_id = next_params_id(max(int(p["params_id"]) for p in params.values()))

@@ -346,6 +346,33 @@ def test_params_set_is_not_confirmed_by_another_set_with_its_id(endpoint, sessio
     assert "search_size=12 corr_size=5" in run.stderr and run.stderr.endswith("set again\n")
 
 
+def test_params_set_waits_for_a_motion_estimation_that_is_restarting(endpoint, session):
+    """A set given while motion-estimation restarts (a second, under the launcher) failed at
+    once, "does not answer", though --timeout was 10 s. The tool now asks again until it
+    answers: a stand-in motion-estimation (robot "late") appears 1.5 s after the tool
+    started, takes the set and confirms it."""
+    keys = Keys("late")
+    state = {"params": {"params_id": 1, "source": "tuner", "reason": "initial tuning",
+                        **TrackerParams().factors()}}
+
+    def take(sample: zenoh.Sample) -> None:
+        msg = Params.decode(sample.payload.to_bytes())
+        state["params"] = {"params_id": msg.params_id, "source": msg.source,
+                           "reason": msg.reason, **msg.tracker_params(TrackerParams()).factors()}
+
+    done: dict = {}
+    runner = threading.Thread(target=lambda: done.update(run=tool(
+        endpoint, "params", "set", "search_size=19", "--timeout", "10", "--robot", "late")))
+    runner.start()
+    time.sleep(1.5)
+    with stand_in_motion_estimation(session, keys, state, take):
+        runner.join(30)
+    run = done["run"]
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert run.stdout.startswith("params_id 2 in force on motion_estimation: ") and \
+        "search_size=19" in run.stdout, run.stdout
+
+
 def test_params_set_waits_for_a_set_accepted_pending_its_kernels(endpoint, session):
     """Windows whose kernels motion-estimation has not loaded (a 64 px window's int64 sums)
     stay pending while they are made ready, up to half a minute on a new machine; the tool

@@ -420,6 +420,9 @@ def _endpoints(reader: _Reader, node: yaml.Node, path: str) -> tuple[str, ...]:
         if any_port(endpoint):
             raise reader.error(item, path, f"{endpoint!r}: the services connect to the "
                                "router's endpoints, so give it a port of its own, not 0")
+        if endpoint in out:
+            raise reader.error(item, path, f"{endpoint!r} is given twice: give each endpoint "
+                               "once")
         out.append(endpoint)
     return tuple(out)
 

@@ -504,7 +504,8 @@ class Launcher:
             return
         others = [c for c in self._children if not c.held]
         waiting = [c for c in others if not c.finished]
-        if not (all(c.ready for c in waiting) and self._inputs_subscribed(waiting)):
+        ready = all(c.ready for c in waiting) and self._inputs_subscribed(waiting)
+        if not ready:
             if now < self._gate_deadline:
                 return
             self._log("starting the camera although not every consumer is ready")
@@ -512,21 +513,23 @@ class Launcher:
         for child in held:
             child.held = False
             if child.running and child.proc is not None and child.proc.stdin is not None:
-                self._release(child)
+                self._release(child, ready)
             elif not child.running and child.restart_at is None:
                 self._spawn(child)
             # else a restart is due: it starts unheld
 
-    def _release(self, child: _Child) -> None:
-        """Let a camera started early (:data:`HOLD_FLAG`) say ready and send frames."""
+    def _release(self, child: _Child, ready: bool) -> None:
+        """Let a camera started early (:data:`HOLD_FLAG`) say ready and send frames (its
+        consumers ``ready``, else the gate's time is up: said so, not "every consumer is
+        ready" a line after "not every consumer is ready")."""
         assert child.proc is not None and child.proc.stdin is not None
         try:
             child.proc.stdin.write(b"go\n")
             child.proc.stdin.close()
         except OSError:
             pass  # it exited meanwhile: its exit is handled as any other
-        self._log(f"released {child.spec.cli_name} (pid {child.proc.pid}): every consumer "
-                  "is ready")
+        self._log(f"released {child.spec.cli_name} (pid {child.proc.pid}): "
+                  + ("every consumer is ready" if ready else "the wait for its consumers is over"))
 
     def _inputs_subscribed(self, consumers: list[_Child]) -> bool:
         """Whether the input key of each of ``consumers`` has a subscriber somewhere."""

@@ -143,7 +143,10 @@ def launch_from_args(args: argparse.Namespace) -> LaunchSpec:
         if args.connect:
             raise LaunchError("-l/--listen sets the embedded router's endpoints, and "
                               "-e/--connect replaces that router: give one of them")
-        for endpoint in args.listen:
+        for k, endpoint in enumerate(args.listen):
+            if endpoint in args.listen[:k]:
+                # Zenoh tried to listen there twice: "another process listens there", exit 1
+                raise LaunchError(f"-l {endpoint} is given twice: give each endpoint once")
             if any_port(endpoint):
                 # the services were told to connect to port 0: 'nothing answers there'
                 raise LaunchError(f"-l {endpoint}: the services connect to the router's "

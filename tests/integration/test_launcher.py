@@ -785,6 +785,11 @@ BAD_LAUNCH_FILES = {
     "bad policy": ("robot: r1\nservices:\n  camera:\n    restart: sometimes\n",
                    r"line 4: services\.camera\.restart: unknown restart policy 'sometimes'; "
                    r"allowed: never, on-failure, always"),
+    # Zenoh listened there twice: "another process listens there", exit 1
+    "endpoint twice": ("router:\n  listen: [tcp/127.0.0.1:17471, tcp/127.0.0.1:17471]\n"
+                       "services: {camera: }\n",
+                       r"line 2: router\.listen: 'tcp/127\.0\.0\.1:17471' is given twice: give "
+                       r"each endpoint once$"),
     "unknown service": ("services:\n  camera:\n  tracker:\n",
                         r"line 3: services: unknown service 'tracker'; allowed: camera, "
                         r"preprocessing, motion-estimation, auto-tuner, fuzzy-controller"),
@@ -878,6 +883,9 @@ def test_bad_launch_file_from_the_real_command_line(tmp_path):
 def test_listen_and_connect_together_is_a_usage_error(capsys):
     assert cli.main(["up", "-l", "tcp/127.0.0.1:1", "-e", "tcp/127.0.0.1:2"]) == 2
     assert "give one of them" in capsys.readouterr().err
+    assert cli.main(["up", "-l", "tcp/127.0.0.1:17472", "-l", "tcp/127.0.0.1:17472"]) == 2
+    assert capsys.readouterr().err == ("vistrack up: error: -l tcp/127.0.0.1:17472 is given "
+                                       "twice: give each endpoint once\n")
 
 
 @pytest.mark.parametrize(("flags", "message"), [

@@ -23,6 +23,7 @@ from typing import Any
 import yaml
 import zenoh
 
+from ...common.bus import BusError, config_from_args
 from ...common.keys import LAUNCHABLE, validate_robot_id
 from ..usage import FlagError, check_endpoint, one_line, run_checks
 from .router import (
@@ -587,11 +588,19 @@ def check_service_flags(service: str, argv: list[str]) -> str | None:
     parser = _CheckingParser(prog=f"vistrack {service}", add_help=False,
                              allow_abbrev=False)
     module.add_arguments(parser)
+    own = ["-e", DEFAULT_LISTEN[0], "--no-multicast-scouting"]  # the launcher adds these
     try:
-        args = parser.parse_args([*argv, "-e", DEFAULT_LISTEN[0], "--no-multicast-scouting"])
+        args = parser.parse_args([*argv, *own])
         run_checks(module, args)
-    except (_FlagsError, ValueError) as e:
-        return one_line(e)
+        if getattr(args, "mode", None) == "router":
+            # as `vistrack up -m router` is: each such service listens on 7447, the default
+            return ("-m router: a service of vistrack up connects to its router: allowed "
+                    "peer (the default) or client")
+        if getattr(args, "config", None) is not None:
+            config_from_args(args)  # a -c file missing or malformed: said now, not at start
+    except (_FlagsError, ValueError, BusError) as e:
+        # the launcher's own flags are not the user's (an empty flag name quoted them)
+        return one_line(str(e).replace(" " + " ".join(own), ""))
     return None
 
 

@@ -785,6 +785,18 @@ BAD_LAUNCH_FILES = {
     "bad policy": ("robot: r1\nservices:\n  camera:\n    restart: sometimes\n",
                    r"line 4: services\.camera\.restart: unknown restart policy 'sometimes'; "
                    r"allowed: never, on-failure, always"),
+    # checked when the service started, which then failed (exit 1 after the others ran)
+    "a service's -c missing": ("services:\n  fuzzy-controller: {flags: {-c: /nonexistent.json5}}\n",
+                               r"line 2: services\.fuzzy-controller\.flags: zenoh config file "
+                               r"/nonexistent\.json5: not found$"),
+    # refused on the command line, taken here: each such service listens on 7447
+    "a service in router mode": ("services:\n  fuzzy-controller: {flags: [--mode=router]}\n",
+                                 r"line 2: services\.fuzzy-controller\.flags: -m router: a "
+                                 r"service of vistrack up connects to its router: allowed peer "
+                                 r"\(the default\) or client$"),
+    # the error quoted the launcher's own -e and --no-multicast-scouting
+    "an empty flag name": ("services:\n  camera: {flags: {'': 1}}\n",
+                           r"line 2: services\.camera\.flags: unrecognized arguments: -- 1$"),
     # Zenoh listened there twice: "another process listens there", exit 1
     "endpoint twice": ("router:\n  listen: [tcp/127.0.0.1:17471, tcp/127.0.0.1:17471]\n"
                        "services: {camera: }\n",

@@ -241,11 +241,12 @@ def _run(launch: LaunchSpec, args: argparse.Namespace, stop: threading.Event) ->
         launcher.stop()
         raise
     with launcher:
-        if not launcher.wait_ready():
-            return 0  # Ctrl-C during start-up
-        launcher.emit(f"vistrack up: ready ({plural(len(launch.services), 'service')})")
-        deadline = time.monotonic() + args.duration if args.duration else None
-        code = launcher.run_until(deadline=deadline)
+        if launcher.wait_ready():
+            launcher.emit(f"vistrack up: ready ({plural(len(launch.services), 'service')})")
+            deadline = time.monotonic() + args.duration if args.duration else None
+            code = launcher.run_until(deadline=deadline)
+        else:  # Ctrl-C during start-up: said as any other stop (it ended on "stopping ...")
+            code = 0
     try:
         print(f"vistrack up: stopped (exit {code})", flush=True)
     except OSError:

@@ -197,6 +197,8 @@ def _pages(path: str) -> int:
         n, said = _stderr_of(cv2.imcount, path)
     except cv2.error:
         return 1
+    # what was caught is not passed on: a library's warning about the file (libpng's about
+    # a colour profile) comes again from its read, which passes it on (said twice a frame)
     return max(1, int(n))
 
 

@@ -38,6 +38,7 @@ from ...common.bus import (
 )
 from ...common.keys import Keys
 from ...common.messages import MessageError, unpack
+from ...common.sources import is_live
 from .launchfile import LaunchError, LaunchSpec, ServiceSpec
 from .router import (
     start_router,
@@ -60,10 +61,6 @@ CONSUMES = {"preprocessing": "frame", "motion_estimation": "pre_frame", "auto_tu
 #: stdin: the launcher starts the camera's process with the others, so that its own start-up
 #: (imports, session, simulator: ~1.4 s) is done when they are ready, and releases it then.
 HOLD_FLAG = "--start-on-stdin"
-#: Camera sources that are not started early: a live device's first frame would be read at
-#: start-up and sent, stale, once released.
-LIVE_SOURCES = ("device:",)
-
 # Seconds between SIGTERM and SIGKILL when stopping (the whole stop stays within 5 s).
 TERM_GRACE_S = 3.0
 # Seconds to wait for a SIGKILLed child to be reaped, and for an output thread to drain.
@@ -880,7 +877,9 @@ class Launcher:
 
 
 def _can_hold(spec: ServiceSpec) -> bool:
-    """Whether the camera of ``spec`` is started early and held (not a live device)."""
+    """Whether the camera of ``spec`` is started early and held: not a live camera (a device or
+    a stream, :func:`~vistrack.common.sources.is_live`), whose first frame would be read at
+    start-up and sent, stale, once released."""
     flags = list(spec.flags)
     source = ""  # the last --source wins, as in argparse
     for i, flag in enumerate(flags):
@@ -888,7 +887,7 @@ def _can_hold(spec: ServiceSpec) -> bool:
             source = flags[i + 1]
         elif flag.startswith("--source="):
             source = flag.split("=", 1)[1]
-    return not source.startswith(LIVE_SOURCES)
+    return not is_live(source)
 
 
 def compile_kernels(command: str = "up", start: Callable[[], None] | None = None) -> None:

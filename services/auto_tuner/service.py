@@ -263,12 +263,13 @@ class AutoTuner:
         with no line saying so. Reminding of the set taken on puts a restarted service back
         on it. False where it cannot be asked, or runs another set.
 
-        An estimate's ``params_id`` is a claim until motion-estimation confirms it: where it
-        answers with another set, that one counts (taken on if newer than this tuner's, else
-        the claim is dropped, said once). One estimate with params_id 2^53 - 1 from any
-        client (a forged one, or a recording's estimates replayed beside the live pipeline)
-        stopped the reminders for good, so a restarted motion-estimation stayed on its
-        flags, and left no newer id for any tuning."""
+        An estimate's ``params_id`` is a claim until the tracker's stages confirm it
+        (:func:`in_force_of`: the newer of motion-estimation's and pre-processing's sets):
+        where they answer with another set, that one counts (taken on if newer than this
+        tuner's, else the claim is dropped, said once). One estimate with params_id
+        2^53 - 1 from any client (a forged one, or a recording's estimates replayed beside
+        the live pipeline) stopped the reminders for good, so a restarted motion-estimation
+        stayed on its flags, and left no newer id for any tuning."""
         if got is None:
             if self._asked_for == self.seen_id:  # once a set: the query waits up to 0.5 s
                 return False
@@ -279,7 +280,7 @@ class AutoTuner:
             return False  # no answer: the claim stands (reminders held back)
         if runs != self.seen_id:
             st = self.state
-            log.warning("estimates carried params_id %d, but motion-estimation runs %d: "
+            log.warning("estimates carried params_id %d, but the tracker's stages run %d: "
                         "%s (a recording's estimates replayed beside this pipeline, or a "
                         "forged one?)", self.seen_id, runs,
                         f"taking on {runs}" if runs > st.params_id

@@ -185,7 +185,7 @@ def test_a_params_id_only_an_estimate_claims_does_not_stop_the_tuner(caplog, run
     assert sent[1].max_features == (70 if runs == 3 else TrackerParams().max_features)
     assert len(asked) == 1 and not node.status.last_error
     said = [r.getMessage() for r in caplog.records if "estimates carried" in r.getMessage()]
-    assert said == [f"estimates carried params_id {MAX_PARAMS_ID}, but motion-estimation runs "
+    assert said == [f"estimates carried params_id {MAX_PARAMS_ID}, but the tracker's stages run "
                     f"{runs}: " + ("taking on 3" if runs == 3 else
                                    "not taken, this tuner's 1 stays in force")
                     + " (a recording's estimates replayed beside this pipeline, or a forged "

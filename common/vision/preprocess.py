@@ -54,12 +54,28 @@ class Preprocessed:
 #: after 8: what :func:`sample_bits` rounds a frame's brightest value up to.
 SENSOR_BITS = (8, 10, 12, 14, 16)
 
+#: The share of a frame's pixels that may lie above the depth :class:`Grey` scales it by (a
+#: sensor's hot or stuck pixels, a glint; capped at 255): a 12-bit camera with a few pixels
+#: stuck at 65535, as many sensors have, otherwise came out at grey levels 0 to 15, for good
+#: (1280x720: 921 pixels; 256x256: 65)
+HOT_SHARE = 1e-3
 
-def sample_bits(image: np.ndarray) -> int:
+
+def sample_bits(image: np.ndarray, spare: int = 0) -> int:
     """The sensor depth a 16-bit grey frame's samples need: the least of :data:`SENSOR_BITS`
-    that holds its brightest value (a 12-bit camera's frame, values 0 to 4095, needs 12)."""
+    that holds its brightest value (a 12-bit camera's frame, values 0 to 4095, needs 12), or,
+    with ``spare`` > 0, every value but at most ``spare`` of the brightest (hot pixels)."""
     top = int(image.max(initial=0))
-    return next(b for b in SENSOR_BITS if top < 1 << b)
+    bits = next(b for b in SENSOR_BITS if top < 1 << b)
+    if spare > 0:
+        # down from the brightest's depth while no more than ``spare`` values lie above the
+        # next depth down (one count a frame where the brightest fits: 0.07 ms at 1280x720)
+        while bits > SENSOR_BITS[0]:
+            lower = SENSOR_BITS[SENSOR_BITS.index(bits) - 1]
+            if np.count_nonzero(image >= 1 << lower) > spare:
+                break
+            bits = lower
+    return bits
 
 
 def to_gray(image: np.ndarray, *, bits: int = 16, unit: bool | None = None) -> np.ndarray:
@@ -100,8 +116,11 @@ def to_gray(image: np.ndarray, *, bits: int = 16, unit: bool | None = None) -> n
 
 def unit_range(gray: np.ndarray) -> bool:
     """Whether a floating-point frame reads as 0 to 1 (OpenCV's convention for float images):
-    none of its finite values is above 1. A frame with any value above 1 reads as 0 to 255."""
-    return float(np.max(gray, where=np.isfinite(gray), initial=-np.inf)) <= 1.0
+    at most half its pixels are above 1. A high-dynamic-range frame of 0 to 1 has highlights
+    above 1 (a lamp, the sky: capped at 255), and one of 0 to 255 has most of its pixels above
+    1 unless it is all but black. Taken as 0 to 255 wherever any value was above 1, an HDR
+    frame with one highlight came out black (grey levels 0 and 1: no feature)."""
+    return bool(2 * np.count_nonzero(gray > 1.0) <= gray.size)
 
 
 #: :class:`Grey` steps its depth down after this many frames in a row that needed fewer bits
@@ -113,19 +132,22 @@ class Grey:
     """:func:`to_gray` for the frames of one stream (a camera, a video, a folder of images).
 
     16-bit frames are scaled by the depth of the stream's samples: the largest
-    :func:`sample_bits` of its frames so far (``bits`` gives it instead). Keeping the top byte
-    of a 12-bit camera's samples, as OpenCV converts 16-bit images to 8-bit, left grey levels
-    0 to 15: a real 12-bit sequence gave 4 features where its 8-bit version gave 100. The
-    depth grows at once, so a stream that starts dark steps once, when its first bright frame
-    comes, rather than changing scale with every frame; it steps down only when each of the
-    last :data:`STEP_DOWN_FRAMES` frames needed fewer bits, to the most they needed. One
-    glitch (a frame of a 12-bit camera with a sample at 65535: a sensor's marker of a bad
-    pixel, a corrupt transfer) had left the stream at grey levels 0 to 15 for good; a dark
-    spell of a few seconds now brings out what texture it has. 8-bit frames pass as they are.
+    :func:`sample_bits` of its frames so far (``bits`` gives it instead), each frame's brightest
+    :data:`HOT_SHARE` of its pixels aside (hot and stuck pixels, capped at 255). Keeping the
+    top byte of a 12-bit camera's samples, as OpenCV converts 16-bit images to 8-bit, left grey
+    levels 0 to 15: a real 12-bit sequence gave 4 features where its 8-bit version gave 100.
+    The depth grows at once, so a stream that starts dark steps once, when its first bright
+    frame comes, rather than changing scale with every frame; it steps down only when each of
+    the last :data:`STEP_DOWN_FRAMES` frames needed fewer bits, to the most they needed (a
+    flash, a glitch, a moment of darkness does not change the scale; a dark spell of a few
+    seconds brings out what texture it has). 8-bit frames pass as they are.
 
-    Floating-point frames are 0 to 1 (OpenCV's convention for float images) until a frame
-    has a value above 1, and 0 to 255 from then on: like the depth, the range only grows
-    (capping 0..1 frames at 255 made them black and white: no feature at all).
+    Floating-point frames are 0 to 1 (OpenCV's convention for float images) while most of
+    their pixels are at most 1 (:func:`unit_range`: an HDR frame's highlights are capped at
+    255), and 0 to 255 from the first frame that reads so, until each of the last
+    :data:`STEP_DOWN_FRAMES` frames read as 0 to 1 again: like the depth, the range holds
+    through a short spell (capping 0..1 frames at 255 made them black and white: no feature
+    at all; reading them as 0 to 255, black).
     """
 
     def __init__(self, bits: int | None = None) -> None:
@@ -136,6 +158,7 @@ class Grey:
         self._below = 0  # frames in a row that needed fewer bits than in use
         self._below_bits = 0  # the most of them needed
         self.unit: bool | None = None  # float frames: 0 to 1 (None: no float frame yet)
+        self._unit_run = 0  # float frames in a row that read as 0 to 1 while 0 to 255 in use
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         if np.issubdtype(image.dtype, np.floating):
@@ -143,7 +166,7 @@ class Grey:
         if image.dtype.itemsize != 2 or not np.issubdtype(image.dtype, np.integer):
             return to_gray(image)
         grey16 = _one_channel(image)
-        bits = self.fixed or self._depth(sample_bits(grey16))
+        bits = self.fixed or self._depth(sample_bits(grey16, int(grey16.size * HOT_SHARE)))
         if bits != self.bits:
             log.info("16-bit frames with %d significant bits: grey = value >> %d", bits,
                      bits - 8)
@@ -165,8 +188,14 @@ class Grey:
 
     def _float(self, image: np.ndarray) -> np.ndarray:
         grey = _one_channel(image)
-        unit = (self.unit is not False) and unit_range(grey)
+        unit = unit_range(grey)
+        if unit and self.unit is False:  # 0 to 255 in use: back to 0 to 1 after a spell
+            self._unit_run += 1
+            unit = self._unit_run >= STEP_DOWN_FRAMES
+        else:
+            self._unit_run = 0
         if unit != self.unit:
+            self._unit_run = 0
             log.info("floating-point frames taken as %s", "0 to 1: grey = 255 value" if unit
                      else "0 to 255")
             self.unit = unit

@@ -68,19 +68,17 @@ def test_the_depth_only_grows_so_a_dark_start_steps_once(picture):
     assert grey.bits == 12
 
 
-def test_one_glitch_of_full_scale_does_not_darken_the_stream_for_good(picture):
-    """A 12-bit camera's frame with one sample at 65535 (a bad pixel's marker, a corrupt
-    transfer) stepped the depth to 16 bits, and every frame after it came out at grey levels
-    0 to 15 (almost no texture above the floor), for good. The depth steps down once each of
-    the last STEP_DOWN_FRAMES frames needed fewer bits, and not before."""
+def test_a_flash_of_full_scale_does_not_darken_the_stream_for_good(picture):
+    """A 12-bit camera's frame at full 16-bit scale (a corrupt transfer, a flash of another
+    camera's frames) stepped the depth to 16 bits, and every frame after it came out at grey
+    levels 0 to 15 (almost no texture above the floor), for good. The depth steps down once
+    each of the last STEP_DOWN_FRAMES frames needed fewer bits, and not before."""
     from vistrack.common.vision.preprocess import STEP_DOWN_FRAMES
 
     grey = Grey()
     frame = picture.astype(np.uint16) << 4  # 12 bits
     np.testing.assert_array_equal(grey(frame), picture)
-    glitch = frame.copy()
-    glitch[10, 10] = 65535
-    grey(glitch)
+    grey(picture.astype(np.uint16) << 8)  # the flash: 16 bits
     assert grey.bits == 16
     for _ in range(STEP_DOWN_FRAMES - 1):  # the scale holds through a short spell
         np.testing.assert_array_equal(grey(frame), picture >> 4)
@@ -94,6 +92,37 @@ def test_one_glitch_of_full_scale_does_not_darken_the_stream_for_good(picture):
     for k in range(STEP_DOWN_FRAMES):
         grey(dark if k == 5 else darker)
     assert grey.bits == 10
+
+
+@pytest.mark.parametrize("stuck", [1, 40])
+def test_hot_and_stuck_pixels_do_not_set_the_depth(picture, stuck):
+    """A 12-bit camera with pixels stuck at 65535 in every frame (many sensors have a few) came
+    out at grey levels 0 to 15 for good: the depth followed the brightest sample. Up to
+    HOT_SHARE of a frame's pixels are now left aside, capped at 255; the rest of the frame is
+    the 8-bit picture, and it is tracked as the 8-bit picture is."""
+    from vistrack.common.vision import Tracker
+    from vistrack.common.vision.preprocess import HOT_SHARE
+
+    assert stuck <= picture.size * HOT_SHARE  # 48 of 48,000
+    rng = np.random.default_rng(stuck)
+    where = rng.choice(picture.size, stuck, replace=False)
+    grey, tracker, plain = Grey(), Tracker(), Tracker()
+    for k in range(3):
+        shifted = np.roll(picture, 2 * k, axis=1)
+        frame = shifted.astype(np.uint16) << 4
+        frame.flat[where] = 65535
+        out = grey(frame)
+        assert grey.bits == 12
+        expected = shifted.copy()
+        expected.flat[where] = 255
+        np.testing.assert_array_equal(out, expected)
+        est, ref = tracker.process(out), plain.process(expected)
+        assert est.npi == ref.npi > 50
+    assert sample_bits(frame) == 16  # the brightest alone would have set 16 bits
+    # a bright region larger than the share is scene, not a hot pixel: it sets the depth
+    lamp = (picture.astype(np.uint16) << 4)
+    lamp[:20, :20] = 60000  # 400 pixels
+    assert Grey()(lamp)[100, 100] == picture[100, 100] >> 4
 
 
 def test_signed_16_bit_samples_below_zero_are_black_not_white():
@@ -172,7 +201,9 @@ def test_float_colour_and_other_depths_are_converted_to_grey_first(picture):
     assert to_gray(np.array([[-7, 9, 70000]], np.int32)).tolist() == [[0, 9, 255]]
 
 
-def test_the_float_range_only_grows_so_a_0_to_255_stream_is_read_as_such(picture):
+def test_the_float_range_holds_so_a_0_to_255_stream_is_read_as_such(picture):
+    from vistrack.common.vision.preprocess import STEP_DOWN_FRAMES
+
     grey = Grey()
     unit = picture.astype(np.float32) / 255
     np.testing.assert_array_equal(grey(unit), picture)
@@ -180,8 +211,33 @@ def test_the_float_range_only_grows_so_a_0_to_255_stream_is_read_as_such(picture
     np.testing.assert_array_equal(grey(picture.astype(np.float32)), picture)  # above 1
     assert grey.unit is False
     dark = np.full(picture.shape, 0.8, np.float32)  # would read as 204 in 0..1
-    assert grey(dark).max() == 1  # 0..255 from now on: no flicker to bright
+    for _ in range(STEP_DOWN_FRAMES - 1):
+        assert grey(dark).max() == 1  # 0..255 through a spell: no flicker to bright
     assert grey.unit is False
+    np.testing.assert_array_equal(grey(picture.astype(np.float32)), picture)  # not counted
+    for _ in range(STEP_DOWN_FRAMES - 1):
+        grey(unit)
+    assert grey.unit is False
+    np.testing.assert_array_equal(grey(unit), picture)  # and then back to 0 to 1
+    assert grey.unit is True
+
+
+def test_hdr_float_frames_with_highlights_are_not_black(picture):
+    """A high-dynamic-range float frame (0 to 1, highlights above: a lamp, the sky) was read as
+    0 to 255 wherever one value was above 1: grey levels 0 and 1, no feature. Highlights are
+    capped at 255 and the rest is the 8-bit picture, alone and in a stream."""
+    from vistrack.common.vision import Tracker
+
+    hdr = picture.astype(np.float32) / 255
+    lit = picture > 200  # the brightest tenth or so of the picture, 4 to 16 times over
+    assert 0.01 < lit.mean() < 0.5
+    hdr[lit] *= np.linspace(4.0, 16.0, int(lit.sum()), dtype=np.float32)
+    expected = np.where(lit, 255, picture).astype(np.uint8)
+    np.testing.assert_array_equal(to_gray(hdr), expected)
+    grey = Grey()
+    np.testing.assert_array_equal(grey(hdr), expected)
+    assert grey.unit is True
+    assert Tracker().process(grey(hdr)).npi > 50
 
 
 def test_a_boolean_mask_is_black_and_white_and_tracked(picture):

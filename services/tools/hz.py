@@ -128,6 +128,9 @@ def hz(session: zenoh.Session, keys: Keys, args: argparse.Namespace) -> int:
                                                                      item.source)
         finally:
             sub.undeclare()
+    if args.duration is not None and not stop.is_set():
+        # the last, partial second's report: with --duration 1 nothing was printed at all
+        _print_reports(key, rates, args.json)
     return 0
 
 

@@ -232,6 +232,11 @@ def test_hz_reports_rate_jitter_and_gaps(pipeline, endpoint):
     assert last["samples"] >= last["window"] >= 10 and last["gaps"] >= 0
     text = tool(endpoint, "hz", "camera/frame", "--duration", "1.3")
     assert "Hz" in text.stdout and "gaps" in text.stdout
+    # a run shorter than a report's second still reports (it printed nothing at all)
+    short = tool(endpoint, "hz", "camera/frame", "--duration", "0.9", "--json")
+    assert short.returncode == 0, short.stderr
+    (report,) = json_lines(short.stdout)
+    assert report["key"] == f"{ROOT}/camera/frame" and report["samples"] >= 5
 
 
 def test_status_lists_every_service_and_a_silent_one(pipeline, endpoint, session):

@@ -175,7 +175,18 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                                                        wz=wz, stale=stale), reliable=True)
         seq += 1
 
-    held_since: float | None = None  # when the watchdog began holding the robot (monotonic)
+    held_since: float | None = None  # when the robot began to be held stopped (monotonic)
+
+    def hold(mono: float, why: str) -> None:
+        """The robot is held stopped from ``mono`` on: said once (the log's warning and the
+        status's ``extra.held_since``) until a command moves it again (:func:`released`)."""
+        nonlocal held_since
+        if held_since is None:
+            # an operator saw a healthy status while the robot was held for minutes
+            held_since = mono
+            node.status.extra["held_since"] = round(time.time(), 3)
+            log.warning("%s: holding the robot stopped until estimates that can be trusted "
+                        "come again", why)
 
     def watchdog() -> None:
         """Repeat the stop while the estimates are stale (none for a while, or too old)."""
@@ -191,14 +202,10 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             last_stop = mono
             extra = node.status.extra
             extra["watchdog_stops"] = extra.get("watchdog_stops", 0) + 1
-            if held_since is None:
-                # an operator saw a healthy status while the robot was held for minutes
-                held_since = mono
-                extra["held_since"] = round(time.time(), 3)
-                log.warning("no fresh estimate for %.2f s (--stale-after %g s): holding the "
-                            "robot stopped (a stop every %g s) until estimates come again",
-                            mono - last_taken if last_taken < math.inf else 0.0,
-                            ctrl.config.stale_after_s, STALE_REPEAT_S)
+            hold(mono, f"no fresh estimate for {max(mono - last_taken, 0.0):.2f} s "
+                       f"(--stale-after {ctrl.config.stale_after_s:g} s; a stop every "
+                       f"{STALE_REPEAT_S:g} s)" if last_taken < math.inf
+                 else "no estimate yet")
 
     def released(cmd_stale: bool) -> None:
         """A command from a fresh estimate: the watchdog's hold, if any, is over (said)."""
@@ -280,6 +287,15 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             late_in_a_row = 0
         if cmd is STOP or cmd.stale:
             last_stop = time.monotonic()
+            if not (est.valid and est.npi >= max(MIN_VALID_NPI, ctrl.config.min_npi)):
+                extra = node.status.extra
+                extra["untrusted"] = extra.get("untrusted", 0) + 1
+                hold(last_stop, f"estimate seq {est.seq} cannot be trusted (valid "
+                                f"{str(est.valid).lower()}, npi {est.npi}; --min-npi "
+                                f"{ctrl.config.min_npi})")
+            else:
+                hold(last_stop, f"estimate seq {est.seq} is older than --stale-after "
+                                f"({ctrl.config.stale_after_s:g} s) when it came")
         last_taken = time.monotonic()
         used = (est.seq, est.stamp_ns)
         send(est.stamp_ns, cmd.vx, cmd.vy, cmd.wz, cmd.stale)

@@ -321,6 +321,39 @@ def test_the_controller_says_when_its_watchdog_holds_the_robot_and_when_it_lets_
         assert "held_since" not in node.status.as_dict()["extra"]
 
 
+def test_the_controller_says_when_untrusted_estimates_hold_the_robot(caplog):
+    """A covered lens: 30 estimates a second, each valid: false with npi 0, each answered with
+    a stale stop, as it should be; but the status stayed as before (no held_since, no count,
+    no error) and vistrack status said ok, though the README says the status tells when the
+    robot is held (a hunt of the controller, helper h2)."""
+    import logging
+
+    from vistrack.services.fuzzy_controller.service import loop
+
+    caplog.set_level(logging.INFO, logger="vistrack.fuzzy_controller")
+
+    def estimate(seq: int, npi: int) -> bytes:
+        return Estimate(seq=seq, stamp_ns=time.time_ns(), npi=npi, xc=100.0, yc=100.0,
+                        xe=400.0, ye=400.0, dx=2.0 * seq, dy=0.0, scale=1.0, t_ms=1.0,
+                        first=seq == 0, features=[], params_id=0, width=256,
+                        height=256).encode()
+
+    with Running("fuzzy_controller", loop, parse("fuzzy-controller")) as node:
+        command_for(node, estimate(0, 40))
+        assert not command_for(node, estimate(1, 40)).stale
+        assert "held_since" not in node.status.as_dict()["extra"]
+        for seq in range(2, 6):  # the lens covered
+            assert command_for(node, estimate(seq, 0)).stale
+        extra = node.status.as_dict()["extra"]
+        assert "held_since" in extra and extra["untrusted"] == 4
+        held = [r.getMessage() for r in caplog.records
+                if "holding the robot stopped" in r.getMessage()]
+        assert len(held) == 1 and "seq 2 cannot be trusted (valid false, npi 0" in held[0]
+        command_for(node, estimate(6, 40))  # texture again: a new set point, then moves
+        assert not command_for(node, estimate(7, 40)).stale
+        assert "held_since" not in node.status.as_dict()["extra"]
+
+
 def test_the_controller_does_not_move_on_an_estimate_valid_with_too_few_features():
     """The CONTRACT: valid is false when NPI < 3. A peer's valid: true with npi 0, 1 or 2 moved
     the robot of a controller run with --min-npi 0 (whose own NPI check then passes)."""

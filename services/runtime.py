@@ -445,6 +445,25 @@ def decode_or_reject(cls: type[M], payload: bytes, node: Node, logger: logging.L
 NO_ESTIMATE = (-1, -1)
 
 
+#: an estimate at most this many ``seq`` behind the last one taken, and stamped before it, not
+#: a track's first, is an old one come late (:func:`came_late`)
+LATE_SEQ_BACK = 30
+
+
+def came_late(est: Estimate, last: tuple[int, int]) -> bool:
+    """Whether ``est`` is an old estimate that came after a newer one (``last``: ``(seq,
+    stamp_ns)`` of the estimate taken before it): its ``seq`` at most LATE_SEQ_BACK behind
+    and its stamp earlier, and not a track's ``first``. A restarted camera's frames go back in
+    ``seq`` but on in time; taken for a restart (:func:`starts_track`), a copy two frames old
+    moved the controller's set point for the rest of the track (a hunt of the controller).
+    A restart whose ``first`` was lost with its stamps gone back too (a lockstep simulator
+    ahead of the host's clock, started again) is taken for one only once it is more than
+    LATE_SEQ_BACK frames behind, or, behind by less, from its next frame after the old
+    track's last ``seq``, as a clock step."""
+    seq, stamp = last
+    return not est.first and seq - LATE_SEQ_BACK <= est.seq < seq and est.stamp_ns < stamp
+
+
 def starts_track(est: Estimate, last: tuple[int, int]) -> bool:
     """Whether ``est`` begins a new track, ``last`` being ``(seq, stamp_ns)`` of the estimate
     taken before it (:data:`NO_ESTIMATE`: none).

@@ -76,6 +76,7 @@ from ..runtime import (
     NO_ESTIMATE,
     ParamsInForce,
     add_service_args,
+    came_late,
     decode_or_reject,
     dispatch,
     ready,
@@ -392,6 +393,8 @@ class AutoTuner:
             return
         if msg.params_id != self._refuted:  # the same claim again is not asked about again
             self.seen_id = max(self.seen_id, msg.params_id)
+        if came_late(msg, self.last_estimate):  # an old one after a newer: not a new track
+            return
         # one estimate in ESTIMATE_PERIOD_S is watched: a new track's first may not be
         first = starts_track(msg, self.last_estimate)
         self.last_estimate = (msg.seq, msg.stamp_ns)

@@ -29,6 +29,7 @@ from ..runtime import (
     NO_ESTIMATE,
     REJECTED_LOG_S,
     add_service_args,
+    came_late,
     decode_or_reject,
     dispatch,
     ready,
@@ -225,6 +226,14 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             return
         if (est.seq, est.stamp_ns) == used:  # published again: its command has been sent
             node.status.extra["repeated"] = node.status.extra.get("repeated", 0) + 1
+            return
+        if came_late(est, last):  # an old estimate after a newer one: no command of its own
+            late = node.status.extra["came_late"] = \
+                node.status.extra.get("came_late", 0) + 1
+            if node.status.say("came late", REJECTED_LOG_S) is not None:
+                log.warning("estimate seq %d (stamped %.3g s before seq %d) came after it: "
+                            "ignored (%d in all)", est.seq, (last[1] - est.stamp_ns) * 1e-9,
+                            last[0], late)
             return
         # The old track's set point and time go with it: a lockstep simulator's clock, ahead
         # of the host's, starts again from the host's time, below the old track's stamps.

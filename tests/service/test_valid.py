@@ -9,6 +9,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 from vistrack.common import synthetic
 from vistrack.common.bus import MemoryNode
@@ -352,6 +353,42 @@ def test_the_controller_says_when_untrusted_estimates_hold_the_robot(caplog):
         command_for(node, estimate(6, 40))  # texture again: a new set point, then moves
         assert not command_for(node, estimate(7, 40)).stale
         assert "held_since" not in node.status.as_dict()["extra"]
+
+
+def test_an_estimate_that_comes_late_does_not_move_the_set_point():
+    """A copy of an estimate two frames old (seq 2 lower, stamped 67 ms earlier) was taken for
+    a camera restart: a new set point from it, and the commands for the same target fell from
+    -0.42 to -0.10 m/s for the rest of the track (a hunt of the controller). It is ignored and
+    counted; the commands are those of the same run without it."""
+    from vistrack.services.fuzzy_controller.service import loop
+
+    def run(late: bool) -> tuple[list[float], dict]:
+        base = time.time_ns()
+
+        def estimate(seq: int) -> bytes:  # a target right of centre, drifting right
+            return Estimate(seq=seq, stamp_ns=base + seq * 33_000_000, npi=40,
+                            xc=138.0 + seq, yc=100.0, xe=400.0, ye=400.0, dx=float(seq),
+                            dy=0.0, scale=1.0, t_ms=1.0, first=seq == 0, features=[],
+                            params_id=0, width=256, height=256).encode()
+
+        with Running("fuzzy_controller", loop, parse("fuzzy-controller")) as node:
+            vy = [command_for(node, estimate(seq)).vy for seq in range(6)]
+            if late:
+                stale = estimate(3)
+                # taken before the next (the estimates' input keeps the latest only)
+                taken = node.status.as_dict()["received"]
+                wait_for(lambda: node.feed(node.keys.estimate, stale), what="a subscription")
+                wait_for(lambda: node.status.as_dict()["received"] > taken,
+                         what="the late estimate taken in")
+                time.sleep(0.3)  # and handled (well under a millisecond)
+            vy += [command_for(node, estimate(seq)).vy for seq in range(6, 9)]
+            return vy, dict(node.status.extra)
+
+    plain, _ = run(late=False)
+    with_late, extra = run(late=True)
+    # the same commands (to the controller's timing: it reads the clock for lateness)
+    assert with_late == pytest.approx(plain, abs=1e-3) and plain[-1] < -0.05
+    assert extra["came_late"] == 1
 
 
 def test_the_controller_does_not_move_on_an_estimate_valid_with_too_few_features():

@@ -116,7 +116,12 @@ def offline_main(name: str, run: Callable[[argparse.Namespace], int],
     code 2; a closed pipe (``vistrack NAME ... | head``) is a normal end; an output that cannot
     be written (a full disk, /dev/full) is one line and exit 1 (it was a traceback)."""
     try:
-        return run(args)
+        code = run(args)
+        # a buffered output's last writes fail only when flushed (a full disk: ENOSPC), which
+        # the interpreter's end did in silence, exit 1 and no line (tested with
+        # PYTHONUNBUFFERED=1, where each write fails at once, it passed)
+        sys.stdout.flush()
+        return code
     except (SourceError, ParamError, ValueError) as e:
         print_error(name, e)
         return 2

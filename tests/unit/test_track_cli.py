@@ -263,14 +263,19 @@ def test_features_left_unsearched_by_the_work_budget_are_said(rubberwhale):
 @pytest.mark.skipif(not __import__("os").path.exists("/dev/full"), reason="no /dev/full here")
 @pytest.mark.parametrize("fmt", ["table", "csv", "jsonl"])
 def test_an_output_that_cannot_be_written_is_one_line_not_a_traceback(rubberwhale, fmt):
-    """A full disk (/dev/full: every write fails with ENOSPC) printed a Python traceback."""
+    """A full disk (/dev/full: every write fails with ENOSPC) printed a Python traceback; then,
+    with the output buffered as it is for a user (no PYTHONUNBUFFERED, which the suite's first
+    runs inherited), exit 1 and no line at all: the last writes failed at the interpreter's
+    end."""
+    import os
     import subprocess
     import sys
 
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
     with open("/dev/full", "w") as full:
         run = subprocess.run([sys.executable, "-m", "vistrack.services.cli", "track",
                               str(rubberwhale), "--format", fmt], stdout=full,
-                             stderr=subprocess.PIPE, text=True, timeout=300)
+                             stderr=subprocess.PIPE, text=True, timeout=300, env=env)
     assert run.returncode == 1, run.stderr
     assert run.stderr == ("vistrack track: error: writing the output: No space left on "
                           "device\n")

@@ -566,6 +566,7 @@ class _EstimateWire(msgspec.Struct):
     valid: bool | msgspec.UnsetType = msgspec.UNSET  # absent: an older publisher's
     width: _Side | msgspec.UnsetType = msgspec.UNSET  # absent: an older publisher's
     height: _Side | msgspec.UnsetType = msgspec.UNSET
+    cuts: _Count = 0  # absent: 0 (no cut yet, or an older publisher's)
 
 
 def _image_view(wire: Any) -> np.ndarray | None:
@@ -809,13 +810,17 @@ class Estimate(_Message):
     width, height : the size of the frame the estimate is of, px (1..MAX_SIDE); None (the
         default, and a message from a publisher that predates the fields): not said. The
         controller normalises the centring error by ``width``.
+    cuts : the frame's :attr:`Frame.cuts` (>= 0; absent on the wire: 0): a track's ``first``
+        where it changed is the source starting again (a ``--loop`` file's next pass), not
+        features lost in the scene.
     """
 
     KEY: ClassVar[str] = "motion/estimate"
     _CHECKS: ClassVar[dict[str, _Check]] = {
         **_SEQ, "npi": _int(), "xc": _float(), "yc": _float(), "xe": _float(0.0),
         "ye": _float(0.0), "dx": _float(), "dy": _float(), "scale": _float(positive=True),
-        "t_ms": _float(0.0), "first": _bool, "features": _features, "params_id": _PARAMS_ID}
+        "t_ms": _float(0.0), "first": _bool, "features": _features, "params_id": _PARAMS_ID,
+        "cuts": _int()}
 
     seq: int
     stamp_ns: int
@@ -834,6 +839,7 @@ class Estimate(_Message):
     valid: bool | None = None
     width: int | None = None
     height: int | None = None
+    cuts: int = 0
 
     def _validate(self) -> None:
         valid = self.npi >= MIN_VALID_NPI if self.valid is None else self.valid
@@ -847,6 +853,8 @@ class Estimate(_Message):
         for name in ("width", "height"):  # not said: left out, as an older publisher's
             if values[name] is None:
                 del values[name]
+        if not values["cuts"]:  # absent is 0: an estimate of a source with no cut is as before
+            del values["cuts"]
         return values
 
     @classmethod
@@ -860,7 +868,7 @@ class Estimate(_Message):
                 m = {**m, name: None}
             elif m[name] is None:  # absent is "not said", nil is a wrong type
                 raise _error(cls.KEY, name, f"must be an integer in 1..{MAX_SIDE}", None)
-        return super()._from_map(m)
+        return super()._from_map(_cuts_default(m))
 
     @classmethod
     def _from_wire(cls, wire: Any) -> dict[str, Any] | None:
@@ -896,7 +904,7 @@ def encode_estimate(*, seq: int, stamp_ns: int, npi: int, xc: float, yc: float, 
                     ye: float, dx: float, dy: float, scale: float, t_ms: float, first: bool,
                     ids: np.ndarray, points: np.ndarray, params_id: int,
                     valid: bool | None = None, width: int | None = None,
-                    height: int | None = None) -> bytes:
+                    height: int | None = None, cuts: int = 0) -> bytes:
     """``Estimate(...).encode()`` byte for byte, with the features given as arrays: ``ids``
     (N,) integers >= 0 and ``points`` (N, 2) finite x, y.
 
@@ -934,6 +942,8 @@ def encode_estimate(*, seq: int, stamp_ns: int, npi: int, xc: float, yc: float, 
         values["width"] = _SIDE(key, "width", width)
     if height is not None:
         values["height"] = _SIDE(key, "height", height)
+    if cuts:
+        values["cuts"] = checks["cuts"](key, "cuts", cuts)
     return pack(values)
 
 

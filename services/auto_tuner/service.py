@@ -189,6 +189,7 @@ class AutoTuner:
         self._lagging = False  # reminders held back: the estimates run a newer set (announce)
         self._asked_for = -1  # the seen_id motion-estimation was last asked the set of
         self.last_estimate = NO_ESTIMATE  # (seq, stamp_ns) of the last estimate watched
+        self.last_cuts = 0  # the cuts of the last estimate watched (a change: a cut)
         self.started = 0.0
         self.reason = ""
         self.id_at_start = 0
@@ -397,9 +398,12 @@ class AutoTuner:
             return
         # one estimate in ESTIMATE_PERIOD_S is watched: a new track's first may not be
         first = starts_track(msg, self.last_estimate)
+        # a change of the source's cuts since the last estimate watched: it started again
+        cut = self.last_estimate != NO_ESTIMATE and msg.cuts != self.last_cuts
         self.last_estimate = (msg.seq, msg.stamp_ns)
+        self.last_cuts = msg.cuts
         self._changed(self.triggers.estimate(first=first, npi=msg.npi, scale=msg.scale,
-                                             ids={f[0] for f in msg.features}))
+                                             ids={f[0] for f in msg.features}, cut=cut))
         self.node.status.extra["scale_ratio"] = round(self.triggers.ratio, 4)
 
     def _changed(self, reason: str | None) -> None:

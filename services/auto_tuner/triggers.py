@@ -292,15 +292,19 @@ class Triggers:
         return None
 
     def estimate(self, *, first: bool, npi: int, ids: set[int] | list[int],
-                 scale: float) -> str | None:
-        """Observe an estimate; return SCENE (a storm) or DISTANCE when it confirms one."""
+                 scale: float, cut: bool = False) -> str | None:
+        """Observe an estimate; return SCENE (a storm) or DISTANCE when it confirms one.
+        ``cut``: the source started again before it (its ``cuts`` changed: a ``--loop``
+        file's next pass): a new track, but no feature lost in the scene (each pass of an
+        8-frame loop at 30 fps made a storm, and a tuning every --min-interval on a scene that
+        never changed: a hunt of the auto-tuner)."""
         c = self.config
         ids = set(ids)
-        if first:
+        if first or cut:
             self._scale_ref = 1.0  # a new track restarts the accumulated scale
             self._distance.reset()
-        event = first
-        if self._prev is not None and not first:
+        event = first and not cut
+        if self._prev is not None and not first and not cut:
             prev_npi, prev_ids = self._prev
             lost = prev_npi > 0 and npi < (1.0 - c.turnover) * prev_npi
             renewed = bool(ids) and len(ids - prev_ids) >= c.turnover * len(ids)

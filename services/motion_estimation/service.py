@@ -65,25 +65,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def estimate_message(e, *, seq: int, stamp_ns: int, params_id: int,
-                     shape: tuple[int, int] | None = None) -> Estimate:
+                     shape: tuple[int, int] | None = None, cuts: int = 0) -> Estimate:
     """The ``motion/estimate`` message of a library estimate; ``shape``: its frame's
-    (height, width), sent as ``height`` and ``width``."""
+    (height, width), sent as ``height`` and ``width``; ``cuts``: its frame's."""
     height, width = (None, None) if shape is None else shape
     return Estimate(seq=seq, stamp_ns=stamp_ns, npi=e.npi, xc=e.xc, yc=e.yc, xe=e.xe, ye=e.ye,
                     dx=e.dx, dy=e.dy, scale=e.scale, t_ms=e.t_ms, first=e.first,
                     valid=e.valid, features=e.features(), params_id=params_id,
-                    width=width, height=height)
+                    width=width, height=height, cuts=cuts)
 
 
 def estimate_payload(e, *, seq: int, stamp_ns: int, params_id: int,
-                     shape: tuple[int, int] | None = None) -> bytes:
+                     shape: tuple[int, int] | None = None, cuts: int = 0) -> bytes:
     """``estimate_message(...).encode()``, byte for byte, built from the estimate's arrays
     without the message object (:func:`~vistrack.common.messages.encode_estimate`)."""
     height, width = (None, None) if shape is None else shape
     return encode_estimate(seq=seq, stamp_ns=stamp_ns, npi=e.npi, xc=e.xc, yc=e.yc, xe=e.xe,
                            ye=e.ye, dx=e.dx, dy=e.dy, scale=e.scale, t_ms=e.t_ms,
                            first=e.first, ids=e.ids, points=e.points, params_id=params_id,
-                           valid=e.valid, width=width, height=height)
+                           valid=e.valid, width=width, height=height, cuts=cuts)
 
 
 #: Frames over which a re-detection keeps candidates coming (``motion/demand``).
@@ -247,7 +247,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                         vision_tracker.over_budget_said(msg.seq, tracker.over_budget - over),
                         state.params_id, state.params.factors())
         out = estimate_payload(est, seq=msg.seq, stamp_ns=msg.stamp_ns,
-                               params_id=state.params_id, shape=filtered.shape)
+                               params_id=state.params_id, shape=filtered.shape, cuts=msg.cuts)
         last_est = est
         node.publish(node.keys.estimate, out, reliable=node.answer_reliably)
         answered = (msg.seq, msg.stamp_ns, out)

@@ -54,7 +54,7 @@ def make(cls):
         return Estimate(**common, npi=2, xc=10.5, yc=20.0, xe=3.0, ye=4.5, dx=-1.5, dy=0.25,
                         scale=1.02, t_ms=3.2, first=False,
                         features=[[0, 10.0, 18.0], [4, 11.0, 22.0]], params_id=2, width=64,
-                        height=48)
+                        height=48, cuts=2)
     if cls is Params:
         return Params(**common, max_features=100, thres_percent=2.0, search_size=15,
                       corr_size=9, ungroup_size=5, params_id=3, source="tuner",
@@ -199,7 +199,7 @@ def test_decode_accepts_bytearray_and_memoryview():
 # -- rejections ---------------------------------------------------------------------------
 
 # fields added to the contract later: a message from an older publisher lacks them
-OPTIONAL = {(Estimate, "valid"), (Estimate, "width"), (Estimate, "height"),
+OPTIONAL = {(Estimate, "valid"), (Estimate, "width"), (Estimate, "height"), (Estimate, "cuts"),
             (PreFrame, "deferred"), (Frame, "cuts"), (PreFrame, "cuts")}
 
 
@@ -225,6 +225,29 @@ def test_an_estimates_frame_size_is_optional_and_checked():
     assert "width" not in raw_map(old) and "height" not in raw_map(old)
     for bad in (0, MAX_SIDE + 1, None, 64.0, True):
         expect_error(Estimate, repack({**m, "width": bad, "height": 48}), "width")
+
+
+def test_an_estimates_cuts_are_optional_and_checked():
+    """``cuts`` came later: an estimate without it (an older publisher's, or one of a source
+    with no cut yet) decodes with 0 and is encoded without it; the fast encoder writes it as
+    the message does; a count below 0 or not an integer is refused, naming it."""
+    from vistrack.common.messages import encode_estimate
+
+    m = raw_map(make(Estimate))
+    assert m["cuts"] == 2
+    del m["cuts"]
+    old = Estimate.decode(repack(m))
+    assert old.cuts == 0 and "cuts" not in raw_map(old)
+    for cuts in (0, 3):
+        msg = dataclasses.replace(make(Estimate), cuts=cuts)
+        fast = encode_estimate(**{k: getattr(msg, k) for k in (
+            "seq", "stamp_ns", "npi", "xc", "yc", "xe", "ye", "dx", "dy", "scale", "t_ms",
+            "first", "params_id", "valid", "width", "height", "cuts")},
+            ids=np.array([f[0] for f in msg.features]),
+            points=np.array([f[1:] for f in msg.features]))
+        assert fast == msg.encode() and Estimate.decode(fast).cuts == cuts
+    for bad in (-1, 1.5, None, "2"):
+        expect_error(Estimate, repack({**m, "cuts": bad}), "cuts")
 
 
 @pytest.mark.parametrize(("npi", "valid"), [(0, False), (2, False), (3, True), (40, True)])

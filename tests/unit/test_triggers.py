@@ -291,6 +291,24 @@ def test_a_storm_of_re_detections_is_a_scene_change(scene_a):
                      "last 10 estimates")
 
 
+def test_a_looped_file_s_passes_are_no_storm(scene_a):
+    """Each pass of a --loop file starts a new track (its first frame does not follow the
+    last): an 8-frame loop at 30 fps made a storm within a second of every tuning, and a
+    tuning every --min-interval on a scene that never changed. A new track where the source's
+    cuts changed is no feature lost; the same new tracks without a cut are a storm."""
+    for cut in (True, False):
+        t = tuned(TriggerConfig(buffer=3, min_interval_s=0, storm_events=3, storm_window=10),
+                  scene_a[:3])
+        reasons = []
+        for i in range(1, 25):  # passes of 4 estimates watched, the first of each a new track
+            new = i % 4 == 0
+            ids = list(range(100 * (i // 4), 100 * (i // 4) + 20))
+            reasons.append(t.estimate(first=new, npi=20, ids=ids, scale=1.0,
+                                      cut=cut and new))
+        assert (SCENE in reasons) != cut, reasons
+        assert t.ratio == 1.0
+
+
 def test_turnover_events_spread_out_are_no_storm(scene_a):
     t = tuned(TriggerConfig(buffer=3, min_interval_s=0, storm_events=3, storm_window=10),
               scene_a[:3])

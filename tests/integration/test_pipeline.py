@@ -100,6 +100,10 @@ def test_a_paced_camera_reads_every_estimate_and_counts_no_drop(rubberwhale, fre
     # (a frame dropped at a latest-only input has no estimate: only those received are read)
     assert {m["seq"]: m["first"] for m in by_seq.values()} == \
         {seq: seq % 8 == 0 for seq in by_seq}
+    # each estimate carries its frame's cuts (the first pass none: the field left out)
+    assert {m["seq"]: m.get("cuts", 0) for m in by_seq.values()} == \
+        {seq: seq // 8 for seq in by_seq}
+    assert all("cuts" not in m for m in by_seq.values() if m["seq"] < 8)
     wraps = [by_seq[s] for s in (8, 16, 24) if s in by_seq]
     assert len(wraps) >= 2 and all((m["dx"], m["dy"], m["scale"]) == (0.0, 0.0, 1.0)
                                    for m in wraps)

@@ -87,9 +87,14 @@ RETRY_PROPOSALS = 128
 #: Frames between two estimates of the camera's noise (:mod:`.noise`, ~0.2 ms at 256 x 256):
 #: a camera's noise changes with its gain, not from frame to frame.
 NOISE_EVERY = 30
-#: a frame that keeps fewer than MIN_VALID_NPI features, and at most this share of those it
-#: had, starts a new track (:meth:`Tracker._track`: a scene cut)
+#: a frame that keeps fewer than FEW_KEPT features, and at most this share of those it had,
+#: starts a new track (:meth:`Tracker._track`: a scene cut)
 FEW_SHARE = 0.1
+#: ... fewer than this many: too few for the step's inlier test to leave out a lookalike (its
+#: median needs most of them right). With MIN_VALID_NPI (3), 3 of 74 cuts from RubberWhale to
+#: another scene kept 3 or 4 of 82 features, lookalikes 7 px apart, and their mean jumped
+#: the estimate by up to (17.4, 2.8) px, valid (a hunt on frames from other cameras)
+FEW_KEPT = 5
 
 
 @dataclass(frozen=True)
@@ -406,8 +411,8 @@ class Tracker:
             self.followed += int(np.count_nonzero(taken))
         pos, vel, ids, lost, moved, dx, dy, scale, turn = _advance(
             self._pos, found, ssd, status, self._ids, self._wsum, float(p.max_residual))
-        if 0 < len(pos) < MIN_VALID_NPI and len(pos) <= FEW_SHARE * len(self._pos):
-            # fewer than MIN_VALID_NPI of the frame's features kept, and almost none of many
+        if 0 < len(pos) < FEW_KEPT and len(pos) <= FEW_SHARE * len(self._pos):
+            # fewer than FEW_KEPT of the frame's features kept, and almost none of many
             # (a scene cut, the lens covered from one frame to the next): those kept are as
             # likely lookalikes as the same points, and too few for the step's inlier test. A
             # cut from RubberWhale to Grove2 kept 2 of 89, moved (+26, -30) and (-9, +0.5) px,

@@ -226,7 +226,7 @@ class Tracker:
         ``runaway``, ``fb``, ``disagrees``, ``residual`` (rejected, see the module notes),
         ``budget`` (not searched: the frame's searches had reached
         :data:`.pyramid.FRAME_WORK`), ``few`` (the matches of a frame that kept fewer than
-        MIN_VALID_NPI of its features, dropped: the track started again)."""
+        FEW_KEPT of its features and at most FEW_SHARE, dropped: the track started again)."""
         by = {name: int(v) for name, v in zip(STATUS_NAMES[1:], self._lost[1:], strict=True)}
         by["few"] = self._few
         return by

@@ -100,7 +100,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "scenario again when it ends (else either ends the run)")
     add_number(parser, "--duration", lo=0, hi=1e6, lo_open=True, unit="s", metavar="S",
                help="end the run after S seconds, %(allowed)s")
-    add_number(parser, "--ready-timeout", lo=0, hi=3600, lo_open=True, unit="s", metavar="S",
+    # the launch file's range (0.1 .. 3600): 0.05 here was taken, then failed "not ready"
+    add_number(parser, "--ready-timeout", lo=0.1, hi=3600, unit="s", metavar="S",
                help="longest wait for the services at start-up, %(allowed)s (default: the "
                     "launch file's ready_timeout)")
     add_zenoh_args(parser)

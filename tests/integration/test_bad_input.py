@@ -216,6 +216,8 @@ CASES = {
                                     "router's endpoints, so give it a port of its own, not 0"),
         (["--fps", "nan", "-l", "tcp/127.0.0.1:1"],
          "--fps nan is out of range: allowed 0 or 0.1..1000"),
+        # the launch file's ready_timeout range: 0.05 was taken, then "not ready after 0.05 s"
+        (["--ready-timeout", "0.05"], "--ready-timeout 0.05 is out of range: allowed 0.1..3600 s"),
         # up's own flag, with the camera's range (argparse's 'invalid float value' named none)
         (["--fps", "abc", "-l", "tcp/127.0.0.1:1"],
          "--fps 'abc' is not a number: allowed 0 or 0.1..1000"),

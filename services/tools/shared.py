@@ -325,6 +325,9 @@ def where(args: argparse.Namespace) -> str:
         return f"the endpoints of {args.config}"
     if args.listen:
         return f"{', '.join(args.listen)} (listening)"
+    if getattr(args, "no_multicast_scouting", False):  # nothing reaches it: said so
+        return ("no endpoint (--no-multicast-scouting without -e, -l or -c: nothing can be "
+                "reached; give -e ENDPOINT for a router)")
     return "the local network (multicast scouting; give -e ENDPOINT for a router)"
 
 

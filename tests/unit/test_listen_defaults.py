@@ -143,3 +143,17 @@ def test_a_config_files_endpoints_are_kept(tmp_path, text, expected):
 def test_multi_host_configs_listen_where_they_say(name, expected):
     conf = config_of("status", "-c", str(DEPLOY / "multi-host" / name))
     assert session_listens_on(conf) == expected
+
+
+@pytest.mark.parametrize(("flags", "said"), [
+    ([], "the local network (multicast scouting; give -e ENDPOINT for a router)"),
+    (["--no-multicast-scouting"], "no endpoint (--no-multicast-scouting without -e, -l or -c: "
+                                  "nothing can be reached; give -e ENDPOINT for a router)"),
+    (["--no-multicast-scouting", "-e", "tcp/127.0.0.1:7447"], "tcp/127.0.0.1:7447"),
+])
+def test_a_tool_says_where_it_looks(flags, said):
+    """A tool run with --no-multicast-scouting and no endpoint can reach nothing, but said it
+    was scouting the local network (a hunt of the README against the tools)."""
+    from vistrack.services.tools.shared import where
+
+    assert where(build_parser().parse_args(["echo", "motion/estimate", *flags])) == said

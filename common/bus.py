@@ -37,12 +37,14 @@ from __future__ import annotations
 import abc
 import argparse
 import collections
+import ipaddress
 import json
 import logging
 import math
 import os
 import queue
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -222,13 +224,7 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
         return zenoh.open(conf)
     except zenoh.ZError as err:
         if "Unable to connect" in str(err):  # client mode, or exit_on_failure
-            where = _endpoints(conf)
-            if "tls/" in where or "quic/" in where:  # a router may be there and refuse us
-                raise BusError(f"cannot connect to {where}: nothing answers there, or it "
-                               "refused this host's TLS certificate (check -c CONFIG's "
-                               "certificates)") from None
-            raise BusError(f"cannot connect to {where}: nothing answers there (is "
-                           "vistrack up or vistrack router running, on that port?)") from None
+            raise _nothing_answers(conf) from None
         if "Address already in use" in str(err):
             raise BusError(f"cannot open zenoh session: {err}: another process listens there "
                            "(a vistrack up, router or demo already running? join it with "
@@ -236,14 +232,45 @@ def open_session(conf: zenoh.Config) -> zenoh.Session:
         raise BusError(f"cannot open zenoh session: {err}") from None
 
 
-def _endpoints(conf: zenoh.Config) -> str:
+def _connect_endpoints(conf: zenoh.Config) -> list[str]:
     try:
         endpoints = json.loads(conf.get_json("connect/endpoints"))
     except (zenoh.ZError, ValueError):
         endpoints = None
     if isinstance(endpoints, dict):  # per-mode endpoints
         endpoints = [e for v in endpoints.values() for e in (v or [])]
-    return ", ".join(map(str, endpoints)) if endpoints else "the configured endpoints"
+    return [str(e) for e in endpoints] if isinstance(endpoints, list) else []
+
+
+def _endpoints(conf: zenoh.Config) -> str:
+    endpoints = _connect_endpoints(conf)
+    return ", ".join(endpoints) if endpoints else "the configured endpoints"
+
+
+def _nothing_answers(conf: zenoh.Config) -> BusError:
+    """The error of connect endpoints where nothing answered: a host name that does not
+    resolve is said as such (it read "nothing answers there (is vistrack up ... running?)",
+    sending the user to check the router rather than the name)."""
+    for endpoint in _connect_endpoints(conf):
+        host = endpoint.partition("/")[2].split("#")[0].rpartition(":")[0].strip("[]")
+        if not host:
+            continue
+        try:
+            ipaddress.ip_address(host)
+            continue  # an address: nothing to resolve
+        except ValueError:
+            pass
+        try:
+            socket.getaddrinfo(host, None)
+        except (OSError, UnicodeError):
+            return BusError(f"cannot connect to {endpoint}: the host name {host!r} does not "
+                            "resolve (misspelt, or no DNS for it here?)")
+    where = _endpoints(conf)
+    if "tls/" in where or "quic/" in where:  # a router may be there and refuse us
+        return BusError(f"cannot connect to {where}: nothing answers there, or it refused this "
+                        "host's TLS certificate (check -c CONFIG's certificates)")
+    return BusError(f"cannot connect to {where}: nothing answers there (is vistrack up or "
+                    "vistrack router running, on that port?)")
 
 
 def check_connected(session: zenoh.Session, conf: zenoh.Config, timeout_s: float = 2.0) -> None:
@@ -259,8 +286,7 @@ def check_connected(session: zenoh.Session, conf: zenoh.Config, timeout_s: float
     deadline = time.monotonic() + timeout_s
     while not (list(session.info.routers_zid()) or list(session.info.peers_zid())):
         if time.monotonic() >= deadline:
-            raise BusError(f"cannot connect to {_endpoints(conf)}: nothing answers there (is "
-                           "vistrack up or vistrack router running, on that port?)")
+            raise _nothing_answers(conf)
         time.sleep(0.02)
 
 

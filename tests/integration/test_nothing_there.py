@@ -139,3 +139,18 @@ def test_a_camera_waiting_for_stdin_that_ends_says_so(free_port):
     assert run.returncode == 0, run.stderr
     assert ("--start-on-stdin: standard input ended before the line that starts the frames"
             in run.stderr), run.stderr
+
+
+def test_a_host_name_that_does_not_resolve_is_said_so():
+    """A mistyped host was reported as "nothing answers there (is vistrack up or vistrack
+    router running, on that port?)", sending the user to the router rather than the name (a
+    hunt of the README against the tools). ``.invalid`` never resolves (RFC 2606)."""
+    endpoint = "tcp/nonexistent.invalid:7447"
+    results = finish({
+        "echo": start("echo", "motion/estimate", "--timeout", "3", "-e", endpoint, NS),
+        "status": start("status", "-e", endpoint, NS),
+    })
+    for name, (code, out, err) in results.items():
+        assert (code, out, err) == (1, "", f"vistrack {name}: error: cannot connect to "
+                                    f"{endpoint}: the host name 'nonexistent.invalid' does not "
+                                    "resolve (misspelt, or no DNS for it here?)\n"), name

@@ -225,9 +225,14 @@ def _warm_up(say: Callable[[str], None], helper: bool,
     t0 = time.monotonic()
     helpers = [early] if early is not None else []
     beat = _Heartbeat(say, t0)
+    # kernels cached before: then this compile is of kernels other settings need (--paper,
+    # --levels 1, a window whose sums need int64), not a first run (it said "first run" then)
+    cache = Path(kernel_cache_dir())
+    cached = cache.is_dir() and next(cache.glob("*.nbi"), None) is not None
 
     def on_compile() -> None:
-        say(f"compiling the tracker's kernels (first run; {COLD_COMPILE}, cached in "
+        why = "kernels these settings need, not cached yet" if cached else "first run"
+        say(f"compiling the tracker's kernels ({why}; {COLD_COMPILE}, cached in "
             f"{kernel_cache_dir()})")
         beat.start()
         if helper and not helpers and load is None:

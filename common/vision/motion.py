@@ -231,6 +231,9 @@ START_GOOD_PX = 0.5 / (3.0 * 1.4826)
 COHERENT = 0.25
 #: ... and their median displacement within this many px of none: still in the image
 STATIC_PX = 0.15
+#: the robust start runs only where 3 pairs or more moved less than this, px: a group still in
+#: the image has them (tracked to a few hundredths of a pixel)
+STILL_PX = 0.5
 
 
 @nb.njit(cache=True, nogil=True)
@@ -259,8 +262,19 @@ def _robust_start(a, b):  # pragma: no cover - numba
     similarity fitted after: a roll, perspective and a rolling shutter's shear leave genuine
     features off any similarity. The pairs left out are a group still in the image where
     they lie closer to their own median displacement, at the median, than COHERENT times
-    their distance from the map, and that displacement is within STATIC_PX of none."""
+    their distance from the map, and that displacement is within STATIC_PX of none. None of
+    it runs where fewer than 3 pairs moved less than STILL_PX: every pair (~0.1 us)."""
     n = a.shape[0]
+    keep = np.ones(n, np.bool_)
+    # the rest only where a group still in the image may be: 3 pairs or more that moved less
+    # than STILL_PX (most frames have none: the search of a map, ~10 us, is left out)
+    still = 0
+    for i in range(n):
+        ex = b[i, 0] - a[i, 0]
+        ey = b[i, 1] - a[i, 1]
+        still += ex * ex + ey * ey <= STILL_PX * STILL_PX
+    if still < 3:
+        return keep, n
     r = np.empty(n, np.float64)
     best_m = np.zeros((2, 3), np.float64)
     m = np.zeros((2, 3), np.float64)
@@ -299,7 +313,6 @@ def _robust_start(a, b):  # pragma: no cover - numba
             best = med
             best_m[:, :] = m
     lim = max(3.0 * 1.4826 * np.sqrt(best), 0.5)
-    keep = np.empty(n, np.bool_)
     kept = 0
     for i in range(n):
         ex = best_m[0, 0] * a[i, 0] + best_m[0, 1] * a[i, 1] + best_m[0, 2] - b[i, 0]

@@ -352,6 +352,10 @@ def write_outputs(out: Path, rec: Recorder, scenario: Any, summary: dict) -> lis
     return written
 
 
+#: the shortest run of estimates the status line gives a rate for, s
+RATE_SPAN_S = 0.5
+
+
 def _status_line(rec: Recorder, t0: float) -> str:
     with rec.lock:
         est = rec.estimates[-60:]
@@ -360,10 +364,11 @@ def _status_line(rec: Recorder, t0: float) -> str:
     if len(est) < 2:
         return f"waiting for estimates... ({time.monotonic() - t0:.0f} s)"
     span = (est[-1][0] - est[0][0]) * 1e-9
-    fps = (len(est) - 1) / span if span > 0 else 0.0
+    # a rate over less than RATE_SPAN_S is none: the first line read 407.5 fps over 3 frames
+    rate = f"{(len(est) - 1) / span:5.1f}" if span >= RATE_SPAN_S else "    -"
     lat = np.median([(t - m["stamp_ns"]) * 1e-6 for t, m in est])
     last = est[-1][1]
-    return (f"{time.monotonic() - t0:5.1f} s  frames {n:5d}  {fps:5.1f} fps  latency "
+    return (f"{time.monotonic() - t0:5.1f} s  frames {n:5d}  {rate} fps  latency "
             f"{lat:5.1f} ms  NPI {last['npi']:3d}  search {params.get('search_size', '?')} "
             f"corr {params.get('corr_size', '?')} (params_id {params.get('params_id', '?')})")
 

@@ -237,14 +237,28 @@ STILL_PX = 0.5
 
 
 @nb.njit(cache=True, nogil=True)
-def _affine_median(a, b, m, r):  # pragma: no cover - numba
-    """The median squared distance of ``b`` from the affine map ``m`` (2, 3) of ``a`` (``r``:
-    scratch of len(a), reordered)."""
+def _affine_residuals(a, b, m, r):  # pragma: no cover - numba
+    """``r[i]``: the squared distance of ``b[i]`` from the affine map ``m`` (2, 3) of ``a[i]``."""
     for i in range(a.shape[0]):
         ex = m[0, 0] * a[i, 0] + m[0, 1] * a[i, 1] + m[0, 2] - b[i, 0]
         ey = m[1, 0] * a[i, 0] + m[1, 1] * a[i, 1] + m[1, 2] - b[i, 1]
         r[i] = ex * ex + ey * ey
+
+
+@nb.njit(cache=True, nogil=True)
+def _affine_median(a, b, m, r):  # pragma: no cover - numba
+    """The median of :func:`_affine_residuals` (``r``: scratch of len(a), reordered)."""
+    _affine_residuals(a, b, m, r)
     return _median_small(r)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _xorshift(state):  # pragma: no cover - numba
+    """Marsaglia's xorshift64: the next of a fixed pseudo-random sequence (uint64)."""
+    state ^= state << np.uint64(13)
+    state ^= state >> np.uint64(7)
+    state ^= state << np.uint64(17)
+    return state
 
 
 @nb.njit(cache=True, nogil=True)
@@ -289,13 +303,12 @@ def _robust_start(a, b):  # pragma: no cover - numba
     points = min(START_POINTS, n) if best > START_GOOD_PX * START_GOOD_PX else 0
     state = np.uint64(88172645463325252)  # xorshift64 (Marsaglia): the same draws each call
     for _ in range(points):
-        corner = np.empty(3, np.int64)
-        for c in range(3):
-            state ^= state << np.uint64(13)
-            state ^= state >> np.uint64(7)
-            state ^= state << np.uint64(17)
-            corner[c] = np.int64(state % np.uint64(n))
-        i, j, k = corner[0], corner[1], corner[2]
+        state = _xorshift(state)
+        i = np.int64(state % np.uint64(n))
+        state = _xorshift(state)
+        j = np.int64(state % np.uint64(n))
+        state = _xorshift(state)
+        k = np.int64(state % np.uint64(n))
         if i == j or j == k or i == k:
             continue
         x1, y1, x2, y2, x3, y3 = a[i, 0], a[i, 1], a[j, 0], a[j, 1], a[k, 0], a[k, 1]
@@ -313,11 +326,10 @@ def _robust_start(a, b):  # pragma: no cover - numba
             best = med
             best_m[:, :] = m
     lim = max(3.0 * 1.4826 * np.sqrt(best), 0.5)
+    _affine_residuals(a, b, best_m, r)  # in order, each pair's: kept where within lim
     kept = 0
     for i in range(n):
-        ex = best_m[0, 0] * a[i, 0] + best_m[0, 1] * a[i, 1] + best_m[0, 2] - b[i, 0]
-        ey = best_m[1, 0] * a[i, 0] + best_m[1, 1] * a[i, 1] + best_m[1, 2] - b[i, 1]
-        keep[i] = ex * ex + ey * ey <= lim * lim
+        keep[i] = r[i] <= lim * lim
         kept += keep[i]
     # only a group still in the image is left out (the robot's own bumper, a burnt-in text,
     # a letterbox's edges): the pairs left out lie closer to their own median displacement,
@@ -337,9 +349,7 @@ def _robust_start(a, b):  # pragma: no cover - numba
             if not keep[i]:
                 ox[j] = b[i, 0] - a[i, 0]
                 oy[j] = b[i, 1] - a[i, 1]
-                ex = best_m[0, 0] * a[i, 0] + best_m[0, 1] * a[i, 1] + best_m[0, 2] - b[i, 0]
-                ey = best_m[1, 0] * a[i, 0] + best_m[1, 1] * a[i, 1] + best_m[1, 2] - b[i, 1]
-                away[j] = ex * ex + ey * ey
+                away[j] = r[i]
                 j += 1
         gx = _median(ox)
         gy = _median(oy)

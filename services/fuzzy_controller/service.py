@@ -279,6 +279,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
         except ValueError as e:  # out of order or a duplicate: the input's fault, not ours
             reject(node, log, Estimate.KEY, e)
             return
+        untrusted = cmd.stale  # the controller's own verdict: a stop for an untrusted estimate
         if not cmd.stale and (late := ctrl.command_at(now)).stale:
             # older than --stale-after on arrival (a camera clock behind this host's, a
             # pipeline slower than the bound): the watchdog's stop, not a move on old news,
@@ -296,7 +297,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
             late_in_a_row = 0
         if cmd is STOP or cmd.stale:
             last_stop = time.monotonic()
-            if not (est.valid and est.npi >= max(MIN_VALID_NPI, ctrl.config.min_npi)):
+            if untrusted:
                 extra = node.status.extra
                 extra["untrusted"] = extra.get("untrusted", 0) + 1
                 hold(last_stop, f"estimate seq {est.seq} cannot be trusted (valid "

@@ -48,6 +48,8 @@ LAUNCHER = r"^\[launcher\] [0-9:.]+ "
 # Five Python processes importing numpy/numba/OpenCV on a small CI machine: be generous.
 READY_S = 60.0
 STOP_S = 5.0
+#: How long a subscriber through a router is kept after the run for estimates on that hop
+DELIVERY_S = 2.0
 
 
 class Proc:
@@ -548,10 +550,12 @@ def test_children_exit_when_the_launcher_is_killed(procs, tmp_path, free_port):
 
 
 def run_through_router(procs: list, free_port: int, launch: Path, camera: str,
-                       code: int) -> tuple[Proc, Proc, list[Estimate]]:
+                       code: int, expect: int) -> tuple[Proc, Proc, list[Estimate]]:
     """A router on ``free_port``, then ``vistrack up LAUNCH --camera CAMERA`` through it, run
     to its end (exit ``code``) with a subscriber of the estimates connected before it starts:
-    (the router, the launcher, the estimates)."""
+    (the router, the launcher, the estimates). The subscriber hears the estimates through the
+    router, a hop the services do not wait for: it is kept up to :data:`DELIVERY_S` after the
+    run's end for ``expect`` of them (the camera had its last one before it ended the run)."""
     router = Proc("router", "-l", f"tcp/127.0.0.1:{free_port}", "--no-multicast-scouting")
     procs.append(router)
     router.wait_line(rf"^vistrack router: ready, listening on tcp/127\.0\.0\.1:{free_port}", 20)
@@ -564,6 +568,9 @@ def run_through_router(procs: list, free_port: int, launch: Path, camera: str,
                   "--camera", camera)
         procs.append(up)
         assert up.wait_exit(READY_S) == code, up.output
+        deadline = time.monotonic() + DELIVERY_S
+        while len(estimates) < expect and time.monotonic() < deadline:
+            time.sleep(0.01)
     return router, up, estimates
 
 
@@ -583,7 +590,8 @@ def test_a_video_cut_short_ends_the_run_once_its_frames_are_out(procs, tmp_path,
           - {name: preprocessing}
           - {name: motion-estimation}
     """)
-    _, up, estimates = run_through_router(procs, free_port, launch, f"file:{video}", 1)
+    _, up, estimates = run_through_router(procs, free_port, launch, f"file:{video}", 1,
+                                          len(held))
     assert [e.seq for e in estimates] == list(range(len(held)))
     assert f"the video ends after {len(held)} of the 12 frames" in up.output
     assert ("camera exited with 2, not restarted (restart: never): ending the run"
@@ -604,7 +612,7 @@ def test_file_camera_ends_the_run_through_an_external_router(procs, tmp_path, fr
           - {name: preprocessing}
           - {name: motion-estimation}
     """)
-    router, up, estimates = run_through_router(procs, free_port, launch, f"file:{frames}", 0)
+    router, up, estimates = run_through_router(procs, free_port, launch, f"file:{frames}", 0, 6)
 
     # the camera started once its consumers had subscribed: not one frame was lost
     assert [e.seq for e in estimates] == list(range(6))

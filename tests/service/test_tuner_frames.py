@@ -139,6 +139,26 @@ def test_a_restarted_camera_starts_the_distance_watch_again_without_its_first_es
         assert extra["scale_ratio"] == 1.0
 
 
+def test_an_old_estimate_that_comes_late_is_no_new_track():
+    """An estimate two frames old that comes after a newer one (seq back by 2, stamped
+    earlier, not a first) is a copy come late, not a restarted camera: taken for one, it
+    set the distance watch's reference again (scale 1 where the track is 25 % nearer)."""
+    images = sequence(BUFFER, motion=Motion(dx=1.0), seed=1)
+    with Running("auto-tuner", "--buffer", str(BUFFER), "--min-interval", "0",
+                 "--tune-sweep-step", "5") as tuner:
+        node, extra = tuner.node, tuner.node.status.extra
+        for seq, image in enumerate(images):
+            tuner.feed(node.keys.frame, Frame.from_image(image, seq=seq,
+                                                         stamp_ns=10**9 + seq).encode())
+        _until(lambda: extra["tunings"] == 1, "the initial tuning")  # its reference: 1.0
+        for seq, scale in ((0, 1.0), (1, 1.1), (2, 1.2), (3, 1.25)):
+            tuner.feed(node.keys.estimate, _tracked(seq, 10**9 + seq, scale, seq == 0))
+            time.sleep(2 * ESTIMATE_PERIOD_S)
+        assert extra["scale_ratio"] == 1.25
+        tuner.feed(node.keys.estimate, _tracked(1, 10**9 + 1, 1.1, False))  # late
+        assert extra["scale_ratio"] == 1.25  # not a new track's 1.1
+
+
 def test_the_buffer_keeps_only_the_frames_a_cycle_runs_on():
     """A cycle runs on the latest frames within --max-megapixels; the buffer kept --buffer
     frames all the same: 1000 frames of 4096x4096 held 16.8 GB for cycles that ran on 4."""

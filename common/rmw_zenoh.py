@@ -6,8 +6,10 @@ bridge and no ROS installed. The formats are those of ``docs/design.md`` of ``ro
 (sections "Topic and Service name mapping to Zenoh key expressions", "Graph Cache",
 "Publishers") and of ``rmw_zenoh_cpp/src/detail/liveliness_utils.cpp`` (``TopicInfo``,
 ``Entity``, ``qos_to_keyexpr``, ``mangle_name``) and ``attachment_helpers.cpp``: the format of
-rmw_zenoh_cpp as released for Jazzy (0.2 and later), Kilted and Rolling. (Pre-release versions
-of 2024, with zenoh-c 0.11, sent key-value attachments and are not spoken.)
+rmw_zenoh_cpp as released since April 2025 (rmw_zenoh's PR #601: Jazzy 0.2.4, Humble 0.1.2,
+Rolling 0.6.0, Kilted). Earlier releases labelled each field of the attachment
+(``sequence_number``, ``source_timestamp``, ``source_gid``) and throw on the unlabelled one:
+their samples are read (:meth:`Attachment.decode`), ours are not read by them.
 
 * data: ``<domain>/<fully qualified topic without leading slash>/<DDS type>/<RIHS01 hash>``,
   the payload CDR with its 4-byte encapsulation header (:mod:`.ros2types`), and an attachment
@@ -24,6 +26,7 @@ of 2024, with zenoh-c 0.11, sent key-value attachments and are not spoken.)
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import re
@@ -45,6 +48,11 @@ NODE, PUBLISHER, SUBSCRIPTION = "NN", "MP", "MS"
 DOMAIN_RANGE = (0, 232)
 GID_SIZE = 16
 ATTACHMENT_SIZE = 8 + 8 + 1 + GID_SIZE
+#: The labels before each field of the attachment of rmw_zenoh's releases before April 2025
+#: (Jazzy 0.2.0 to 0.2.3, Humble 0.1.0 and 0.1.1), and that form's size: each label a
+#: LEB128 length and its bytes
+LABELS = ("sequence_number", "source_timestamp", "source_gid")
+LABELLED_SIZE = sum(1 + len(label) for label in LABELS) + ATTACHMENT_SIZE
 
 # rmw/types.h enum values, as qos_to_keyexpr writes them
 RELIABLE, BEST_EFFORT = 1, 2
@@ -232,9 +240,18 @@ class Attachment(NamedTuple):
 
     @classmethod
     def decode(cls, data: bytes | None) -> Attachment:
-        """Raises ValueError naming what is wrong (missing, wrong size, GID length)."""
+        """The 33 bytes of today's rmw_zenoh, or the labelled form of its releases before
+        April 2025 (:data:`LABELS`, 77 bytes). Raises ValueError naming what is wrong
+        (missing, wrong size, GID length)."""
         if data is None:
             raise ValueError("sample has no attachment (rmw_zenoh sends 33 bytes)")
+        if len(data) == LABELLED_SIZE:
+            with contextlib.suppress(zenoh.ZError, ValueError, TypeError):
+                l0, seq, l1, stamp, l2, gid_ = zenoh.ext.z_deserialize(
+                    tuple[str, zenoh.ext.Int64, str, zenoh.ext.Int64, str, bytes],
+                    zenoh.ZBytes(data))
+                if (l0, l1, l2) == LABELS and len(gid_) == GID_SIZE:
+                    return cls(int(seq), int(stamp), bytes(gid_))
         if len(data) != ATTACHMENT_SIZE or data[16] != GID_SIZE:
             raise ValueError(f"attachment of {len(data)} bytes: expected {ATTACHMENT_SIZE} "
                              f"(int64 seq, int64 stamp, GID length {GID_SIZE}, GID)")

@@ -91,6 +91,25 @@ def test_attachment_is_the_documented_33_bytes():
     assert rmw.Attachment.decode(att) == (1, 1_700_000_000_123_456_789, gid)
 
 
+def _labelled(seq: int, stamp: int, gid: bytes, last: str = "source_gid") -> bytes:
+    """The attachment of rmw_zenoh before its PR #601 (Jazzy 0.2.0 to 0.2.3, Humble 0.1.0
+    and 0.1.1), as zenoh's serializer writes it: each label a LEB128 length and its bytes,
+    then its field (int64 LE, or the GID's length and the GID)."""
+    def label(text: str) -> bytes:
+        return bytes([len(text)]) + text.encode()
+    return (label("sequence_number") + struct.pack("<q", seq) + label("source_timestamp")
+            + struct.pack("<q", stamp) + label(last) + bytes([len(gid)]) + gid)
+
+
+def test_the_labelled_attachment_of_older_releases_is_read():
+    gid = bytes(range(16))
+    data = _labelled(7, 1_700_000_000_123_456_789, gid)
+    assert len(data) == 77 == rmw.LABELLED_SIZE
+    assert rmw.Attachment.decode(data) == (7, 1_700_000_000_123_456_789, gid)
+    with pytest.raises(ValueError, match="attachment of 77 bytes: expected 33"):
+        rmw.Attachment.decode(_labelled(7, 8, gid, last="source_gix"))  # not those labels
+
+
 @pytest.mark.parametrize(("data", "message"), [
     (None, "no attachment"),
     (b"\x01" * 32, "attachment of 32 bytes: expected 33"),

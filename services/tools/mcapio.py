@@ -5,7 +5,11 @@ A file has the MCAP profile ``ros2``, zstd-compressed chunks, and:
 
 * one channel per key, on the topic ``/`` + the full key (``/vistrack/robot/camera/frame``),
   typed as :mod:`vistrack.common.ros2types` says (schema encoding ``ros2msg``, with the
-  ``.msg`` definitions of ``vistrack_msgs`` embedded; message encoding ``cdr``);
+  ``.msg`` definitions of ``vistrack_msgs`` embedded; message encoding ``cdr``), with the
+  channel metadata rosbag2's MCAP storage writes (``rosbag2_storage_mcap``,
+  ``MCAPStorage::create_topic``), the first of them required by the MCAP registry's ``ros2``
+  profile: ``offered_qos_profiles`` (:func:`offered_qos_profiles`, the QoS the messages are
+  offered with: :func:`offered_qos`) and ``topic_type_hash`` (the type's ``RIHS01_`` hash);
 * each estimate also drawn over its frame on ``/vistrack/<robot>/camera/features`` and
   ``/vistrack/<robot>/camera/centroid`` (``visualization_msgs/msg/ImageMarker``);
 * per message: log time = arrival (ns since the Unix epoch, from a monotonic clock, so it
@@ -35,6 +39,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 import mcap.writer
+import yaml
 import zstandard
 from mcap.exceptions import RecordLengthLimitExceeded
 from mcap.reader import SeekingReader
@@ -43,9 +48,10 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
 
+from ...common import rmw_zenoh as rmw
 from ...common import ros2types as r2
 from ...common.keys import PREFIX, key_suffix
-from ...common.messages import Estimate, MessageError, decode_any
+from ...common.messages import CmdVel, Estimate, MessageError, Params, Report, decode_any
 from .shared import Record, RecordError, ToolError
 
 #: The first 8 bytes of every MCAP file.
@@ -75,6 +81,41 @@ class _Zstd:
 
     def compress(self, data: bytes) -> bytes:
         return self._compressor.compress(data)
+
+
+#: The QoS each topic's messages are offered with (:func:`offered_qos`): those that must all
+#: arrive, which vistrack publishes reliably (commands, parameters, reports), reliable with
+#: KEEP_ALL history, as the ``ros2`` service offers ``/cmd_vel`` and ``vistrack/params``;
+#: the rest (frames, estimates, the overlays), latest-only streams on Zenoh, reliable with
+#: the last 10 kept, as it offers ``vistrack/estimate``. Reliable even for frames: a
+#: reliable offer matches both reliable and best-effort subscriptions when ``ros2 bag play``
+#: offers it again, a best-effort one only the latter.
+QOS_ALL_KEYS = (CmdVel.KEY, Params.KEY, Report.KEY)
+#: rmw_qos_liveliness_policy_t AUTOMATIC and RMW_DURATION_INFINITE: what rmw_zenoh reports
+#: for a publisher whose token leaves liveliness, deadline, lifespan and lease at its
+#: defaults (``qos.cpp``), as vistrack's do (:meth:`~vistrack.common.rmw_zenoh.QoS.keyexpr`)
+LIVELINESS_AUTOMATIC = 1
+DURATION_INFINITE = {"sec": 9_223_372_036, "nsec": 854_775_807}
+
+
+def offered_qos(key: str) -> rmw.QoS:
+    """The QoS the messages of ``key`` (a full key, or one of its overlays) are offered
+    with (:data:`QOS_ALL_KEYS`)."""
+    return rmw.QOS_ALL if key_suffix(key) in QOS_ALL_KEYS else rmw.QOS_DEFAULT
+
+
+def offered_qos_profiles(qos: rmw.QoS) -> str:
+    """The ``offered_qos_profiles`` channel metadata of one publisher offering ``qos``: a
+    YAML list of one QoS map, laid out as rosbag2 writes it (``rosbag2_storage/qos.cpp``,
+    yaml-cpp's block style, no final newline), with the enums as integers (rmw/types.h): the
+    form rosbag2 wrote up to Iron, which Humble and Iron read (they read integers only) and
+    Jazzy and later read too (they write names, ``reliable``, and read either)."""
+    profile = {"history": qos.history, "depth": qos.depth, "reliability": qos.reliability,
+               "durability": qos.durability, "deadline": dict(DURATION_INFINITE),
+               "lifespan": dict(DURATION_INFINITE), "liveliness": LIVELINESS_AUTOMATIC,
+               "liveliness_lease_duration": dict(DURATION_INFINITE),
+               "avoid_ros_namespace_conventions": False}
+    return yaml.safe_dump([profile], sort_keys=False).rstrip("\n")
 
 
 def topic_of(key: str) -> str:
@@ -190,7 +231,9 @@ class McapWriter:
         channel = self._channels.get(key)
         if channel is None:
             channel = self._channels[key] = self._mcap.register_channel(
-                topic=topic_of(key), message_encoding="cdr", schema_id=self._schema(typename))
+                topic=topic_of(key), message_encoding="cdr", schema_id=self._schema(typename),
+                metadata={"offered_qos_profiles": offered_qos_profiles(offered_qos(key)),
+                          "topic_type_hash": r2.type_hash(typename)})
         self._mcap.add_message(channel_id=channel, log_time=t_ns, data=data,
                                publish_time=stamp_ns, sequence=seq % _SEQ_MOD)
 

@@ -21,6 +21,9 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
+from rosbags.interfaces import QosDurability, QosHistory, QosLiveliness, QosReliability
+from rosbags.rosbag2.storage_mcap import McapReader as RosbagsMcapReader
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from vistrack.common import ros2types as r2
 from vistrack.common.messages import CmdVel, Frame, Params, Pose, Report, decode_any
@@ -28,6 +31,7 @@ from vistrack.common.params import TrackerParams
 from vistrack.common.synthetic import builtin_sequence
 from vistrack.common.vision import Tracker
 from vistrack.services.motion_estimation.service import estimate_message
+from vistrack.services.ros2.service import BRIDGES
 from vistrack.services.tools.mcapio import McapRecording, McapWriter
 from vistrack.services.tools.record import Recording, RecordWriter
 from vistrack.services.tools.shared import RecordError
@@ -144,6 +148,74 @@ def test_every_channel_and_message_decodes_with_mcap_ros2(recording, samples):
                 (orig.npi, orig.xc, orig.scale, len(orig.features))
         if key.endswith("cmd_vel"):
             assert (obj.linear.x, obj.linear.y, obj.angular.z) == (orig.vx, orig.vy, orig.wz)
+
+
+#: geometry_msgs/msg/Twist's type hash as ROS 2 Jazzy prints it (``ros2 topic info -v``)
+TWIST_RIHS01 = "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"
+#: RMW_DURATION_INFINITE, what rmw_zenoh reports for the deadline, lifespan and lease that
+#: vistrack's publishers leave at its default
+INFINITE = (9_223_372_036, 854_775_807)
+
+
+def test_channels_carry_the_qos_profiles_and_type_hash_rosbag2_writes(recording):
+    """The MCAP registry's ros2 profile requires ``offered_qos_profiles`` on every channel,
+    and rosbag2's MCAP storage writes it and ``topic_type_hash``: ``ros2 bag play`` offers
+    the recorded QoS, and a file without it is played with rosbag2's default. Judged by
+    rosbags' own MCAP reader (its YAML parser, its enums), and the hash by a type store built
+    from nothing but the schema embedded in the file."""
+    path, _ = recording
+    reliable = (QosReliability.RELIABLE, QosDurability.VOLATILE)
+    expected = {  # topic suffix -> (reliability, durability), history, depth
+        "camera/frame": (reliable, QosHistory.KEEP_LAST, 10),
+        "camera/features": (reliable, QosHistory.KEEP_LAST, 10),
+        "camera/centroid": (reliable, QosHistory.KEEP_LAST, 10),
+        "motion/estimate": (reliable, QosHistory.KEEP_LAST, 10),
+        "control/cmd_vel": (reliable, QosHistory.KEEP_ALL, 42),
+        "tuner/params": (reliable, QosHistory.KEEP_ALL, 42),
+        "tuner/report": (reliable, QosHistory.KEEP_ALL, 42)}
+    reader = RosbagsMcapReader(path)
+    reader.open()
+    try:
+        connections = {c.topic: c for c in reader.connections}
+    finally:
+        reader.close()
+    assert set(connections) == {f"/{ROOT}/{s}" for s in expected}
+    for suffix, ((reliability, durability), history, depth) in expected.items():
+        profiles = connections[f"/{ROOT}/{suffix}"].ext.offered_qos_profiles
+        assert len(profiles) == 1, suffix
+        qos = profiles[0]
+        assert (qos.reliability, qos.durability, qos.history, qos.depth) == \
+            (reliability, durability, history, depth), suffix
+        assert (qos.deadline, qos.lifespan, qos.liveliness_lease_duration) == (INFINITE,) * 3
+        assert qos.liveliness == QosLiveliness.AUTOMATIC
+        assert qos.avoid_ros_namespace_conventions is False
+
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    hashes = {}
+    for channel in summary.channels.values():
+        schema = summary.schemas[channel.schema_id]
+        store = get_typestore(Stores.EMPTY)  # the file's own definitions, nothing of ours
+        store.register(get_types_from_msg(schema.data.decode(), schema.name))
+        assert channel.metadata["topic_type_hash"] == store.hash_rihs01(schema.name), \
+            channel.topic
+        hashes[channel.topic] = channel.metadata["topic_type_hash"]
+    assert hashes[f"/{ROOT}/control/cmd_vel"] == TWIST_RIHS01
+    # rosbag2's layout (yaml-cpp's block style; the integer enums every distro reads)
+    estimate = next(c for c in summary.channels.values() if c.topic.endswith("estimate"))
+    assert estimate.metadata["offered_qos_profiles"] == (
+        "- history: 1\n  depth: 10\n  reliability: 1\n  durability: 2\n"
+        "  deadline:\n    sec: 9223372036\n    nsec: 854775807\n"
+        "  lifespan:\n    sec: 9223372036\n    nsec: 854775807\n"
+        "  liveliness: 1\n"
+        "  liveliness_lease_duration:\n    sec: 9223372036\n    nsec: 854775807\n"
+        "  avoid_ros_namespace_conventions: false")
+    # the messages the ros2 service publishes are offered as it offers them
+    for bridge in BRIDGES:
+        qos = connections[f"/{ROOT}/{bridge.cls.KEY}"].ext.offered_qos_profiles[0]
+        offer = bridge.qos
+        assert (qos.reliability.value, qos.durability.value, qos.history.value, qos.depth) \
+            == (offer.reliability, offer.durability, offer.history, offer.depth), bridge.attr
 
 
 def test_reading_back_rebuilds_the_contract_messages(recording, samples):

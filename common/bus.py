@@ -1432,7 +1432,10 @@ def query_status(session: zenoh.Session, keys: Keys, timeout: float = 1.0) -> li
     Replies that are errors or not valid status maps are logged and skipped.
     """
     statuses = []
-    replies = session.get(keys.status_any(), target=zenoh.QueryTarget.ALL, timeout=timeout)
+    # every answer, two processes of one service's name included (the default consolidation
+    # keeps one reply a key)
+    replies = session.get(keys.status_any(), target=zenoh.QueryTarget.ALL, timeout=timeout,
+                          consolidation=zenoh.ConsolidationMode.NONE)
     for reply in replies:
         if reply.ok is None:
             err = reply.err

@@ -44,7 +44,7 @@ from numba.core import event as numba_event
 
 from ..params import MIN_VALID_NPI, TrackerParams
 from . import exposure
-from .exposure import compensate
+from .exposure import compensate, compensate_rows
 from .features import select_features
 from .motion import _incremental_motion, _median_small, centroid_scatter
 from .noise import noise_level
@@ -469,7 +469,10 @@ class Tracker:
     def _exposed(self, prev: Pyramid, pyr: Pyramid) -> Pyramid:
         """Frame t's pyramid in frame t+1's exposure, where it changed (``exposure``)."""
         p = self._params
-        return compensate(prev, pyr, self._motion, p.noise_sigma) if p.exposure else prev
+        if not p.exposure:
+            return prev
+        mapped = compensate(prev, pyr, self._motion, p.noise_sigma)
+        return compensate_rows(mapped, pyr, self._motion, p.noise_sigma)
 
     def _search(self, prev: Pyramid, pyr: Pyramid, pts: np.ndarray, preds: np.ndarray,
                 budget: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -53,7 +53,7 @@ from ...common.messages import (
 from ...common.params import TrackerParams
 from ...common.synthetic import sequence
 from ...common.vision import preprocess
-from ...common.vision.preprocess import Grey, gaussian_filter
+from ...common.vision.preprocess import Grey, fix_defects, gaussian_filter
 from ..camera import ros2cam
 from ..kernels import late_compiles_logged, warm_up_kernels
 from ..runtime import (
@@ -185,7 +185,7 @@ def loop(node: Node, args: argparse.Namespace) -> None:
                 Frame.decode(payload)
             except MessageError:
                 return False
-            filtered = gaussian_filter(tiny, state.params.blur_sigma)
+            filtered = gaussian_filter(fix_defects(tiny), state.params.blur_sigma)
             encode_pre_frame(seq=0, stamp_ns=0, data=filtered, candidates=NO_CANDIDATES,
                              strength=NO_STRENGTH, params_id=state.params_id, deferred=True)
             return True

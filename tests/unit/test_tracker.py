@@ -172,6 +172,26 @@ def test_a_static_bumper_in_view_does_not_slow_the_measured_motion(rows):
     assert est.scale == pytest.approx(1.0, abs=0.002)
 
 
+@pytest.mark.parametrize("step", [(3, 0), (2, -2)])
+def test_a_still_camera_watching_something_go_by_reads_no_motion(step):
+    """The mirror of the bumper: the camera stands still over RubberWhale while a patch of
+    Urban2's real texture (a third of the view's width) moves through it. Its features moving
+    as one were averaged with the still ones (30 % of the pairs moving 8 px read dx 2.39 and
+    a scale of 1.025; a hunt of camera processing effects): the robot, standing, was told it
+    moved. The view's motion is none."""
+    scene, _, _ = load_pair("RubberWhale")
+    walker = load_pair("Urban2")[0][200:340, 150:260]
+    tracker = Tracker()
+    for k in range(12):
+        frame = scene[60:300, 60:380].copy()
+        x, y = 40 + step[0] * k, 50 + step[1] * k
+        frame[y:y + 140, x:x + 110] = walker
+        est = tracker.process(frame)
+        assert est.valid
+    assert (est.dx, est.dy) == pytest.approx((0.0, 0.0), abs=0.1)
+    assert est.scale == pytest.approx(1.0, abs=0.002)
+
+
 @pytest.mark.parametrize("x0", [60, 80, 240])
 def test_a_cut_that_keeps_a_few_lookalikes_starts_a_new_track(x0):
     """A cut from RubberWhale to Grove2 (crops moving (2, 1) px a frame) kept 3 or 4 of 82

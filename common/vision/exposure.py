@@ -221,16 +221,14 @@ def compensate_rows(prev: Pyramid, curr: Pyramid, shift: tuple[float, float],
     squares a quarter): a view that moved otherwise than predicted changes its blocks one by
     one, a flicker a whole band alike. Each row of every level gets the gain interpolated
     between the bands' centres (linearly, the ends held)."""
-    k = 0  # level 1's bands, a pixel of misalignment there, left RubberWhale 1 px off
-    ix = int(round(shift[0] * 0.5 ** k))
-    iy = int(round(shift[1] * 0.5 ** k))
+    # on level 0: level 1's bands, a pixel of misalignment there, left RubberWhale 1 px off
+    ix, iy = int(round(shift[0])), int(round(shift[1]))
     gains = np.empty(ROW_BANDS)
-    top, bh = _row_gains(prev.data, curr.data, prev.geo, k, ix, iy, ROW_COLS, ROW_DARK,
+    top, bh = _row_gains(prev.data, curr.data, prev.geo, 0, ix, iy, ROW_COLS, ROW_DARK,
                          max(2.0 * noise_sigma, 1.0), gains)
     if bh == 0:
         return prev
-    # the bands' centres in rows of level 0 (level k's row y lies at row y 2^k of level 0)
-    centres = (top + (np.arange(ROW_BANDS) + 0.5) * bh - 0.5) * float(1 << k)
+    centres = top + (np.arange(ROW_BANDS) + 0.5) * bh - 0.5  # the bands' centres, rows
     out = np.empty_like(prev.data)
     _scale_rows(prev.data, prev.geo, centres, gains, out)
     return Pyramid(out, prev.geo, prev.shapes)

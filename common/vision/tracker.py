@@ -93,8 +93,12 @@ FEW_SHARE = 0.1
 #: ... fewer than this many: too few for the step's inlier test to leave out a lookalike (its
 #: median needs most of them right). With MIN_VALID_NPI (3), 3 of 74 cuts from RubberWhale to
 #: another scene kept 3 or 4 of 82 features, lookalikes 7 px apart, and their mean jumped
-#: the estimate by up to (17.4, 2.8) px, valid (a hunt on frames from other cameras)
-FEW_KEPT = 5
+#: the estimate by up to (17.4, 2.8) px, valid (a hunt on frames from other cameras). As
+#: many as a step needs for its fit (motion.FEW_PAIRS): a frame of a camera's noise reduction
+#: that kept exactly 5 of 91 features, all on its ghost of the frame before, was taken as a
+#: step of none where the view jumped 45 px, and the jump was lost for good (a hunt of camera
+#: processing effects); now a new track starts there
+FEW_KEPT = 6
 
 
 @dataclass(frozen=True)

@@ -262,6 +262,26 @@ def _xorshift(state):  # pragma: no cover - numba
 
 
 @nb.njit(cache=True, nogil=True)
+def _displacements(a, b, keep, side, r):  # pragma: no cover - numba
+    """The displacements (x, y) of the pairs whose ``keep`` is ``side``, and their ``r``, in
+    order, as three new arrays."""
+    m = 0
+    for i in range(a.shape[0]):
+        m += keep[i] == side
+    dx = np.empty(m, np.float64)
+    dy = np.empty(m, np.float64)
+    rs = np.empty(m, np.float64)
+    j = 0
+    for i in range(a.shape[0]):
+        if keep[i] == side:
+            dx[j] = b[i, 0] - a[i, 0]
+            dy[j] = b[i, 1] - a[i, 1]
+            rs[j] = r[i]
+            j += 1
+    return dx, dy, rs
+
+
+@nb.njit(cache=True, nogil=True)
 def _robust_start(a, b):  # pragma: no cover - numba
     """The pairs the least-squares fit of :func:`_similarity_inliers_nb` starts from, and how
     many: where a group of the pairs is still in the image while most move (the robot's own
@@ -343,34 +363,19 @@ def _robust_start(a, b):  # pragma: no cover - numba
     out = n - kept
     coherent = False
     if out >= 3:
-        ox = np.empty(out, np.float64)
-        oy = np.empty(out, np.float64)
-        away = np.empty(out, np.float64)
-        j = 0
-        for i in range(n):
-            if not keep[i]:
-                ox[j] = b[i, 0] - a[i, 0]
-                oy[j] = b[i, 1] - a[i, 1]
-                away[j] = r[i]
-                j += 1
+        ox, oy, away = _displacements(a, b, keep, False, r)
         gx = _median(ox)
         gy = _median(oy)
         for i in range(out):
             ox[i] = (ox[i] - gx) ** 2 + (oy[i] - gy) ** 2
-        # ... or they move as one while the pairs the map keeps stand still: a static
-        # camera watching something move through its view (30 % of the pairs moving 8 px
-        # read dx 2.39 and a scale of 1.025 on a camera that did not move)
-        kx = np.empty(kept, np.float64)
-        ky = np.empty(kept, np.float64)
-        j = 0
-        for i in range(n):
-            if keep[i]:
-                kx[j] = b[i, 0] - a[i, 0]
-                ky[j] = b[i, 1] - a[i, 1]
-                j += 1
-        still_map = kept >= 3 and _median(kx) ** 2 + _median(ky) ** 2 <= STATIC_PX * STATIC_PX
-        coherent = ((gx * gx + gy * gy <= STATIC_PX * STATIC_PX or still_map)
-                    and _median_small(ox) <= COHERENT * COHERENT * _median_small(away))
+        coherent = _median_small(ox) <= COHERENT * COHERENT * _median_small(away)
+        if coherent and gx * gx + gy * gy > STATIC_PX * STATIC_PX:
+            # ... or they move as one while the pairs the map keeps stand still: a static
+            # camera watching something move through its view (30 % of the pairs moving 8 px
+            # read dx 2.39 and a scale of 1.025 on a camera that did not move)
+            kx, ky, _ = _displacements(a, b, keep, True, r)
+            coherent = kept >= 3 and _median_small(kx) ** 2 + _median_small(ky) ** 2 <= \
+                STATIC_PX * STATIC_PX
     if kept < 3 or not coherent:
         for i in range(n):
             keep[i] = True

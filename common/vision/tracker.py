@@ -46,7 +46,7 @@ from ..params import MIN_VALID_NPI, TrackerParams
 from . import exposure
 from .exposure import compensate, compensate_rows
 from .features import select_features
-from .motion import _incremental_motion, _median_small, centroid_scatter
+from .motion import FEW_PAIRS, _incremental_motion, _median_small, centroid_scatter
 from .noise import noise_level
 from .preprocess import Preprocessed, preprocess
 from .pyramid import FRAME_WORK, Pyramid, TrackPlan, build_pyramid, sum_type, wide_tests
@@ -98,7 +98,7 @@ FEW_SHARE = 0.1
 #: that kept exactly 5 of 91 features, all on its ghost of the frame before, was taken as a
 #: step of none where the view jumped 45 px, and the jump was lost for good (a hunt of camera
 #: processing effects); now a new track starts there
-FEW_KEPT = 6
+FEW_KEPT = FEW_PAIRS
 
 
 @dataclass(frozen=True)

@@ -74,3 +74,11 @@ def sources() -> list[tuple[str, np.ndarray]]:
         pytest.skip("Middlebury frames not found: set VISTRACK_DATA or put the shared data at "
                     "../shared/data")
     return found
+
+
+def view_of(source: np.ndarray, x: float, y: float, size: int = 256) -> np.ndarray:
+    """The ``size`` square of ``source`` whose top left corner is at (x, y), float32,
+    interpolated (cubic), its edges reflected: a camera's view moved by a sub-pixel amount."""
+    shift = np.array([[1.0, 0.0, -x], [0.0, 1.0, -y]])
+    return cv2.warpAffine(source.astype(np.float32), shift, (size, size),
+                          flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)

@@ -8,21 +8,13 @@ frames rendered from Middlebury's, with the exact ground truth; 2026-12-07).
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
 from vistrack.common.vision.preprocess import DEFECT_LEVEL, fix_defects
 from vistrack.common.vision.tracker import Tracker
 
-from conftest import source_image
-
-
-def _view(source: np.ndarray, x: float, y: float, size: int = 256) -> np.ndarray:
-    """The ``size`` square of ``source`` whose top left corner is at (x, y), as float."""
-    shift = np.array([[1.0, 0.0, -x], [0.0, 1.0, -y]])
-    return cv2.warpAffine(source.astype(np.float32), shift, (size, size),
-                          flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+from conftest import source_image, view_of
 
 
 def test_a_lone_spike_is_set_to_its_neighbours_and_texture_is_left_alone():
@@ -67,7 +59,7 @@ def test_hot_pixels_do_not_hold_the_view_still(hot):
     where = rng.choice(256 * 256, hot, replace=False)
     tracker = Tracker()
     for x in xs:
-        view = _view(source, 150.0 + x, 100.0 + 0.3 * x)  # the view moves: the scene -x
+        view = view_of(source, 150.0 + x, 100.0 + 0.3 * x)  # the view moves: the scene -x
         noisy = view + rng.standard_normal(view.shape).astype(np.float32)
         frame = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
         frame.flat[where] = 255

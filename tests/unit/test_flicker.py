@@ -9,7 +9,6 @@ frame the step was off by 4.7 px rms (a hunt of sensor effects, 2026-12-07).
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
@@ -18,7 +17,7 @@ from vistrack.common.vision.exposure import compensate_rows
 from vistrack.common.vision.pyramid import build_pyramid
 from vistrack.common.vision.tracker import Tracker
 
-from conftest import source_image
+from conftest import source_image, view_of
 
 #: 100 Hz light at 30 fps through a rolling shutter reading 256 rows in ~27 ms
 PERIOD_ROWS = 80.0
@@ -31,18 +30,12 @@ def _bands(k: int, rows: int, amp: float = 0.10) -> np.ndarray:
     return 1.0 + amp * np.sin(2.0 * np.pi * (y / PERIOD_ROWS + DRIFT * k))
 
 
-def _view(source: np.ndarray, x: float, y: float, size: int = 256) -> np.ndarray:
-    shift = np.array([[1.0, 0.0, -x], [0.0, 1.0, -y]])
-    return cv2.warpAffine(source.astype(np.float32), shift, (size, size),
-                          flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
-
-
 def _frames(name: str, n: int, step: tuple[float, float], amp: float) -> list[np.ndarray]:
     source = source_image(name)
     rng = np.random.default_rng(5)
     out = []
     for k in range(n):
-        view = _view(source, 150.0 + step[0] * k, 80.0 + step[1] * k)
+        view = view_of(source, 150.0 + step[0] * k, 80.0 + step[1] * k)
         lit = view * _bands(k, view.shape[0], amp)[:, None]
         noisy = lit + rng.standard_normal(view.shape).astype(np.float32)
         out.append(np.clip(np.rint(noisy), 0, 255).astype(np.uint8))
@@ -67,7 +60,7 @@ def test_the_view_s_motion_holds_under_drifting_flicker_bands(name):
 @pytest.mark.data
 def test_bands_are_taken_out_and_a_steady_or_black_frame_left_alone():
     source = source_image("Urban2")
-    view = _view(source, 100.0, 60.0)
+    view = view_of(source, 100.0, 60.0)
     prev = build_pyramid(np.clip(np.rint(view), 0, 255).astype(np.uint8), 4)
     lit = np.clip(np.rint(view * _bands(1, 256, 0.15)[:, None] / _bands(0, 256, 0.15)[:, None]),
                   0, 255).astype(np.uint8)

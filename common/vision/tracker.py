@@ -43,9 +43,19 @@ import numpy as np
 from numba.core import event as numba_event
 
 from ..params import MIN_VALID_NPI, TrackerParams
-from . import exposure
+from . import exposure, features
 from .exposure import compensate, compensate_rows
-from .features import select_features
+from .features import (
+    VOID_BLUR,
+    VOID_LEVEL,
+    VOID_PROOF,
+    VOID_SETTLE,
+    VOID_TOLERANCE,
+    near_void,
+    select_features,
+    void_runs,
+    void_step,
+)
 from .motion import FEW_PAIRS, _incremental_motion, _median_small, centroid_scatter
 from .noise import noise_level
 from .preprocess import Preprocessed, preprocess
@@ -183,6 +193,12 @@ class Tracker:
         redetections, ...) go on."""
         self._prev: np.ndarray | None = None
         self._prev_pyr: Pyramid | None = None
+        # the void regions at the frame's edges (.features.void_step): their record, how far
+        # the features have moved (a frame's mean displacement, summed), and the last frame's
+        # void (None: none)
+        self._void_record: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._travel = 0.0
+        self._void: np.ndarray | None = None
         self._pos = np.empty((0, 2), np.float64)
         self._vel = np.empty((0, 2), np.float64)
         self._ids = np.empty(0, np.int64)
@@ -295,6 +311,7 @@ class Tracker:
         # the paper's tracker needs no pyramid (see _track)
         pyr = None if _single_level(p) else build_pyramid(frame, p.levels)
         gap = self._gap(seq)
+        self._find_void(frame)
         if first:
             self._add_features(pre, frame.shape)
         else:
@@ -417,6 +434,8 @@ class Tracker:
                     found, ssd, status, taken = second
                     self.zoom_warps += 1
             self.followed += int(np.count_nonzero(taken))
+        if self._void is not None:
+            self._off_picture(found, status, frame.shape)
         pos, vel, ids, lost, moved, dx, dy, scale, turn = _advance(
             self._pos, found, ssd, status, self._ids, self._wsum, float(p.max_residual))
         if 0 < len(pos) < FEW_KEPT and len(pos) <= FEW_SHARE * len(self._pos):
@@ -441,9 +460,45 @@ class Tracker:
         self._turn_before = self._turn
         self._turn = turn if moved and abs(turn) <= TURN_MAX else 0.0
         self._lost += lost
+        if len(vel) and self._void_record is not None:  # only while runs are followed
+            self._travel += float(np.abs(vel).mean()) * 2.0  # |dx| + |dy|, over the kept
         self._pos = pos
         self._vel = vel
         self._ids = ids
+
+    def _find_void(self, frame: np.ndarray) -> None:
+        """Find the void regions at the edges of ``frame`` (bars, a lens's dark corners:
+        :func:`.features.void_runs`): those that stayed while the features moved
+        (:func:`.features.void_step`). A frame with no dark run at its edges, most, costs
+        ~2 us at 256 x 256 (the runs' scan)."""
+        runs, any_run = void_runs(frame, VOID_LEVEL, VOID_TOLERANCE)
+        record = self._void_record
+        if not any_run:
+            self._void = self._void_record = None  # nothing to follow: the record starts anew
+            return
+        if record is None or record[0].shape != runs.shape:
+            record = self._void_record = (np.zeros_like(runs), np.zeros(runs.shape, np.float64),
+                                          np.zeros(runs.shape, np.bool_))
+        void, found = void_step(runs, *record, self._travel, VOID_SETTLE, VOID_PROOF)
+        self._void = void if found else None
+
+    def _void_margin(self) -> int:
+        """How near a void region a feature may come, px: its widest window's half-width
+        and the pre-filter's blur of the region's edge."""
+        p = self._params
+        return max(p.corr_half, p.refine_half) + VOID_BLUR
+
+    def _off_picture(self, found: np.ndarray, status: np.ndarray,
+                     shape: tuple[int, int]) -> None:
+        """Mark the matches whose window reaches a void region of the frame as having left
+        the picture (status LEFT, in place): a region that does not move with the scene pulls
+        a match against it."""
+        ok = np.flatnonzero(status == OK)
+        if len(ok):
+            assert self._void is not None
+            gone = near_void(np.ascontiguousarray(found[ok]), self._void, shape,
+                             self._void_margin())
+            status[ok[gone]] = LEFT
 
     def _turn_ahead(self) -> float:
         """The turn to expect from frame t to t+1: the last frame's where the one before
@@ -509,6 +564,9 @@ class Tracker:
         h, w = shape
         xs, ys = cands[:, 0], cands[:, 1]
         inside = (xs >= margin) & (xs < w - margin) & (ys >= margin) & (ys < h - margin)
+        if self._void is not None and len(cands):
+            inside &= ~near_void(np.ascontiguousarray(cands, np.float64), self._void, shape,
+                                 self._void_margin())
         if not inside.all():
             cands = cands[inside]
         chosen = select_features(cands, shape, p, existing=self._pos, max_count=room)
@@ -859,6 +917,7 @@ def warm_up(on_compile: Callable[[], None] | None = None,
             try:
                 track_frames(sequence(3, size=(side, side), seed=1), small)
                 exposure.warm()
+                features.warm()
             finally:
                 _WARMING.discard(threading.get_ident())
             _WARM.add(key)

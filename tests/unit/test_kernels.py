@@ -257,6 +257,13 @@ for f in frames[:10]:
     tr.update(DeferredPreprocessed(np.array(np.frombuffer(f.tobytes(), np.uint8)
                                             .reshape(f.shape)), p))
 print(tr.lost_total >= 0)
+tr = Tracker(p)  # black bars at the sides, the picture panning between them (.features)
+for i in range(10):
+    f = np.roll(frames[0], 3 * i, axis=1)
+    f[:, :40] = 0
+    f[:, -40:] = 0
+    tr.process(f)
+print(tr._void is not None)
 """
 
 
@@ -283,10 +290,11 @@ def test_a_tuning_cycle_runs_on_the_kernels_the_start_up_warm_up_loaded():
 def test_a_track_runs_on_the_kernels_the_start_up_warm_up_loaded():
     """Tracking, re-detection, a black and a saturated frame, frames of 8 x 8 and 320 x 240,
     exposure steps (whose test of the blocks, :func:`.exposure._explains`, runs only where
-    the exposure seems to change), and the copied, deferred frames of motion-estimation."""
+    the exposure seems to change), the copied, deferred frames of motion-estimation, and
+    frames with black bars (whose void regions, .features.near_void, only such frames show)."""
     out = late_kernels(TRACK)
-    assert out[:2] == ["True", "True"]
-    assert [line for line in out[2:] if line] == []
+    assert out[:3] == ["True", "True", "True"]
+    assert [line for line in out[3:] if line] == []
 
 
 WIDE = """

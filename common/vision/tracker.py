@@ -58,7 +58,7 @@ from .features import (
 )
 from .motion import FEW_PAIRS, _incremental_motion, _median_small, centroid_scatter
 from .noise import noise_level
-from .preprocess import Preprocessed, preprocess
+from .preprocess import Preprocessed, candidates_above, preprocess, strength_of
 from .pyramid import FRAME_WORK, Pyramid, TrackPlan, build_pyramid, sum_type, wide_tests
 from .ssd import BORDER, LEFT, OK, OVER, RESIDUAL, STATUS_NAMES, track_ssd, window_weights
 
@@ -109,6 +109,26 @@ FEW_SHARE = 0.1
 #: step of none where the view jumped 45 px, and the jump was lost for good (a hunt of camera
 #: processing effects); now a new track starts there
 FEW_KEPT = FEW_PAIRS
+#: A burnt-in overlay (an IP camera's timestamp and name, a dashcam's speed) and the robot's
+#: own body stay put in the image while the scene moves: their features, strong corners of
+#: white text outlined in black, took 29 of 62 on RubberWhale panning (3.3, 1.2) px a frame
+#: and the motion read none for most frames (a drift of 103 px in 39 frames). A feature
+#: within this share of the frame's size of its edges ...
+OVERLAY_BAND = 0.12
+#: ... that has stayed within this many px of where it stood ...
+OVERLAY_STILL = 0.05
+#: ... while the features away from the edges moved this far (the median of a frame's
+#: displacements, |dx| + |dy|, summed over the frames) is the image's, not the scene's: it
+#: is dropped (lost as "left"), and the cells of OVERLAY_CELL px around it are outside the
+#: picture from then on: no feature is taken, nor kept, there (a timestamp's digits change).
+#: The scene moves only in a frame where at most OVERLAY_STILL_SHARE of the features away
+#: from the edges stood within STILL_STEP px: a still camera watching something large cross
+#: the middle of its view (a third of its width) moved them by their median, and the still
+#: background at the edges was taken for an overlay.
+OVERLAY_PROOF = 3.0
+OVERLAY_STILL_SHARE = 0.2
+STILL_STEP = 0.5
+OVERLAY_CELL = 8
 
 
 @dataclass(frozen=True)
@@ -199,6 +219,12 @@ class Tracker:
         self._void_record: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._travel = 0.0
         self._void: np.ndarray | None = None
+        # burnt-in overlays (OVERLAY_BAND): where each feature last moved from and the scene's
+        # travel then, the scene's travel so far, and the overlay points found
+        self._anchor = np.empty((0, 2), np.float64)
+        self._anchor_at = np.empty(0, np.float64)
+        self._scene_travel = 0.0
+        self._overlay: np.ndarray | None = None  # (rows, cols) bool, cells of OVERLAY_CELL
         self._pos = np.empty((0, 2), np.float64)
         self._vel = np.empty((0, 2), np.float64)
         self._ids = np.empty(0, np.int64)
@@ -436,6 +462,10 @@ class Tracker:
             self.followed += int(np.count_nonzero(taken))
         if self._void is not None:
             self._off_picture(found, status, frame.shape)
+        h, w = frame.shape
+        if len(found):
+            self._off_overlay(found, status, h, w)
+        old_ids = self._ids
         pos, vel, ids, lost, moved, dx, dy, scale, turn = _advance(
             self._pos, found, ssd, status, self._ids, self._wsum, float(p.max_residual))
         if 0 < len(pos) < FEW_KEPT and len(pos) <= FEW_SHARE * len(self._pos):
@@ -450,6 +480,9 @@ class Tracker:
             self._few += len(pos)
             pos, vel, ids = pos[:0], vel[:0], ids[:0]
             moved = False
+        self._anchor, self._anchor_at, self._scene_travel = _overlay_after(
+            old_ids, ids, pos, vel, self._anchor, self._anchor_at, self._scene_travel, h, w,
+            OVERLAY_BAND, OVERLAY_STILL)
         if moved:
             self._acc_dx += dx
             self._acc_dy += dy
@@ -465,6 +498,35 @@ class Tracker:
         self._pos = pos
         self._vel = vel
         self._ids = ids
+
+    def _off_overlay(self, found: np.ndarray, status: np.ndarray, h: int, w: int) -> None:
+        """Mark the matches on a burnt-in overlay (OVERLAY_BAND) as having left the picture
+        (status LEFT, in place), and remember their cells; and those within cells known to
+        hold one. The scene's travel counts this frame's step too, so that a fast pan proves
+        an overlay at its first frame."""
+        mask = self._overlay
+        if mask is not None:
+            _drop_in_cells(found, status, mask, OVERLAY_CELL)
+        travel = _travel_now(self._pos, found, status, self._scene_travel, h, w, OVERLAY_BAND)
+        if travel < OVERLAY_PROOF:
+            return
+        if mask is None:
+            mask = np.zeros(((h + OVERLAY_CELL - 1) // OVERLAY_CELL,
+                             (w + OVERLAY_CELL - 1) // OVERLAY_CELL), np.bool_)
+        if _overlay_flags(found, status, self._anchor, self._anchor_at, travel, h, w,
+                          OVERLAY_BAND, OVERLAY_STILL, OVERLAY_PROOF, mask, OVERLAY_CELL):
+            self._overlay = mask
+
+    def _outside_overlay(self, pre: Preprocessed) -> np.ndarray:
+        """The frame's candidates with the cells of a burnt-in overlay left out before its
+        THRES_PERCENT strongest are taken: its white-on-black text holds the frame's strongest
+        corners, and they took most of them (RubberWhale approaching behind a timestamp kept 3
+        features of 54, none found again). Computed here, from the filtered frame, only on a
+        frame that selects features (~0.1 ms at 256 x 256)."""
+        assert self._overlay is not None
+        grad, floor = strength_of(pre.filtered, self._params)
+        _clear_cells(grad, self._overlay, OVERLAY_CELL)
+        return candidates_above(grad, floor, self._params)[0]
 
     def _find_void(self, frame: np.ndarray) -> None:
         """Find the void regions at the edges of ``frame`` (bars, a lens's dark corners:
@@ -556,7 +618,7 @@ class Tracker:
         room = p.max_features - len(self._pos)
         if room <= 0:
             return
-        cands = pre.candidates
+        cands = pre.candidates if self._overlay is None else self._outside_overlay(pre)
         # a feature's correlation window must fit in the frame: preprocessing's candidates
         # keep that margin, but a peer's preprocessing/frame need not (corner candidates of
         # a black 8 x 8 frame were 4 features of an estimate marked valid)
@@ -588,6 +650,9 @@ class Tracker:
                 vel += (new - self._pos.mean(axis=0)) @ step.T
         self._pos = np.concatenate([self._pos, new])
         self._vel = np.concatenate([self._vel, vel])
+        self._anchor = np.concatenate([self._anchor, new])
+        self._anchor_at = np.concatenate([self._anchor_at,
+                                          np.full(len(new), self._scene_travel)])
         self._ids = np.concatenate([self._ids, np.arange(self._next_id,
                                                          self._next_id + len(new))])
         # a new feature is followed from its prediction as the tracked ones are (a search
@@ -733,6 +798,126 @@ def _zoomed(frame: np.ndarray, pts: np.ndarray, zoom: float, levels: int, turn: 
     moved = np.column_stack([sx * pts[:, 0] + 0.5 * (sx - 1.0) - kx,
                              sy * pts[:, 1] + 0.5 * (sy - 1.0) - ky])
     return build_pyramid(scaled, levels), moved
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _in_band(x, y, h, w, band):  # pragma: no cover - numba
+    """Whether (x, y) lies within ``band`` times the frame's size of its edges."""
+    bx = band * w
+    by = band * h
+    return x < bx or x > w - 1 - bx or y < by or y > h - 1 - by
+
+
+@nb.njit(cache=True, nogil=True)
+def _overlay_flags(found, status, anchor, at, travel, h, w, band, still, proof, mask,
+                   cell):  # pragma: no cover - numba
+    """Mark LEFT (in place) the matches found (status OK) within ``band`` of the frame's edges
+    that stand within ``still`` px of their ``anchor`` while the scene travelled ``proof`` px
+    or more since (``travel`` - ``at``): a burnt-in overlay (OVERLAY_BAND); set their cells
+    of ``cell`` px and the 8 around each in ``mask``. Returns how many."""
+    marked = 0
+    rows, cols = mask.shape
+    for i in range(found.shape[0]):
+        if status[i] != OK or travel - at[i] < proof:
+            continue
+        x = found[i, 0]
+        y = found[i, 1]
+        ex = x - anchor[i, 0]
+        ey = y - anchor[i, 1]
+        if ex * ex + ey * ey <= still * still and _in_band(x, y, h, w, band):
+            status[i] = LEFT
+            marked += 1
+            cy = int(y) // cell
+            cx = int(x) // cell
+            for yy in range(max(cy - 1, 0), min(cy + 2, rows)):
+                for xx in range(max(cx - 1, 0), min(cx + 2, cols)):
+                    mask[yy, xx] = True
+    return marked
+
+
+@nb.njit(cache=True, nogil=True)
+def _scene_step(steps, m):  # pragma: no cover - numba
+    """How far the scene moved in a frame, from the |dx| + |dy| of its ``m`` features away
+    from the edges (``steps[:m]``): their median, where 3 or more and at most
+    OVERLAY_STILL_SHARE of them stood (within STILL_STEP px), else 0."""
+    if m < 3:
+        return 0.0
+    still = 0
+    for i in range(m):
+        still += steps[i] <= STILL_STEP
+    return np.median(steps[:m]) if still <= OVERLAY_STILL_SHARE * m else 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def _travel_now(pos, found, status, travel, h, w, band):  # pragma: no cover - numba
+    """The scene's travel with this frame's step: ``travel`` plus :func:`_scene_step` of the
+    matches found (status OK) away from the frame's edges."""
+    steps = np.empty(pos.shape[0], np.float64)
+    m = 0
+    for i in range(pos.shape[0]):
+        if status[i] == OK and not _in_band(found[i, 0], found[i, 1], h, w, band):
+            steps[m] = abs(found[i, 0] - pos[i, 0]) + abs(found[i, 1] - pos[i, 1])
+            m += 1
+    return travel + _scene_step(steps, m)
+
+
+@nb.njit(cache=True, nogil=True)
+def _drop_in_cells(found, status, mask, cell):  # pragma: no cover - numba
+    """Mark LEFT (in place) the matches found (status OK) in a cell set in ``mask``."""
+    rows, cols = mask.shape
+    for i in range(found.shape[0]):
+        if status[i] == OK:
+            cy = int(found[i, 1]) // cell
+            cx = int(found[i, 0]) // cell
+            if 0 <= cy < rows and 0 <= cx < cols and mask[cy, cx]:
+                status[i] = LEFT
+
+
+@nb.njit(cache=True, nogil=True)
+def _overlay_after(old_ids, ids, pos, vel, anchor, at, travel, h, w, band,
+                   still):  # pragma: no cover - numba
+    """The anchors (where each kept feature last moved from) and their travels for the
+    features ``ids`` kept of ``old_ids`` (both increasing), a feature that moved beyond
+    ``still`` px of its anchor anchored anew where it is; and the scene's travel, increased by
+    :func:`_scene_step` of the kept features away from the edges. Returns (anchors, travels,
+    travel)."""
+    n = ids.shape[0]
+    new_anchor = np.empty((n, 2), np.float64)
+    new_at = np.empty(n, np.float64)
+    steps = np.empty(n, np.float64)
+    m = 0
+    i = 0
+    for j in range(n):
+        while old_ids[i] != ids[j]:
+            i += 1
+        ax = anchor[i, 0]
+        ay = anchor[i, 1]
+        ex = pos[j, 0] - ax
+        ey = pos[j, 1] - ay
+        if ex * ex + ey * ey > still * still:
+            new_anchor[j, 0] = pos[j, 0]
+            new_anchor[j, 1] = pos[j, 1]
+            new_at[j] = travel
+        else:
+            new_anchor[j, 0] = ax
+            new_anchor[j, 1] = ay
+            new_at[j] = at[i]
+        if not _in_band(pos[j, 0], pos[j, 1], h, w, band):
+            steps[m] = abs(vel[j, 0]) + abs(vel[j, 1])
+            m += 1
+    return new_anchor, new_at, travel + _scene_step(steps, m)
+
+
+@nb.njit(cache=True, nogil=True)
+def _clear_cells(grad, mask, cell):  # pragma: no cover - numba
+    """Zero ``grad`` (H, W) in the cells set in ``mask``, in place."""
+    h, w = grad.shape
+    for cy in range(mask.shape[0]):
+        for cx in range(mask.shape[1]):
+            if mask[cy, cx]:
+                for y in range(cy * cell, min((cy + 1) * cell, h)):
+                    for x in range(cx * cell, min((cx + 1) * cell, w)):
+                        grad[y, x] = 0.0
 
 
 @nb.njit(cache=True, nogil=True)
@@ -918,10 +1103,23 @@ def warm_up(on_compile: Callable[[], None] | None = None,
                 track_frames(sequence(3, size=(side, side), seed=1), small)
                 exposure.warm()
                 features.warm()
+                _warm_overlay()
             finally:
                 _WARMING.discard(threading.get_ident())
             _WARM.add(key)
     return watch.compiled
+
+
+def _warm_overlay() -> None:
+    """Compile (or load) the overlay's kernels that run only once one is found
+    (OVERLAY_BAND), which a warm-up's frames need not show."""
+    pts = np.zeros((1, 2), np.float64)
+    status = np.zeros(1, np.int8)
+    mask = np.zeros((2, 2), np.bool_)
+    _overlay_flags(pts, status, pts, np.zeros(1), 0.0, 16, 16, OVERLAY_BAND, OVERLAY_STILL,
+                   OVERLAY_PROOF, mask, OVERLAY_CELL)
+    _drop_in_cells(pts, status, mask, OVERLAY_CELL)
+    _clear_cells(np.zeros((16, 16), np.float32), mask, OVERLAY_CELL)
 
 
 def kernels_warm(params: TrackerParams) -> bool:

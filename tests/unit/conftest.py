@@ -76,6 +76,20 @@ def sources() -> list[tuple[str, np.ndarray]]:
     return found
 
 
+def panned_views(name: str, n: int, step: tuple[float, float], seed: int) -> list[np.ndarray]:
+    """``n`` uint8 views of the Middlebury frame10 of ``name`` (:func:`source_image`), the
+    view moving ``step`` px a frame from (150, 80), each with unit Gaussian noise: the scene
+    moves by -``step`` a frame."""
+    source = source_image(name)
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        view = view_of(source, 150.0 + step[0] * k, 80.0 + step[1] * k)
+        out.append(np.clip(np.rint(view + rng.standard_normal(view.shape)), 0, 255)
+                   .astype(np.uint8))
+    return out
+
+
 def view_of(source: np.ndarray, x: float, y: float, size: int = 256) -> np.ndarray:
     """The ``size`` square of ``source`` whose top left corner is at (x, y), float32,
     interpolated (cubic), its edges reflected: a camera's view moved by a sub-pixel amount."""

@@ -17,7 +17,7 @@ from vistrack.common.vision import tracker as tracker_module
 from vistrack.common.vision.features import near_void, void_runs, void_step
 from vistrack.common.vision.tracker import Tracker
 
-from conftest import source_image, view_of
+from conftest import panned_views
 
 
 def test_bars_and_an_image_circle_are_found_from_the_edges():
@@ -84,16 +84,11 @@ def test_a_window_that_would_take_in_a_void_is_near_it():
 
 
 def _barred(name: str, n: int, step: tuple[float, float], bars: int) -> list[np.ndarray]:
-    source = source_image(name)
-    rng = np.random.default_rng(3)
-    out = []
-    for k in range(n):
-        view = view_of(source, 150.0 + step[0] * k, 80.0 + step[1] * k)
-        noisy = np.clip(np.rint(view + rng.standard_normal(view.shape)), 0, 255)
-        noisy[:, :bars] = 0
-        noisy[:, -bars:] = 0
-        out.append(noisy.astype(np.uint8))
-    return out
+    frames = panned_views(name, n, step, 3)
+    for frame in frames:
+        frame[:, :bars] = 0
+        frame[:, -bars:] = 0
+    return frames
 
 
 @pytest.mark.data

@@ -56,7 +56,7 @@ from .features import (
     void_runs,
     void_step,
 )
-from .motion import FEW_PAIRS, _incremental_motion, _median_small, centroid_scatter
+from .motion import FEW_PAIRS, STILL_PX, _incremental_motion, _median_small, centroid_scatter
 from .noise import noise_level
 from .preprocess import Preprocessed, candidates_above, preprocess, strength_of
 from .pyramid import FRAME_WORK, Pyramid, TrackPlan, build_pyramid, sum_type, wide_tests
@@ -124,12 +124,11 @@ OVERLAY_STILL = 0.05
 #: it are outside the picture from then on: no feature is taken, nor kept, there (a
 #: timestamp's digits change).
 #: The scene moves only in a frame where at most OVERLAY_STILL_SHARE of the features away
-#: from the edges stood within STILL_STEP px: a still camera watching something large cross
+#: from the edges stood within motion.STILL_PX: a still camera watching something large cross
 #: the middle of its view (a third of its width) moved them by their median, and the still
 #: background at the edges was taken for an overlay.
 OVERLAY_PROOF = 1.5
 OVERLAY_STILL_SHARE = 0.2
-STILL_STEP = 0.5
 OVERLAY_CELL = 8
 
 
@@ -219,10 +218,10 @@ class Tracker:
         # the features have moved (a frame's mean displacement, summed), and the last frame's
         # void (None: none)
         self._void_record: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._travel = 0.0
+        self._void_travel = 0.0
         self._void: np.ndarray | None = None
         # burnt-in overlays (OVERLAY_BAND): where each feature last moved from and the scene's
-        # travel then, the scene's travel so far, and the overlay points found
+        # travel then, the scene's travel so far, and the cells found to hold one
         self._anchor = np.empty((0, 2), np.float64)
         self._anchor_at = np.empty(0, np.float64)
         self._scene_travel = 0.0
@@ -496,7 +495,7 @@ class Tracker:
         self._turn = turn if moved and abs(turn) <= TURN_MAX else 0.0
         self._lost += lost
         if len(vel) and self._void_record is not None:  # only while runs are followed
-            self._travel += float(np.abs(vel).mean()) * 2.0  # |dx| + |dy|, over the kept
+            self._void_travel += float(np.abs(vel).mean()) * 2.0  # |dx| + |dy|, over the kept
         self._pos = pos
         self._vel = vel
         self._ids = ids
@@ -543,7 +542,7 @@ class Tracker:
         if record is None or record[0].shape != runs.shape:
             record = self._void_record = (np.zeros_like(runs), np.zeros(runs.shape, np.float64),
                                           np.zeros(runs.shape, np.bool_))
-        void, found = void_step(runs, *record, self._travel, VOID_SETTLE, VOID_PROOF)
+        void, found = void_step(runs, *record, self._void_travel, VOID_SETTLE, VOID_PROOF)
         self._void = void if found else None
 
     def _void_margin(self) -> int:
@@ -841,12 +840,12 @@ def _overlay_flags(found, status, anchor, at, travel, h, w, band, still, proof, 
 def _scene_step(steps, m):  # pragma: no cover - numba
     """How far the scene moved in a frame, from the |dx| + |dy| of its ``m`` features away
     from the edges (``steps[:m]``): their median, where 3 or more and at most
-    OVERLAY_STILL_SHARE of them stood (within STILL_STEP px), else 0."""
+    OVERLAY_STILL_SHARE of them stood (within STILL_PX), else 0."""
     if m < 3:
         return 0.0
     still = 0
     for i in range(m):
-        still += steps[i] <= STILL_STEP
+        still += steps[i] <= STILL_PX
     return np.median(steps[:m]) if still <= OVERLAY_STILL_SHARE * m else 0.0
 
 
